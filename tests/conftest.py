@@ -1,0 +1,59 @@
+"""Shared fixtures: simulated devices on real pseudo-terminals."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tissuecli.simulate import SimulatorProcess
+
+
+@pytest.fixture
+def forceps(tmp_path: Path) -> Iterator[callable]:
+    """Factory: ``forceps(*args)`` starts a simulated forceps, stopped at teardown."""
+    started: list[SimulatorProcess] = []
+
+    def start(*args: str, name: str = "forceps") -> SimulatorProcess:
+        sim = SimulatorProcess("forceps", tmp_path / name, list(args)).__enter__()
+        started.append(sim)
+        return sim
+
+    yield start
+    for sim in started:
+        sim.stop()
+
+
+def tissuecli(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
+    """Run the command line as a user would, in its own process."""
+    return subprocess.run(
+        [sys.executable, "-m", "tissuecli", *args],
+        capture_output=True,
+        text=True,
+        timeout=kwargs.pop("timeout", 60),
+        **kwargs,
+    )  # type: ignore[arg-type]
+
+
+def popen(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tissuecli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def assert_clean_error(result: subprocess.CompletedProcess[str] | object, *needles: str) -> None:
+    """Exit code 1, a one-line 'Error: ...' message containing ``needles``, no traceback."""
+    out = getattr(result, "stderr", None) or getattr(result, "output", "")
+    code = getattr(result, "returncode", getattr(result, "exit_code", None))
+    assert code == 1, out
+    assert "Traceback" not in out, out
+    lines = [line for line in out.strip().splitlines() if line.strip()]
+    assert lines and lines[-1].startswith("Error: "), out
+    for needle in needles:
+        assert needle in lines[-1], out

@@ -1,0 +1,198 @@
+"""The tissue law ``K f0(x) + S f1(xdot) + M xddot = F`` and its model forms.
+
+Each form is one small class in a registry, so a new stiffness or damping law
+is one new class and touches no fitting or rendering code. Everything is SI:
+x in m, xdot in m/s, xddot in m/s^2, F in N.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError
+
+Array = NDArray[np.float64]
+
+
+class Form(ABC):
+    """A nonlinear function of one kinematic variable, with its parameter's unit.
+
+    Subclasses set ``name`` (as written in parameter files), ``role``
+    (``"stiffness"`` acts on x, ``"damping"`` on xdot) and ``unit`` (the SI
+    unit of the coefficient multiplying the form, so that the product is N).
+    """
+
+    name: ClassVar[str]
+    role: ClassVar[str]
+    unit: ClassVar[str]
+    label: ClassVar[str]  # for plots and reports
+
+    @abstractmethod
+    def __call__(self, u: Array) -> Array:
+        """The form evaluated at ``u`` (shape (n,), SI)."""
+
+    @abstractmethod
+    def derivative(self, u: Array) -> Array:
+        """d form / du at ``u``: the local slope a controller needs."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+
+FORMS: dict[str, dict[str, Form]] = {"stiffness": {}, "damping": {}}
+
+
+def register(cls: type[Form]) -> type[Form]:
+    """Class decorator: add a form to :data:`FORMS` under its role and name."""
+    FORMS[cls.role][cls.name] = cls()
+    return cls
+
+
+@register
+class Linear(Form):
+    """f0(x) = x: Hookean stiffness, K in N/m."""
+
+    name, role, unit, label = "x", "stiffness", "N/m", "x"
+
+    def __call__(self, u: Array) -> Array:
+        return np.asarray(u, dtype=float)
+
+    def derivative(self, u: Array) -> Array:
+        return np.ones_like(u, dtype=float)
+
+
+@register
+class Cubic(Form):
+    """f0(x) = x^3: hardening stiffness, K in N/m^3."""
+
+    name, role, unit, label = "x^3", "stiffness", "N/m^3", "x³"
+
+    def __call__(self, u: Array) -> Array:
+        u = np.asarray(u, dtype=float)
+        return u * u * u
+
+    def derivative(self, u: Array) -> Array:
+        return 3.0 * np.asarray(u, dtype=float) ** 2
+
+
+@register
+class Viscous(Form):
+    """f1(xdot) = xdot: Newtonian damping, S in N s/m."""
+
+    name, role, unit, label = "xdot", "damping", "N s/m", "ẋ"
+
+    def __call__(self, u: Array) -> Array:
+        return np.asarray(u, dtype=float)
+
+    def derivative(self, u: Array) -> Array:
+        return np.ones_like(u, dtype=float)
+
+
+@register
+class Quadratic(Form):
+    """f1(xdot) = xdot |xdot|: quadratic damping, S in N s^2/m^2.
+
+    Written ``"xdot^2"`` in files. The sign is kept so that the damping force
+    always opposes motion; a plain square would create energy on release.
+    """
+
+    name, role, unit, label = "xdot^2", "damping", "N s^2/m^2", "ẋ|ẋ|"
+
+    def __call__(self, u: Array) -> Array:
+        u = np.asarray(u, dtype=float)
+        return u * np.abs(u)
+
+    def derivative(self, u: Array) -> Array:
+        return 2.0 * np.abs(np.asarray(u, dtype=float))
+
+
+def form(role: str, name: str) -> Form:
+    """Look a form up by role and name, with an error that lists the choices."""
+    try:
+        return FORMS[role][name]
+    except KeyError:
+        choices = ", ".join(FORMS[role])
+        raise InputError(f"unknown {role} form {name!r}; choose one of: {choices}") from None
+
+
+PARAMETERS = ("K", "S", "M")
+
+
+@dataclass(frozen=True)
+class TissueModel:
+    """A choice of forms: ``K f0(x) + S f1(xdot) + M xddot = F``."""
+
+    f0: Form
+    f1: Form
+
+    @classmethod
+    def from_names(cls, f0: str = "x", f1: str = "xdot") -> TissueModel:
+        return cls(form("stiffness", f0), form("damping", f1))
+
+    @property
+    def name(self) -> str:
+        return f"{self.f0.name},{self.f1.name}"
+
+    @property
+    def units(self) -> dict[str, str]:
+        """SI unit of each parameter."""
+        return {"K": self.f0.unit, "S": self.f1.unit, "M": "kg"}
+
+    def design(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
+        """Design matrix, shape (n, 3): columns f0(x), f1(xdot), xddot."""
+        x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
+        return np.column_stack([self.f0(x), self.f1(v), a])
+
+    def force(self, p: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
+        """F = K f0(x) + S f1(xdot) + M xddot for p = (K, S, M); shape (n,) in N."""
+        K, S, M = np.asarray(p, dtype=float)
+        return (
+            K * self.f0(np.asarray(x, float))
+            + S * self.f1(np.asarray(v, float))
+            + M * np.asarray(a, float)
+        )
+
+
+def all_models() -> list[TissueModel]:
+    """Every registered combination of stiffness and damping forms."""
+    return [
+        TissueModel(f0, f1)
+        for f0 in FORMS["stiffness"].values()
+        for f1 in FORMS["damping"].values()
+    ]
+
+
+@dataclass(frozen=True)
+class Tissue:
+    """A model with parameter values (SI): what ``simulate``, ``fit`` and ``play`` share."""
+
+    model: TissueModel
+    K: float
+    S: float
+    M: float
+
+    @property
+    def p(self) -> Array:
+        return np.array([self.K, self.S, self.M])
+
+    def force(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
+        return self.model.force(self.p, x, v, a)
+
+    def validate(self) -> Tissue:
+        """Raise :class:`InputError` unless the parameters are finite and non-negative."""
+        for name in PARAMETERS:
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise InputError(
+                    f"parameter {name} = {value} {self.model.units[name]} must be finite and >= 0"
+                )
+        return self
+
+
+DEFAULT_TISSUE = Tissue(TissueModel.from_names("x", "xdot"), K=350.0, S=3.0, M=0.05)
+"""A liver-like default: 350 N/m, 3 N s/m, 50 g moving mass (field notes, section 2)."""
