@@ -291,6 +291,7 @@ def record(
             port,
             out,
             name,
+            status_interval_s=0.5 if sys.stderr.isatty() else 5.0,  # logs get a line every 5 s
             duration_s=duration,
             tissue=tissue,
             note=note,
