@@ -144,3 +144,11 @@ def test_device_vanishing_mid_session_saves_data_and_exits_nonzero(forceps, tmp_
     assert "lost" in err and "saved" in err
     s = storage.read_session(out, "gone")
     assert len(s) >= 800 and s.meta["stop_reason"].startswith("device lost")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [1000, 10000])
+def test_sixty_seconds_lose_no_frame(forceps, tmp_path, rate):
+    sim = forceps("--rate", str(rate))
+    res = record(str(sim.link), tmp_path / "g.h5", "long", duration_s=60.0)
+    assert (res.samples, res.lost_frames, res.bad_frames) == (60 * rate, 0, 0)
