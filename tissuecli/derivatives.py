@@ -1,0 +1,241 @@
+"""Velocity and acceleration of the jaw from sampled position.
+
+Differentiators are small interchangeable classes in :data:`DIFFERENTIATORS`.
+Each returns smoothed position, velocity and acceleration and the force passed
+through the *same* filter, so that for the linear parts of the model
+``filt(F) = K filt(x) + S filt(x)' + M filt(x)''`` holds exactly and the
+filter adds no bias. Edges, where a filter has only one side, are trimmed.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import oaconvolve, savgol_coeffs, welch
+
+from .errors import FitError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Output of a differentiator, all arrays of shape (m,) after trimming.
+
+    Attributes
+    ----------
+    time, x_raw, x, v, a, force : ndarray
+        s, m (unfiltered), m, m/s, m/s^2, N (filtered like x).
+    kernels : tuple of ndarray
+        Convolution kernels giving x, v and a (the last two include 1/dt, 1/dt^2).
+    keep : slice
+        Which input samples survive the trim.
+    noise_gain : tuple of float
+        Output SD over input SD for white input noise: position, velocity (1/s)
+        and acceleration (1/s^2).
+    cutoff_hz : float
+        The filter's -3 dB frequency (nan if it does not smooth).
+    method : str
+        What was used, for reports.
+    """
+
+    time: Array
+    x_raw: Array
+    x: Array
+    v: Array
+    a: Array
+    force: Array
+    kernels: tuple[Array, Array, Array]
+    keep: slice
+    noise_gain: tuple[float, float, float]
+    cutoff_hz: float
+    method: str
+
+    @property
+    def window(self) -> int:
+        return int(self.kernels[0].size)
+
+    def smooth(self, u: Array) -> Array:
+        """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
+        return oaconvolve(u, self.kernels[0], mode="valid")
+
+
+class Differentiator(ABC):
+    """Estimates x, xdot, xddot and filters F alike, by three convolution kernels.
+
+    Subclasses give the kernels; trimming, noise gains and the force filter are shared.
+    """
+
+    name: ClassVar[str]
+
+    @abstractmethod
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        """Kernels for x, v, a (odd length, for ``np.convolve``), cutoff in Hz, description."""
+
+    def __call__(self, time: Array, x: Array, force: Array) -> Kinematics:
+        """Differentiate; ``time`` must be uniformly sampled (s)."""
+        dt = sample_interval(time)
+        (k0, k1, k2), cutoff, method = self.kernels(x, dt)
+        if 2 * k0.size > x.size:
+            raise FitError(
+                f"{x.size} samples are too few for a {k0.size}-sample derivative filter; "
+                "record a longer session"
+            )
+        h = k0.size // 2
+        keep = slice(h, x.size - h)
+
+        def conv(u: Array, k: Array) -> Array:
+            return oaconvolve(u, k, mode="valid")
+
+        return Kinematics(
+            time=time[keep], x_raw=x[keep], x=conv(x, k0), v=conv(x, k1), a=conv(x, k2),
+            force=conv(force, k0), kernels=(k0, k1, k2), keep=keep,
+            noise_gain=tuple(float(np.linalg.norm(k)) for k in (k0, k1, k2)),  # type: ignore[arg-type]
+            cutoff_hz=cutoff, method=method,
+        )
+
+
+DIFFERENTIATORS: dict[str, type[Differentiator]] = {}
+
+
+def register(cls: type[Differentiator]) -> type[Differentiator]:
+    DIFFERENTIATORS[cls.name] = cls
+    return cls
+
+
+def sample_interval(time: Array) -> float:
+    """The sample interval in s, refusing data too irregular for a fixed-step filter."""
+    steps = np.diff(time)
+    dt = float(np.median(steps))
+    if not dt > 0:
+        raise FitError("time does not increase; cannot differentiate")
+    if np.max(np.abs(steps - dt)) > 0.25 * dt:
+        worst = int(np.argmax(np.abs(steps - dt)))
+        raise FitError(
+            f"samples are not evenly spaced (step of {steps[worst] * 1e3:.3g} ms near "
+            f"t = {time[worst]:.3f} s against {dt * 1e3:.3g} ms): lost frames or a gap; "
+            "fit a gap-free part of the session"
+        )
+    return dt
+
+
+def signal_band_hz(x: Array, fs: float, snr_db: float = 20.0) -> float:
+    """Highest frequency at which the position spectrum stands ``snr_db`` above its noise floor.
+
+    The floor is the median of the Welch spectrum over the top half of the band,
+    where a jaw moved by a hand has no content.
+    """
+    nperseg = int(min(x.size, max(256, 2 ** np.ceil(np.log2(4 * fs)))))
+    f, p = welch(x - np.mean(x), fs=fs, nperseg=nperseg)
+    floor = np.median(p[f > fs / 4]) if np.any(f > fs / 4) else np.min(p)
+    above = np.flatnonzero(p > floor * 10 ** (snr_db / 10))
+    above = above[f[above] > 0]
+    if above.size == 0:
+        return float(f[1]) if f.size > 1 else fs / 4
+    return float(f[above[-1]])
+
+
+@register
+class Gaussian(Differentiator):
+    """Gaussian smoothing and its exact derivatives: the default.
+
+    The kernels are ``g``, ``g'`` and ``g''`` of one Gaussian, sampled. Because
+    ``(g * x)' = g' * x``, filtering force with ``g`` keeps the linear part of
+    the law exact: ``g * F = K g * x + S g' * x + M g'' * x``. A Savitzky-Golay
+    derivative is not the derivative of its own smoothed output, which on clean
+    data biased M by +14 % (docs/estimators.md).
+
+    Parameters
+    ----------
+    sigma_s : float, optional
+        Kernel width in s. By default the -3 dB cutoff ``0.1325 / sigma`` is put
+        at ``cutoff_ratio`` times the position's signal band.
+    cutoff_ratio : float
+        Cutoff over signal band; larger keeps more signal and more noise.
+    """
+
+    name = "gaussian"
+
+    def __init__(self, sigma_s: float | None = None, cutoff_ratio: float = 2.5) -> None:
+        self.sigma_s = sigma_s
+        self.cutoff_ratio = cutoff_ratio
+
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        fs = 1.0 / dt
+        sigma = self.sigma_s or 0.1325 / min(self.cutoff_ratio * signal_band_hz(x, fs), 0.4 * fs)
+        sigma = max(sigma, 1.5 * dt)  # narrower kernels alias: their spectrum reaches Nyquist
+        h = int(np.ceil(5 * sigma / dt))
+        t = np.arange(-h, h + 1) * dt
+        g = np.exp(-0.5 * (t / sigma) ** 2)
+        g /= g.sum()
+        # convolution: (g * x)'(t) = sum_j g'(t_j) x(t - t_j), so the kernel is g' itself
+        g1 = -(t / sigma**2) * g
+        g2 = ((t / sigma**2) ** 2 - 1 / sigma**2) * g
+        return (g, g1, g2), 0.1325 / sigma, f"gaussian(sigma={sigma * 1e3:.3g} ms, {2 * h + 1} taps)"
+
+
+@register
+class SavitzkyGolay(Differentiator):
+    """Savitzky-Golay smoothing differentiator (local least-squares polynomial).
+
+    Parameters
+    ----------
+    window : int, optional
+        Length in samples (odd). By default the -3 dB cutoff, from Schafer's
+        approximation ``f_c / (fs/2) = (p + 1) / (3.2 h - 4.6)`` for half-width
+        ``h`` and order ``p``, is put at ``cutoff_ratio`` times the signal band.
+    polyorder : int
+        Degree of the local polynomial (>= 2 for acceleration).
+    """
+
+    name = "savgol"
+
+    def __init__(self, window: int | None = None, polyorder: int = 3,
+                 cutoff_ratio: float = 2.5) -> None:
+        self.window = window
+        self.polyorder = polyorder
+        self.cutoff_ratio = cutoff_ratio
+
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        fs, p = 1.0 / dt, self.polyorder
+        if self.window:
+            window = self.window | 1
+        else:
+            fc = min(self.cutoff_ratio * signal_band_hz(x, fs), 0.45 * fs)
+            window = 2 * int(np.ceil(((p + 1) * fs / (2 * fc) + 4.6) / 3.2)) + 1
+        window = max(window, p + 2 + (p + 1) % 2)
+        ks = tuple(savgol_coeffs(window, p, deriv=k, delta=dt, use="conv") for k in range(3))
+        half = (window - 1) / 2
+        cutoff = fs / 2 * min(1.0, (p + 1) / max(3.2 * half - 4.6, 1e-9))
+        return ks, cutoff, f"savgol(window={window}, order={p})"  # type: ignore[return-value]
+
+
+@register
+class FiniteDifference(Differentiator):
+    """Central differences (``np.gradient``) twice, no smoothing: the naive baseline.
+
+    Its noise gain at 1 kHz is about 700 for velocity and 6e5 for acceleration,
+    so it is offered for comparison in benchmarks, not as a default.
+    """
+
+    name = "gradient"
+
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        k0 = np.array([0.0, 0.0, 1.0, 0.0, 0.0])
+        k1 = np.array([0.0, 0.5, 0.0, -0.5, 0.0]) / dt
+        k2 = np.array([0.25, 0.0, -0.5, 0.0, 0.25]) / dt**2
+        return (k0, k1, k2), float("nan"), "gradient"
+
+
+def differentiator(name: str, **kwargs: object) -> Differentiator:
+    """Look a differentiator up by name."""
+    try:
+        return DIFFERENTIATORS[name](**kwargs)  # type: ignore[arg-type]
+    except KeyError:
+        raise FitError(
+            f"unknown differentiator {name!r}; choose one of: {', '.join(DIFFERENTIATORS)}"
+        ) from None

@@ -1,0 +1,372 @@
+"""Identification of ``K f0(x) + S f1(xdot) + M xddot = F`` from a session.
+
+Two estimators with the scikit-learn shape (keyword hyperparameters,
+``fit(session)`` returning self, fitted attributes ending in ``_``):
+
+- :class:`WindowedPinv`: the paper's method, a pseudoinverse on each of m
+  windows of n+1 samples, keeping the window of smallest residual;
+- :class:`BayesianFit`: every model form at once, exact posteriors and
+  evidences where they exist, emcee where the positivity bounds cut the
+  posterior, posterior model probabilities, and diagnostics.
+
+Both see the data through a differentiator (:mod:`tissuecli.derivatives`).
+They work on arrays; reading and writing files is the caller's business.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from emcee.autocorr import integrated_time
+from numpy.typing import NDArray
+from scipy.signal import welch
+
+from .bayes import ExactPosterior, Posterior, Prior, Stats, run_emcee, stepping_stone
+from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
+from .errors import FitError
+from .models import PARAMETERS, TissueModel, all_models
+from .session import Session
+
+Array = NDArray[np.float64]
+
+MIN_SAMPLES = 200
+#: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
+DECISIVE = float(np.log(100.0))
+#: posterior mass beyond the positivity bounds above which the posterior is sampled
+CUT_THRESHOLD = 1e-3
+
+
+def parse_forms(spec: str | Sequence[str] | None) -> list[TissueModel]:
+    """``"all"``/None, ``"x,xdot"`` or ``["x,xdot", "x^3,xdot"]`` into models."""
+    if spec is None or spec == "all":
+        return all_models()
+    specs = [spec] if isinstance(spec, str) else list(spec)
+    models = []
+    for item in specs:
+        parts = [p.strip() for p in item.split(",")]
+        if len(parts) != 2:
+            raise FitError(f"--forms {item!r}: give f0,f1 such as x,xdot or x^3,xdot^2, or all")
+        models.append(TissueModel.from_names(*parts))
+    return models
+
+
+def prepare(session: Session, diff: Differentiator) -> Kinematics:
+    """Check that a session can identify anything, then differentiate it."""
+    session.validate()
+    n = len(session)
+    if n < MIN_SAMPLES:
+        raise FitError(f"session has {n} samples; at least {MIN_SAMPLES} are needed to fit")
+    x, f = session.position, session.force
+    if np.ptp(x) <= 0 or np.std(x) < 1e-9:
+        raise FitError("jaw position is constant: nothing to identify; the jaws must move "
+                       "while the forceps records")
+    if np.ptp(f) <= 0:
+        raise FitError("force is constant: check the force sensor and its calibration")
+    return diff(session.time, x, f)
+
+
+def position_noise_sd(x: Array, fs: float) -> float:
+    """SD of white noise on position from the flat top of its spectrum (m)."""
+    freqs, p = welch(x - x.mean(), fs=fs, nperseg=int(min(x.size, 4096)))
+    top = p[freqs > fs / 4]
+    return float(np.sqrt(np.median(top) * fs / 2)) if top.size else 0.0
+
+
+def design(model: TissueModel, kin: Kinematics, x_full: Array) -> Array:
+    """Design matrix (m, 3) consistent with the filtered force.
+
+    The stiffness column filters f0 of the raw position, ``g * f0(x)``, which
+    matches ``g * F`` for any f0; damping uses the filtered velocity (exact for
+    a linear f1) and inertia the filtered acceleration (exact).
+    """
+    return np.column_stack([kin.smooth(model.f0(x_full)), model.f1(kin.v), kin.a])
+
+
+def eiv_correction(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
+    """Expected contribution of position noise to A^T A (errors in variables).
+
+    Column j carries noise ``d_j * (k_j * e)`` to first order, with ``d_j`` the
+    form's slope and ``k_j`` its kernel, so ``E[noise_i . noise_j] =
+    sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it removes the
+    attenuation bias that noisy derivatives put on M.
+    """
+    d = np.column_stack([
+        kin.smooth(model.f0.derivative(x_full)), model.f1.derivative(kin.v), np.ones(kin.v.size)
+    ])
+    K = np.array([kin.kernels[0], kin.kernels[1], kin.kernels[2]])
+    return sigma_x**2 * (K @ K.T) * (d.T @ d)
+
+
+def residual_tau(r: Array) -> float:
+    """Integrated autocorrelation time of residuals (samples), >= 1."""
+    return float(max(1.0, integrated_time(r, c=5, tol=0, quiet=True)[0]))
+
+
+@dataclass
+class ModelResult:
+    """The fit of one model form."""
+
+    model: TissueModel
+    ln_evidence: float = float("nan")
+    probability: float = float("nan")
+    posterior: Posterior | None = None
+    ln_evidence_sampler: float | None = None
+    status: str = "exact"  # exact | emcee | skipped
+    reason: str = ""
+    cond: float = float("nan")
+    cond_scaled: float = float("nan")
+    residual_rms: float = float("nan")
+    flags: list[str] = field(default_factory=list)
+    design: Array = field(default_factory=lambda: np.empty((0, 3)), repr=False)
+    stats: Stats | None = field(default=None, repr=False)
+    prior: Prior | None = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+
+class BayesianFit:
+    """Bayesian identification over model forms with model choice.
+
+    Parameters
+    ----------
+    forms : str or list of str
+        ``"all"`` or forms such as ``"x,xdot"``.
+    sampler : {"auto", "emcee"}
+        ``auto`` samples only where the exact posterior does not apply (the
+        positivity bound cuts it); ``emcee`` samples every form not skipped,
+        and also estimates its evidence by stepping-stone as a check.
+    differentiator : str or Differentiator
+    eiv : bool
+        Correct the errors-in-variables bias from position noise.
+    decisive : float
+        ln Bayes factor behind the best beyond which a form is not sampled.
+    seed : int
+    progress : callable, optional
+        ``progress(form, steps, tau)`` while sampling.
+
+    Attributes
+    ----------
+    results_ : list of ModelResult
+        One per form, best first.
+    best_ : ModelResult
+    kinematics_ : Kinematics
+    tau_ : float
+        Integrated autocorrelation time of the best form's residuals (samples).
+    n_eff_ : float
+        Effective independent samples, n / tau.
+    sigma_x_ : float
+        Position noise SD estimated from its spectrum (m).
+    warnings_ : list of str
+    """
+
+    def __init__(self, forms: str | Sequence[str] = "all", *, sampler: str = "auto",
+                 differentiator: str | Differentiator = "gaussian", eiv: bool = True,
+                 decisive: float = DECISIVE, seed: int = 0,
+                 progress: Callable[[str, int, float], None] | None = None) -> None:
+        self.forms = forms
+        self.sampler = sampler
+        self.differentiator = differentiator
+        self.eiv = eiv
+        self.decisive = decisive
+        self.seed = seed
+        self.progress = progress
+
+    def _diff(self) -> Differentiator:
+        d = self.differentiator
+        return differentiator(d) if isinstance(d, str) else (d or Gaussian())
+
+    def fit(self, session: Session) -> BayesianFit:
+        if self.sampler not in ("auto", "emcee"):
+            raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
+        models = parse_forms(self.forms)
+        kin = prepare(session, self._diff())
+        x_full = session.position
+        fs = 1.0 / float(np.median(np.diff(session.time)))
+        self.kinematics_ = kin
+        self.sigma_x_ = 0.0
+        if self.eiv:
+            # quantisation with little dither is not white and hides from the spectrum's
+            # flat top, so the ADC step sets a floor: step^2 / 12
+            step = float(session.meta.get("position_resolution_m", 0.0) or 0.0)
+            self.sigma_x_ = max(position_noise_sd(x_full, fs), step / np.sqrt(12))
+        y = kin.force
+        rng = np.random.default_rng(self.seed)
+        self.warnings_: list[str] = []
+
+        designs = {m.name: design(m, kin, x_full) for m in models}
+        # residual correlation from the best-fitting form: smoothing makes neighbouring
+        # residuals alike, and treating them as independent would overstate certainty
+        rss, taus = {}, {}
+        for m in models:
+            A = designs[m.name]
+            beta = _lstsq_scaled(A, y)
+            r = y - A @ beta
+            rss[m.name] = float(r @ r)
+            taus[m.name] = residual_tau(r)
+        best_ls = min(rss, key=rss.get)  # type: ignore[arg-type]
+        self.tau_ = taus[best_ls]
+        self.n_eff_ = y.size / self.tau_
+        weight = 1.0 / self.tau_
+
+        results = []
+        for m in models:
+            A = designs[m.name]
+            corr = eiv_correction(m, kin, x_full, self.sigma_x_) if self.eiv else None
+            if corr is not None and np.any(np.linalg.eigvalsh(A.T @ A - corr) <= 0):
+                corr = None  # noise dominates a column: leave it uncorrected (flagged below)
+            st = Stats.from_data(A, y, weight=weight, correction=corr)
+            prior = Prior(scales=m.prior_scales())
+            exact = ExactPosterior(st, prior)
+            post = exact.summary(rng)
+            results.append(ModelResult(
+                model=m, ln_evidence=post.ln_evidence, posterior=post,
+                cond=float(np.linalg.cond(A)),
+                cond_scaled=float(np.linalg.cond(A / np.linalg.norm(A, axis=0))),
+                residual_rms=float(np.sqrt(rss[m.name] / y.size)),
+                design=A, stats=st, prior=prior))
+
+        top = max(r.ln_evidence for r in results)
+        for res in results:
+            behind = top - res.ln_evidence
+            assert res.posterior is not None
+            needs = res.posterior.outside > CUT_THRESHOLD or self.sampler == "emcee"
+            if not needs:
+                continue
+            if behind > self.decisive and len(results) > 1:
+                res.status = "skipped"
+                res.reason = (f"not sampled: ln Bayes factor {behind:.1f} behind the best "
+                              f"(> {self.decisive:.1f}, decisive)")
+                continue
+            cb = None
+            if self.progress is not None:
+                def cb(steps: int, tau: float, name: str = res.name) -> None:
+                    self.progress(name, steps, tau)  # type: ignore[misc]
+            cut = res.posterior.outside
+            res.posterior = run_emcee(res.stats, res.prior, rng, progress=cb)
+            res.status = "emcee"
+            res.reason = (f"sampled: the positivity bound cuts {100 * cut:.2g} % of the "
+                          "closed-form posterior" if self.sampler == "auto"
+                          else "sampled on request (--sampler emcee)")
+            if self.sampler == "emcee":
+                res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)
+            post = res.posterior
+            if not post.diagnostics.get("converged", True):
+                res.flags.append("chain shorter than 50 autocorrelation times")
+        for res in results:
+            if res.status == "exact" and self.sampler == "auto":
+                res.reason = ("exact posterior (closed form); positivity bound cuts "
+                              f"{res.posterior.outside:.1e} of it")
+        ln_z = np.array([r.ln_evidence for r in results])
+        prob = np.exp(ln_z - ln_z.max())
+        prob /= prob.sum()
+        for r, p in zip(results, prob, strict=True):
+            r.probability = float(p)
+            r.flags.extend(_identifiability(r))
+        results.sort(key=lambda r: -r.ln_evidence)
+        self.results_ = results
+        self.best_ = results[0]
+        self.warnings_.extend(f"{self.best_.name}: {f}" for f in self.best_.flags)
+        return self
+
+    def fitted_force(self, result: ModelResult | None = None) -> Array:
+        """Force predicted by a form's posterior mean on the fitted samples (N)."""
+        r = result or self.best_
+        return r.design @ r.posterior.mean  # type: ignore[union-attr]
+
+
+def _identifiability(r: ModelResult) -> list[str]:
+    """Flags for parameters the data do not pin down."""
+    flags = []
+    post = r.posterior
+    assert post is not None
+    scales = r.model.prior_scales()
+    for j, name in enumerate(PARAMETERS):
+        lo, hi = post.ci95[j]
+        if post.sd[j] > 0.3 * scales[j] or lo <= 0.02 * max(hi, 1e-300):
+            what = "no acceleration content" if name == "M" else "too little excitation"
+            flags.append(f"{name} not identified ({what}): 95 % interval "
+                         f"[{lo:.3g}, {hi:.3g}] {r.model.units[name]} reaches zero")
+        elif post.sd[j] > 0.25 * abs(post.mean[j]):
+            flags.append(f"{name} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                         "of its value")
+    return flags
+
+
+def _lstsq_scaled(A: Array, y: Array) -> Array:
+    """Least squares on unit-norm columns (x^3 in SI units is 1e6 smaller than x)."""
+    d = np.linalg.norm(A, axis=0)
+    d[d == 0] = 1.0
+    return np.linalg.lstsq(A / d, y, rcond=None)[0] / d
+
+
+class WindowedPinv:
+    """The paper's identification: pseudoinverse on m windows of n+1 samples.
+
+    Parameters
+    ----------
+    forms : str
+        One form, e.g. ``"x,xdot"``.
+    window_s : float
+        Window length in s (n+1 = window_s * rate).
+    differentiator : str or Differentiator
+
+    Attributes
+    ----------
+    params_ : ndarray, shape (3,)
+        (K, S, M) of the window with the smallest residual, SI.
+    windows_ : ndarray, shape (m, 3)
+        Parameters of every window.
+    residuals_ : ndarray, shape (m,)
+        RMS residual of each window (N).
+    best_window_ : int
+    cond_, cond_scaled_ : float
+        Condition numbers of the best window's design, raw and column-scaled.
+    pooled_ : ndarray, shape (3,)
+        All windows in one least-squares problem, for comparison.
+    """
+
+    def __init__(self, forms: str = "x,xdot", *, window_s: float = 1.0,
+                 differentiator: str | Differentiator = "gaussian") -> None:
+        self.forms = forms
+        self.window_s = window_s
+        self.differentiator = differentiator
+
+    def fit(self, session: Session) -> WindowedPinv:
+        (model,) = parse_forms(self.forms) if self.forms != "all" else (all_models()[0],)
+        d = self.differentiator
+        kin = prepare(session, differentiator(d) if isinstance(d, str) else d)
+        A, y = design(model, kin, session.position), kin.force
+        n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
+        m = A.shape[0] // n
+        if m < 1:
+            raise FitError(f"session shorter than one {self.window_s:g} s window; "
+                           "use a shorter --window or a longer session")
+        params, resid = np.empty((m, 3)), np.empty(m)
+        for i in range(m):
+            Ai, yi = A[i * n:(i + 1) * n], y[i * n:(i + 1) * n]
+            params[i] = _lstsq_scaled(Ai, yi)
+            resid[i] = np.sqrt(np.mean((yi - Ai @ params[i]) ** 2))
+        self.model_ = model
+        self.kinematics_ = kin
+        self.windows_, self.residuals_ = params, resid
+        self.best_window_ = int(np.argmin(resid))
+        self.params_ = params[self.best_window_]
+        Ab = A[self.best_window_ * n:(self.best_window_ + 1) * n]
+        self.cond_ = float(np.linalg.cond(Ab))
+        self.cond_scaled_ = float(np.linalg.cond(Ab / np.linalg.norm(Ab, axis=0)))
+        self.pooled_ = _lstsq_scaled(A[: m * n], y[: m * n])
+        self.window_samples_ = n
+        return self
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "model": self.model_.name, "window_samples": self.window_samples_,
+            "windows": int(self.windows_.shape[0]), "best_window": self.best_window_,
+            "best_residual_rms_N": float(self.residuals_[self.best_window_]),
+            "cond": self.cond_, "cond_scaled": self.cond_scaled_,
+        }
