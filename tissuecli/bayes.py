@@ -65,8 +65,9 @@ class Stats:
     n: float
 
     @classmethod
-    def from_data(cls, A: Array, y: Array, weight: float = 1.0,
-                  correction: Array | None = None) -> Stats:
+    def from_data(
+        cls, A: Array, y: Array, weight: float = 1.0, correction: Array | None = None
+    ) -> Stats:
         G = A.T @ A
         if correction is not None:
             G = G - correction
@@ -180,20 +181,27 @@ class ExactPosterior:
         sd = np.sqrt(np.diag(cov))
         if np.all(mu > 6 * sd):
             return 1.0
-        return float(stats.multivariate_normal(mean=-mu, cov=cov, allow_singular=True).cdf(
-            np.zeros_like(mu)))
+        return float(
+            stats.multivariate_normal(mean=-mu, cov=cov, allow_singular=True).cdf(np.zeros_like(mu))
+        )
 
     def summary(self, rng: np.random.Generator, draws: int = 4000) -> Posterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
         w, mus, covs, idx = self.mixture()
         inside = self.orthant_mass()
-        ln_z = self.ln_z_untruncated + np.log(max(inside, 1e-300)) + self.prior.scales.size * np.log(2)
+        ln_z = (
+            self.ln_z_untruncated + np.log(max(inside, 1e-300)) + self.prior.scales.size * np.log(2)
+        )
         mean = w @ mus
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
         cov = second - np.outer(mean, mean)
         sds = np.sqrt(np.einsum("mii->mi", covs))
-        ci = np.array([[_mixture_quantile(q, w, mus[:, j], sds[:, j]) for q in (0.025, 0.975)]
-                       for j in range(mean.size)])
+        ci = np.array(
+            [
+                [_mixture_quantile(q, w, mus[:, j], sds[:, j]) for q in (0.025, 0.975)]
+                for j in range(mean.size)
+            ]
+        )
         sig = np.exp(self.u[idx])
         cdf = np.cumsum(w)
         sigma_ci = (float(np.interp(0.025, cdf, sig)), float(np.interp(0.975, cdf, sig)))
@@ -205,9 +213,16 @@ class ExactPosterior:
         samples = np.column_stack([beta, sig[pick]])
         samples = samples[np.all(beta >= 0, axis=1)]
         return Posterior(
-            mean=mean, sd=np.sqrt(np.diag(cov)), ci95=ci, cov=cov,
-            sigma_mean=float(w @ sig), sigma_ci95=sigma_ci, ln_evidence=float(ln_z),
-            outside=1.0 - inside, method="exact", samples=samples,
+            mean=mean,
+            sd=np.sqrt(np.diag(cov)),
+            ci95=ci,
+            cov=cov,
+            sigma_mean=float(w @ sig),
+            sigma_ci95=sigma_ci,
+            ln_evidence=float(ln_z),
+            outside=1.0 - inside,
+            method="exact",
+            samples=samples,
         )
 
 
@@ -236,7 +251,8 @@ class PowerPosterior:
         self.temperature = temperature
         self.lo, self.hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
         self._ln_prior_const = float(
-            np.sum(np.log(2) - np.log(self.ws) - 0.5 * LN_2PI) - np.log(prior.ln_sigma_range))
+            np.sum(np.log(2) - np.log(self.ws) - 0.5 * LN_2PI) - np.log(prior.ln_sigma_range)
+        )
 
     def log_likelihood(self, theta: Array) -> Array:
         return self.s.log_likelihood(theta[:, :-1], np.exp(theta[:, -1]))
@@ -264,8 +280,9 @@ class PowerPosterior:
         return np.column_stack([theta[:, :-1] / self.d, np.exp(theta[:, -1])])
 
 
-def _start(exact: ExactPosterior, target: PowerPosterior, walkers: int,
-           rng: np.random.Generator) -> Array:
+def _start(
+    exact: ExactPosterior, target: PowerPosterior, walkers: int, rng: np.random.Generator
+) -> Array:
     """Walkers around the least-squares solution, reflected into beta >= 0."""
     mu, cov = exact.conditional(float(np.exp(exact.u[int(np.argmax(exact.weights))])))
     beta = rng.multivariate_normal(mu, cov, size=walkers, method="eigh")
@@ -314,15 +331,23 @@ def run_emcee(
     inside = exact.orthant_mass()
     ln_z = exact.ln_z_untruncated + np.log(max(inside, 1e-300)) + beta.shape[1] * np.log(2)
     return Posterior(
-        mean=beta.mean(axis=0), sd=beta.std(axis=0, ddof=1),
-        ci95=np.percentile(beta, [2.5, 97.5], axis=0).T, cov=np.cov(beta.T),
+        mean=beta.mean(axis=0),
+        sd=beta.std(axis=0, ddof=1),
+        ci95=np.percentile(beta, [2.5, 97.5], axis=0).T,
+        cov=np.cov(beta.T),
         sigma_mean=float(chain[:, -1].mean()),
         sigma_ci95=tuple(float(v) for v in np.percentile(chain[:, -1], [2.5, 97.5])),  # type: ignore[arg-type]
-        ln_evidence=float(ln_z), outside=1.0 - inside, method="emcee", samples=chain,
+        ln_evidence=float(ln_z),
+        outside=1.0 - inside,
+        method="emcee",
+        samples=chain,
         diagnostics={
-            "steps": int(sampler.iteration), "walkers": walkers,
-            "tau": [float(t) for t in tau], "acceptance": float(np.mean(sampler.acceptance_fraction)),
-            "converged": bool(converged), "independent_samples": int(beta.shape[0] * thin / max(np.max(tau), 1)),
+            "steps": int(sampler.iteration),
+            "walkers": walkers,
+            "tau": [float(t) for t in tau],
+            "acceptance": float(np.mean(sampler.acceptance_fraction)),
+            "converged": bool(converged),
+            "independent_samples": int(beta.shape[0] * thin / max(np.max(tau), 1)),
         },
     )
 

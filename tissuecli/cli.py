@@ -397,8 +397,11 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
         need = max(1000, int(50 * tau))
         done = min(1.0, steps / need)
         bar = "#" * int(20 * done) + "-" * (20 - int(20 * done))
-        click.echo(f"\rsampling {form:<11} [{bar}] {steps:>6} steps (need ~{need})", err=True,
-                   nl=done >= 1.0)
+        click.echo(
+            f"\rsampling {form:<11} [{bar}] {steps:>6} steps (need ~{need})",
+            err=True,
+            nl=done >= 1.0,
+        )
 
     return show
 
@@ -406,27 +409,67 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
 @cli.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--session", default=None, help="Session to fit [default: the only one].")
-@click.option("--out", type=click.Path(dir_okay=False), default=None,
-              help="Write the parameter file (JSON, SI) for `play` and `simulate forceps --params`.")
-@click.option("--report", type=click.Path(dir_okay=False), default=None,
-              help="Write a self-contained HTML report with plots.")
-@click.option("--method", type=click.Choice(["bayes", "pinv", "both"]), default="bayes",
-              show_default=True,
-              help="bayes: every form with posteriors and model choice; pinv: the paper's "
-              "windowed pseudoinverse alone; both.")
-@click.option("--forms", default="all", show_default=True,
-              help="'all' to choose among x|x^3 and xdot|xdot^2, or one form such as x,xdot.")
-@click.option("--sampler", type=click.Choice(["auto", "emcee"]), default="auto",
-              show_default=True,
-              help="auto samples only where the exact posterior does not apply; emcee samples "
-              "every form and checks its evidence by stepping-stone.")
-@click.option("--differentiator", type=click.Choice(["gaussian", "savgol", "gradient"]),
-              default="gaussian", show_default=True, help="How velocity and acceleration are estimated.")
-@click.option("--window", type=click.FloatRange(min=0, min_open=True), default=1.0,
-              show_default=True, help="pinv window length in s.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the parameter file (JSON, SI) for `play` and `simulate forceps --params`.",
+)
+@click.option(
+    "--report",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write a self-contained HTML report with plots.",
+)
+@click.option(
+    "--method",
+    type=click.Choice(["bayes", "pinv", "both"]),
+    default="bayes",
+    show_default=True,
+    help="bayes: every form with posteriors and model choice; pinv: the paper's "
+    "windowed pseudoinverse alone; both.",
+)
+@click.option(
+    "--forms",
+    default="all",
+    show_default=True,
+    help="'all' to choose among x|x^3 and xdot|xdot^2, or one form such as x,xdot.",
+)
+@click.option(
+    "--sampler",
+    type=click.Choice(["auto", "emcee"]),
+    default="auto",
+    show_default=True,
+    help="auto samples only where the exact posterior does not apply; emcee samples "
+    "every form and checks its evidence by stepping-stone.",
+)
+@click.option(
+    "--differentiator",
+    type=click.Choice(["gaussian", "savgol", "gradient"]),
+    default="gaussian",
+    show_default=True,
+    help="How velocity and acceleration are estimated.",
+)
+@click.option(
+    "--window",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1.0,
+    show_default=True,
+    help="pinv window length in s.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sampler.")
-def fit(file: str, session: str | None, out: str | None, report: str | None, method: str,
-        forms: str, sampler: str, differentiator: str, window: float, seed: int) -> None:
+def fit(
+    file: str,
+    session: str | None,
+    out: str | None,
+    report: str | None,
+    method: str,
+    forms: str,
+    sampler: str,
+    differentiator: str,
+    window: float,
+    seed: int,
+) -> None:
     """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F from a session.
 
     \b
@@ -437,9 +480,19 @@ def fit(file: str, session: str | None, out: str | None, report: str | None, met
     """
     from .fit import fit_file, summary_lines
 
-    outcome = fit_file(file, session, out=out, report=report, method=method, forms=forms,
-                       sampler=sampler, differentiator=differentiator, window_s=window, seed=seed,
-                       progress=_sampling_progress() if sys.stderr.isatty() else None)
+    outcome = fit_file(
+        file,
+        session,
+        out=out,
+        report=report,
+        method=method,
+        forms=forms,
+        sampler=sampler,
+        differentiator=differentiator,
+        window_s=window,
+        seed=seed,
+        progress=_sampling_progress() if sys.stderr.isatty() else None,
+    )
     for line in summary_lines(outcome):
         click.echo(line)
     for path, what in ((out, "parameters"), (report, "report")):

@@ -92,10 +92,17 @@ class Differentiator(ABC):
             return oaconvolve(u, k, mode="valid")
 
         return Kinematics(
-            time=time[keep], x_raw=x[keep], x=conv(x, k0), v=conv(x, k1), a=conv(x, k2),
-            force=conv(force, k0), kernels=(k0, k1, k2), keep=keep,
+            time=time[keep],
+            x_raw=x[keep],
+            x=conv(x, k0),
+            v=conv(x, k1),
+            a=conv(x, k2),
+            force=conv(force, k0),
+            kernels=(k0, k1, k2),
+            keep=keep,
             noise_gain=tuple(float(np.linalg.norm(k)) for k in (k0, k1, k2)),  # type: ignore[arg-type]
-            cutoff_hz=cutoff, method=method,
+            cutoff_hz=cutoff,
+            method=method,
         )
 
 
@@ -175,7 +182,11 @@ class Gaussian(Differentiator):
         # convolution: (g * x)'(t) = sum_j g'(t_j) x(t - t_j), so the kernel is g' itself
         g1 = -(t / sigma**2) * g
         g2 = ((t / sigma**2) ** 2 - 1 / sigma**2) * g
-        return (g, g1, g2), 0.1325 / sigma, f"gaussian(sigma={sigma * 1e3:.3g} ms, {2 * h + 1} taps)"
+        return (
+            (g, g1, g2),
+            0.1325 / sigma,
+            f"gaussian(sigma={sigma * 1e3:.3g} ms, {2 * h + 1} taps)",
+        )
 
 
 @register
@@ -194,8 +205,9 @@ class SavitzkyGolay(Differentiator):
 
     name = "savgol"
 
-    def __init__(self, window: int | None = None, polyorder: int = 3,
-                 cutoff_ratio: float = 2.5) -> None:
+    def __init__(
+        self, window: int | None = None, polyorder: int = 3, cutoff_ratio: float = 2.5
+    ) -> None:
         self.window = window
         self.polyorder = polyorder
         self.cutoff_ratio = cutoff_ratio

@@ -61,8 +61,10 @@ def prepare(session: Session, diff: Differentiator) -> Kinematics:
         raise FitError(f"session has {n} samples; at least {MIN_SAMPLES} are needed to fit")
     x, f = session.position, session.force
     if np.ptp(x) <= 0 or np.std(x) < 1e-9:
-        raise FitError("jaw position is constant: nothing to identify; the jaws must move "
-                       "while the forceps records")
+        raise FitError(
+            "jaw position is constant: nothing to identify; the jaws must move "
+            "while the forceps records"
+        )
     if np.ptp(f) <= 0:
         raise FitError("force is constant: check the force sensor and its calibration")
     return diff(session.time, x, f)
@@ -93,16 +95,16 @@ def eiv_correction(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: 
     sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it removes the
     attenuation bias that noisy derivatives put on M.
     """
-    d = np.column_stack([
-        kin.smooth(model.f0.derivative(x_full)), model.f1.derivative(kin.v), np.ones(kin.v.size)
-    ])
+    d = np.column_stack(
+        [kin.smooth(model.f0.derivative(x_full)), model.f1.derivative(kin.v), np.ones(kin.v.size)]
+    )
     K = np.array([kin.kernels[0], kin.kernels[1], kin.kernels[2]])
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
 
 
 def residual_tau(r: Array) -> float:
     """Integrated autocorrelation time of residuals (samples), >= 1."""
-    return float(max(1.0, integrated_time(r, c=5, tol=0, quiet=True)[0]))
+    return float(max(1.0, integrated_time(r, c=10, tol=0, quiet=True)[0]))
 
 
 @dataclass
@@ -164,10 +166,17 @@ class BayesianFit:
     warnings_ : list of str
     """
 
-    def __init__(self, forms: str | Sequence[str] = "all", *, sampler: str = "auto",
-                 differentiator: str | Differentiator = "gaussian", eiv: bool = True,
-                 decisive: float = DECISIVE, seed: int = 0,
-                 progress: Callable[[str, int, float], None] | None = None) -> None:
+    def __init__(
+        self,
+        forms: str | Sequence[str] = "all",
+        *,
+        sampler: str = "auto",
+        differentiator: str | Differentiator = "gaussian",
+        eiv: bool = True,
+        decisive: float = DECISIVE,
+        seed: int = 0,
+        progress: Callable[[str, int, float], None] | None = None,
+    ) -> None:
         self.forms = forms
         self.sampler = sampler
         self.differentiator = differentiator
@@ -223,12 +232,19 @@ class BayesianFit:
             prior = Prior(scales=m.prior_scales())
             exact = ExactPosterior(st, prior)
             post = exact.summary(rng)
-            results.append(ModelResult(
-                model=m, ln_evidence=post.ln_evidence, posterior=post,
-                cond=float(np.linalg.cond(A)),
-                cond_scaled=float(np.linalg.cond(A / np.linalg.norm(A, axis=0))),
-                residual_rms=float(np.sqrt(rss[m.name] / y.size)),
-                design=A, stats=st, prior=prior))
+            results.append(
+                ModelResult(
+                    model=m,
+                    ln_evidence=post.ln_evidence,
+                    posterior=post,
+                    cond=float(np.linalg.cond(A)),
+                    cond_scaled=float(np.linalg.cond(A / np.linalg.norm(A, axis=0))),
+                    residual_rms=float(np.sqrt(rss[m.name] / y.size)),
+                    design=A,
+                    stats=st,
+                    prior=prior,
+                )
+            )
 
         top = max(r.ln_evidence for r in results)
         for res in results:
@@ -239,19 +255,25 @@ class BayesianFit:
                 continue
             if behind > self.decisive and len(results) > 1:
                 res.status = "skipped"
-                res.reason = (f"not sampled: ln Bayes factor {behind:.1f} behind the best "
-                              f"(> {self.decisive:.1f}, decisive)")
+                res.reason = (
+                    f"not sampled: ln Bayes factor {behind:.1f} behind the best "
+                    f"(> {self.decisive:.1f}, decisive)"
+                )
                 continue
             cb = None
             if self.progress is not None:
+
                 def cb(steps: int, tau: float, name: str = res.name) -> None:
                     self.progress(name, steps, tau)  # type: ignore[misc]
+
             cut = res.posterior.outside
             res.posterior = run_emcee(res.stats, res.prior, rng, progress=cb)
             res.status = "emcee"
-            res.reason = (f"sampled: the positivity bound cuts {100 * cut:.2g} % of the "
-                          "closed-form posterior" if self.sampler == "auto"
-                          else "sampled on request (--sampler emcee)")
+            res.reason = (
+                f"sampled: the positivity bound cuts {100 * cut:.2g} % of the closed-form posterior"
+                if self.sampler == "auto"
+                else "sampled on request (--sampler emcee)"
+            )
             if self.sampler == "emcee":
                 res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)
             post = res.posterior
@@ -259,8 +281,10 @@ class BayesianFit:
                 res.flags.append("chain shorter than 50 autocorrelation times")
         for res in results:
             if res.status == "exact" and self.sampler == "auto":
-                res.reason = ("exact posterior (closed form); positivity bound cuts "
-                              f"{res.posterior.outside:.1e} of it")
+                res.reason = (
+                    "exact posterior (closed form); positivity bound cuts "
+                    f"{res.posterior.outside:.1e} of it"
+                )
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
         prob /= prob.sum()
@@ -287,13 +311,21 @@ def _identifiability(r: ModelResult) -> list[str]:
     scales = r.model.prior_scales()
     for j, name in enumerate(PARAMETERS):
         lo, hi = post.ci95[j]
-        if post.sd[j] > 0.3 * scales[j] or lo <= 0.02 * max(hi, 1e-300):
-            what = "no acceleration content" if name == "M" else "too little excitation"
-            flags.append(f"{name} not identified ({what}): 95 % interval "
-                         f"[{lo:.3g}, {hi:.3g}] {r.model.units[name]} reaches zero")
+        if (
+            post.sd[j] > 0.3 * scales[j]
+            or lo <= 0.02 * max(hi, 1e-300)
+            or post.sd[j] > 0.5 * abs(post.mean[j])
+        ):
+            what = "too little acceleration content" if name == "M" else "too little excitation"
+            flags.append(
+                f"{name} not identified ({what}): 95 % interval "
+                f"[{lo:.3g}, {hi:.3g}] {r.model.units[name]}"
+            )
         elif post.sd[j] > 0.25 * abs(post.mean[j]):
-            flags.append(f"{name} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
-                         "of its value")
+            flags.append(
+                f"{name} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                "of its value"
+            )
     return flags
 
 
@@ -330,8 +362,13 @@ class WindowedPinv:
         All windows in one least-squares problem, for comparison.
     """
 
-    def __init__(self, forms: str = "x,xdot", *, window_s: float = 1.0,
-                 differentiator: str | Differentiator = "gaussian") -> None:
+    def __init__(
+        self,
+        forms: str = "x,xdot",
+        *,
+        window_s: float = 1.0,
+        differentiator: str | Differentiator = "gaussian",
+    ) -> None:
         self.forms = forms
         self.window_s = window_s
         self.differentiator = differentiator
@@ -344,11 +381,13 @@ class WindowedPinv:
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
         m = A.shape[0] // n
         if m < 1:
-            raise FitError(f"session shorter than one {self.window_s:g} s window; "
-                           "use a shorter --window or a longer session")
+            raise FitError(
+                f"session shorter than one {self.window_s:g} s window; "
+                "use a shorter --window or a longer session"
+            )
         params, resid = np.empty((m, 3)), np.empty(m)
         for i in range(m):
-            Ai, yi = A[i * n:(i + 1) * n], y[i * n:(i + 1) * n]
+            Ai, yi = A[i * n : (i + 1) * n], y[i * n : (i + 1) * n]
             params[i] = _lstsq_scaled(Ai, yi)
             resid[i] = np.sqrt(np.mean((yi - Ai @ params[i]) ** 2))
         self.model_ = model
@@ -356,7 +395,7 @@ class WindowedPinv:
         self.windows_, self.residuals_ = params, resid
         self.best_window_ = int(np.argmin(resid))
         self.params_ = params[self.best_window_]
-        Ab = A[self.best_window_ * n:(self.best_window_ + 1) * n]
+        Ab = A[self.best_window_ * n : (self.best_window_ + 1) * n]
         self.cond_ = float(np.linalg.cond(Ab))
         self.cond_scaled_ = float(np.linalg.cond(Ab / np.linalg.norm(Ab, axis=0)))
         self.pooled_ = _lstsq_scaled(A[: m * n], y[: m * n])
@@ -365,8 +404,11 @@ class WindowedPinv:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "model": self.model_.name, "window_samples": self.window_samples_,
-            "windows": int(self.windows_.shape[0]), "best_window": self.best_window_,
+            "model": self.model_.name,
+            "window_samples": self.window_samples_,
+            "windows": int(self.windows_.shape[0]),
+            "best_window": self.best_window_,
             "best_residual_rms_N": float(self.residuals_[self.best_window_]),
-            "cond": self.cond_, "cond_scaled": self.cond_scaled_,
+            "cond": self.cond_,
+            "cond_scaled": self.cond_scaled_,
         }

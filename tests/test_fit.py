@@ -1,0 +1,244 @@
+"""Identification: exact evidence, samplers against it, model choice, calibration, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy import integrate
+
+from tissuecli import storage
+from tissuecli.bayes import ExactPosterior, Prior, Stats, run_emcee, stepping_stone
+from tissuecli.cli import cli
+from tissuecli.errors import FitError
+from tissuecli.fit import fit_session
+from tissuecli.identify import BayesianFit, WindowedPinv
+from tissuecli.models import DEFAULT_TISSUE, Tissue, TissueModel
+from tissuecli.params import read_tissue, tissue_from_dict
+from tissuecli.session import Session
+from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize
+
+from .conftest import assert_clean_error
+
+TISSUES = [
+    Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
+    Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 3.0, 0.05),
+    Tissue(TissueModel.from_names("x", "xdot^2"), 350.0, 60.0, 0.05),
+    Tissue(TissueModel.from_names("x^3", "xdot^2"), 8e6, 60.0, 0.05),
+]
+
+
+def session_for(
+    tissue: Tissue, rate: float = 1000.0, seed: int = 0, duration: float = 10.0, **sensors: float
+) -> Session:
+    rng = np.random.default_rng(seed)
+    model = ForcepsModel(
+        tissue=tissue,
+        rate_hz=rate,
+        seed=seed,
+        operator=Operator.random(rng),
+        sensors=Sensors(**sensors),
+    )
+    s, _ = synthesize(model, duration)
+    s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
+    return s
+
+
+def _regression(n: int = 200, beta=(350.0, 3.0, 0.05), seed: int = 0):
+    rng = np.random.default_rng(seed)
+    A = np.column_stack([rng.normal(size=n) * 1e-3, rng.normal(size=n) * 0.05, rng.normal(size=n)])
+    y = A @ np.array(beta) + rng.normal(0, 0.1, n)
+    return Stats.from_data(A, y), Prior(np.array([4000.0, 400.0, 2.0]))
+
+
+def test_exact_evidence_equals_brute_force_quadrature():
+    stats, _ = _regression()
+    # one coefficient, so that (beta, ln sigma) can be integrated numerically
+    A1 = np.sqrt(stats.G[0, 0])
+    s1 = Stats(stats.G[:1, :1], stats.b[:1], stats.yy, stats.n)
+    prior = Prior(np.array([4000.0]), sigma_lo=1e-3, sigma_hi=10.0)
+    ln_z = ExactPosterior(s1, prior).summary(np.random.default_rng(0)).ln_evidence
+
+    def integrand(b: float, u: float) -> float:
+        lnl = s1.log_likelihood(np.array([[b]]), np.array([np.exp(u)]))[0]
+        ln_prior = (
+            np.log(2)
+            - np.log(4000)
+            - 0.5 * np.log(2 * np.pi)
+            - 0.5 * (b / 4000) ** 2
+            - np.log(prior.ln_sigma_range)
+        )
+        return float(np.exp(lnl + ln_prior - ln_z))
+
+    b_hat = s1.b[0] / A1**2
+    ratio, _ = integrate.dblquad(integrand, np.log(0.05), np.log(1.0), b_hat - 200, b_hat + 200)
+    assert ratio == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    "beta", [(350.0, 3.0, 0.05), (350.0, 3.0, 0.001)], ids=["inside", "cut-by-bound"]
+)
+def test_stepping_stone_evidence_matches_exact(beta):
+    stats, prior = _regression(beta=beta)
+    exact = ExactPosterior(stats, prior).summary(np.random.default_rng(0)).ln_evidence
+    sampled = stepping_stone(stats, prior, np.random.default_rng(1))
+    assert abs(sampled - exact) < 0.2
+
+
+def test_emcee_posterior_matches_exact_within_monte_carlo_error():
+    stats, prior = _regression()
+    exact = ExactPosterior(stats, prior).summary(np.random.default_rng(0))
+    post = run_emcee(stats, prior, np.random.default_rng(2))
+    assert post.diagnostics["converged"]
+    # the standard error of a chain mean is sd / sqrt(independent samples)
+    se = exact.sd / np.sqrt(post.diagnostics["independent_samples"])
+    assert np.all(np.abs(post.mean - exact.mean) < 5 * se)
+    np.testing.assert_allclose(post.sd, exact.sd, rtol=0.15)
+
+
+@pytest.mark.parametrize("tissue", TISSUES, ids=lambda t: t.model.name)
+def test_right_form_chosen_across_rates(tissue):
+    # 3 rates x 3 seeds per form; all 36 must be right for a >= 95 % claim to be credible
+    for rate in (250.0, 1000.0, 2000.0):
+        for seed in range(3):
+            est = BayesianFit().fit(session_for(tissue, rate, seed))
+            assert est.best_.name == tissue.model.name, (rate, seed, est.best_.name)
+            assert est.best_.probability > 0.95
+
+
+def test_clean_data_gives_k_and_s_to_a_fraction_of_a_percent():
+    for tissue in TISSUES:
+        s = session_for(tissue, 1000.0, 7, bits=16, force_noise_n=1e-3, position_noise_m=1e-6)
+        post = BayesianFit(forms=tissue.model.name).fit(s).best_.posterior
+        err = np.abs(post.mean - tissue.p) / tissue.p
+        assert err[0] < 2e-3 and err[1] < 1e-2, (tissue.model.name, err)
+
+
+def _misses(seeds: range, j: int) -> int:
+    misses = 0
+    for seed in seeds:
+        s = session_for(DEFAULT_TISSUE, 1000.0, seed, bits=12)
+        lo, hi = BayesianFit(forms="x,xdot").fit(s).best_.posterior.ci95[j]
+        misses += not lo <= DEFAULT_TISSUE.p[j] <= hi
+    return misses
+
+
+# 30 sessions: a calibrated 95 % interval misses about 1.5 times (binomial SD 1.2);
+# more than 6 misses is a 4-SD event
+def test_s_intervals_cover_the_truth():
+    assert _misses(range(30), 1) <= 6
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="K's 95 % interval (0.01 % wide) is overconfident: a "
+    "bias near 1e-4 relative at 1 kHz, of unknown origin, misses 10 of 30",
+)
+def test_k_intervals_cover_the_truth():
+    assert _misses(range(30), 0) <= 6
+
+
+def test_units_of_the_input_do_not_change_the_answer(tmp_path):
+    s = session_for(DEFAULT_TISSUE, 500.0, 3, duration=4.0)
+    path = tmp_path / "mm.csv"
+    with path.open("w") as fh:
+        fh.write("time,force,position\n")
+        np.savetxt(
+            fh,
+            np.column_stack([s.time, s.force / 9.80665e-3, s.position * 1e3]),
+            delimiter=",",
+            fmt="%.17g",
+        )
+    si = tmp_path / "si.csv"
+    with si.open("w") as fh:
+        fh.write("time,force,position\n")
+        np.savetxt(fh, np.column_stack([s.time, s.force, s.position]), delimiter=",", fmt="%.17g")
+    h5 = tmp_path / "g.h5"
+    r = CliRunner()
+    assert (
+        r.invoke(
+            cli, ["import", str(path), "--out", str(h5), "--session", "mm", "--units", "mm,gf"]
+        ).exit_code
+        == 0
+    )
+    assert r.invoke(cli, ["import", str(si), "--out", str(h5), "--session", "si"]).exit_code == 0
+    a = fit_session(storage.read_session(h5, "mm")).document["parameters"]
+    b = fit_session(storage.read_session(h5, "si")).document["parameters"]
+    for name in ("K", "S", "M"):
+        assert a[name]["mean"] == pytest.approx(b[name]["mean"], rel=1e-9)
+
+
+def test_unidentifiable_mass_is_flagged():
+    # slow squeezing only: no acceleration content worth the name
+    op = Operator(mean_m=3e-3, amplitudes_m=(2e-3,), frequencies_hz=(0.2,), phases_rad=(0.0,))
+    model = ForcepsModel(tissue=DEFAULT_TISSUE, operator=op, seed=1)
+    s, _ = synthesize(model, 10.0)
+    est = BayesianFit(forms="x,xdot").fit(s)
+    assert any(w.startswith("x,xdot: M not identified") for w in est.warnings_), est.warnings_
+
+
+@pytest.mark.parametrize(
+    "make,needle",
+    [
+        (lambda s: Session(s.time[:50], s.force[:50], s.position[:50]), "at least"),
+        (lambda s: Session(s.time, s.force, np.full_like(s.position, 2e-3)), "constant"),
+        (
+            lambda s: Session(
+                s.time, np.where(np.arange(len(s)) == 9, np.nan, s.force), s.position
+            ),
+            "non-finite",
+        ),
+    ],
+)
+def test_bad_sessions_are_refused_with_a_reason(make, needle):
+    s = session_for(DEFAULT_TISSUE, 1000.0, 0, duration=2.0)
+    with pytest.raises(Exception, match=needle) as info:
+        BayesianFit().fit(make(s))
+    assert isinstance(info.value, (FitError, ValueError)) or "Error" in type(info.value).__name__
+
+
+def test_pinv_best_window_and_pooled_solution():
+    s = session_for(DEFAULT_TISSUE, 1000.0, 4)
+    p = WindowedPinv("x,xdot", window_s=1.0).fit(s)
+    assert p.windows_.shape == (9, 3)
+    assert p.residuals_[p.best_window_] == p.residuals_.min()
+    assert abs(p.params_[0] / 350.0 - 1) < 0.01
+    assert p.cond_scaled_ < p.cond_
+
+
+def test_fit_export_round_trips_into_the_simulator(forceps, tmp_path):
+    """fit(record(simulate(p))) against p, through files and a real pty."""
+    from tissuecli.record import record
+
+    truth = Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 4.0, 0.05)
+    params = tmp_path / "truth.json"
+    from tissuecli.params import tissue_to_dict, write_json
+
+    write_json(params, tissue_to_dict(truth))
+    sim = forceps("--params", str(params), "--adc-bits", "12", "--seed", "2")
+    h5 = tmp_path / "g.h5"
+    record(str(sim.link), h5, "t", duration_s=6.0)
+    out = tmp_path / "fit.json"
+    r = CliRunner().invoke(cli, ["fit", str(h5), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    assert doc["model"] == {"f0": "x^3", "f1": "xdot"}
+    fitted = read_tissue(out)
+    assert fitted.K == pytest.approx(truth.K, rel=0.01)
+    assert fitted.S == pytest.approx(truth.S, rel=0.05)
+    assert tissue_from_dict(doc).model == truth.model
+    assert set(doc["probabilities"]) == {"x,xdot", "x,xdot^2", "x^3,xdot", "x^3,xdot^2"}
+
+
+def test_fit_cli_errors_are_one_line(tmp_path):
+    t = np.arange(100) * 1e-3
+    path = tmp_path / "short.csv"
+    path.write_text(
+        "time,force,position\n" + "\n".join(f"{v},{1 + v},{1e-3 + v * 1e-3}" for v in t)
+    )
+    h5 = tmp_path / "g.h5"
+    CliRunner().invoke(cli, ["import", str(path), "--out", str(h5), "--session", "s"])
+    assert_clean_error(CliRunner().invoke(cli, ["fit", str(h5)]), "at least")
+    assert_clean_error(CliRunner().invoke(cli, ["fit", str(h5), "--forms", "x,bogus"]), "unknown")
