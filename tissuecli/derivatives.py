@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from scipy.signal import oaconvolve, savgol_coeffs, welch
 
 from .errors import FitError
+from .models import Form
 
 Array = NDArray[np.float64]
 
@@ -54,6 +55,7 @@ class Kinematics:
     noise_gain: tuple[float, float, float]
     cutoff_hz: float
     method: str
+    half: tuple[Array, Array, Array, float] | None = None
 
     @property
     def window(self) -> int:
@@ -62,6 +64,26 @@ class Kinematics:
     def smooth(self, u: Array) -> Array:
         """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
         return oaconvolve(u, self.kernels[0], mode="valid")
+
+    def damping_input(self, f1: Form, x_full: Array) -> Array:
+        """The damping column ``~ g * f1(v)`` from the untrimmed position.
+
+        With half kernels ``g_h * [f1(v_h) + f1''(v_h) s^2 a_h^2 / 2]``, where
+        ``v_h = g_h' * x``, ``a_h = g_h'' * x`` and ``s`` is g_h's SD: the second
+        term is the second-order effect of smoothing inside the nonlinearity
+        (``g_h * f1(v) = f1(g_h * v) + f1'' Var / 2``). Exact for a linear f1.
+        Without half kernels: ``f1(v)``.
+        """
+        if self.half is None:
+            return f1(self.v)
+        gh, gh1, gh2, s2 = self.half
+        v = oaconvolve(x_full, gh1, mode="valid")
+        a = oaconvolve(x_full, gh2, mode="valid")
+        dv = 1e-6 * max(float(np.max(np.abs(v))), 1e-12)
+        curvature = (f1.derivative(v + dv) - f1.derivative(v - dv)) / (2 * dv)
+        col = oaconvolve(f1(v) + 0.5 * curvature * s2 * a * a, gh, mode="valid")
+        trim = (col.size - self.v.size) // 2
+        return col[trim : col.size - trim]
 
 
 class Differentiator(ABC):
@@ -75,6 +97,10 @@ class Differentiator(ABC):
     @abstractmethod
     def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
         """Kernels for x, v, a (odd length, for ``np.convolve``), cutoff in Hz, description."""
+
+    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+        """Kernels ``g_h, g_h', g_h''`` with ``g_h * g_h = g`` and g_h's variance (s^2), if any."""
+        return None
 
     def __call__(self, time: Array, x: Array, force: Array) -> Kinematics:
         """Differentiate; ``time`` must be uniformly sampled (s)."""
@@ -91,7 +117,9 @@ class Differentiator(ABC):
         def conv(u: Array, k: Array) -> Array:
             return oaconvolve(u, k, mode="valid")
 
+        half = self.half_kernels(x, dt)
         return Kinematics(
+            half=half,
             time=time[keep],
             x_raw=x[keep],
             x=conv(x, k0),
@@ -171,28 +199,54 @@ class Gaussian(Differentiator):
         self.sigma_s = sigma_s
         self.cutoff_ratio = cutoff_ratio
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+    def width(self, x: Array, dt: float) -> float:
+        """Kernel SD in s for this position record."""
         fs = 1.0 / dt
         sigma = self.sigma_s or 0.1325 / min(self.cutoff_ratio * signal_band_hz(x, fs), 0.4 * fs)
-        sigma = max(sigma, 1.5 * dt)  # narrower kernels alias: their spectrum reaches Nyquist
+        return max(sigma, 1.5 * dt)  # narrower kernels alias: their spectrum reaches Nyquist
+
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        sigma = self.width(x, dt)
         h = int(np.ceil(5 * sigma / dt))
-        t = np.arange(-h, h + 1) * dt
-        g = np.exp(-0.5 * (t / sigma) ** 2)
-        g /= g.sum()
-        # convolution: (g * x)'(t) = sum_j g'(t_j) x(t - t_j), so the kernel is g' itself
-        g1 = -(t / sigma**2) * g
-        g1 /= -np.sum(g1 * t)  # exact on ramps: the truncated kernel's moments are not sigma's
-        # g'' = a t^2 g + b g with a, b fixed by the discrete moments: sum g'' = 0 (constant
-        # in, zero out) and sum g'' t^2 / 2 = 1 (exact on parabolas). Left unfixed, the
-        # 5-sigma truncation turned a 3.6 mm offset into a -2.4e-3 m/s^2 acceleration.
-        u = t**2 * g
-        a, b = np.linalg.solve([[u.sum(), g.sum()], [(t**2 * u).sum(), (t**2 * g).sum()]], [0, 2])
-        g2 = a * u + b * g
+        g, g1, g2 = gaussian_kernels(sigma, dt, h)
         return (
             (g, g1, g2),
             0.1325 / sigma,
             f"gaussian(sigma={sigma * 1e3:.3g} ms, {2 * h + 1} taps)",
         )
+
+    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float]:
+        """``g_h``, ``g_h'``, ``g_h''`` with ``g_h * g_h = g``, and g_h's variance (s^2).
+
+        Half the smoothing, for nonlinear damping.
+
+        ``g * f1(v)`` is what the filtered force holds; ``g_h * f1(g_h' * x)`` matches it
+        exactly for a linear f1 and far better than ``f1(g' * x)`` for a nonlinear one.
+        """
+        sigma = self.width(x, dt)
+        h = int(np.ceil(5 * sigma / dt)) // 2  # two passes fit inside the full kernel's span
+        g, g1, g2 = gaussian_kernels(sigma / np.sqrt(2), dt, h)
+        return g, g1, g2, sigma**2 / 2
+
+
+def gaussian_kernels(sigma: float, dt: float, h: int) -> tuple[Array, Array, Array]:
+    """``g``, ``g'``, ``g''`` of a Gaussian of SD ``sigma`` (s), ``2 h + 1`` taps at ``dt``.
+
+    Normalised on their discrete moments so that they are exact on constants,
+    ramps and parabolas whatever the truncation.
+    """
+    t = np.arange(-h, h + 1) * dt
+    g = np.exp(-0.5 * (t / sigma) ** 2)
+    g /= g.sum()
+    # convolution: (g * x)'(t) = sum_j g'(t_j) x(t - t_j), so the kernel is g' itself
+    g1 = -(t / sigma**2) * g
+    g1 /= -np.sum(g1 * t)
+    # g'' = a t^2 g + b g with a, b fixed by sum g'' = 0 (constant in, zero out) and
+    # sum g'' t^2 / 2 = 1 (exact on parabolas). Left unfixed, a 5-sigma truncation
+    # turned a 3.6 mm offset into a -2.4e-3 m/s^2 acceleration.
+    u = t**2 * g
+    a, b = np.linalg.solve([[u.sum(), g.sum()], [(t**2 * u).sum(), (t**2 * g).sum()]], [0, 2])
+    return g, g1, a * u + b * g
 
 
 @register

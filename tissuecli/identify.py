@@ -81,10 +81,12 @@ def design(model: TissueModel, kin: Kinematics, x_full: Array) -> Array:
     """Design matrix (m, 3) consistent with the filtered force.
 
     The stiffness column filters f0 of the raw position, ``g * f0(x)``, which
-    matches ``g * F`` for any f0; damping uses the filtered velocity (exact for
+    matches ``g * F`` for any f0; damping uses :meth:`Kinematics.damping_input` (exact for
     a linear f1) and inertia the filtered acceleration (exact).
     """
-    return np.column_stack([kin.smooth(model.f0(x_full)), model.f1(kin.v), kin.a])
+    return np.column_stack(
+        [kin.smooth(model.f0(x_full)), kin.damping_input(model.f1, x_full), kin.a]
+    )
 
 
 def eiv_correction(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
@@ -255,6 +257,16 @@ class BayesianFit:
             prior = Prior(scales=m.prior_scales())
             exact = ExactPosterior(st, prior)
             post = exact.summary(rng)
+            flags = []
+            if corr is not None:
+                # the correction rests on an estimated noise level: say when it matters
+                shift = post.mean - _lstsq_scaled(A, y)
+                for j in np.flatnonzero(np.abs(shift) > post.sd):
+                    flags.append(
+                        f"{PARAMETERS[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
+                        f"position-noise correction (noise {self.sigma_x_ * 1e6:.3g} um); its "
+                        "interval does not include that correction's own uncertainty"
+                    )
             results.append(
                 ModelResult(
                     model=m,
@@ -266,6 +278,7 @@ class BayesianFit:
                     design=A,
                     stats=st,
                     prior=prior,
+                    flags=flags,
                 )
             )
 
