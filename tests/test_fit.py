@@ -234,3 +234,24 @@ def test_fit_cli_errors_are_one_line(tmp_path):
     CliRunner().invoke(cli, ["import", str(path), "--out", str(h5), "--session", "s"])
     assert_clean_error(CliRunner().invoke(cli, ["fit", str(h5)]), "at least")
     assert_clean_error(CliRunner().invoke(cli, ["fit", str(h5), "--forms", "x,bogus"]), "unknown")
+
+
+def test_clipped_force_is_warned_about():
+    stiff = Tissue(TissueModel.from_names("x", "xdot"), 900.0, 3.0, 0.05)  # up to ~9 N: clips at 5
+    model = ForcepsModel(tissue=stiff, seed=1)
+    s, _ = synthesize(model, 5.0)
+    s.meta["device"] = {"adc_bits": 8, "calibration": model.sensors.calibration.as_dict()}
+    est = BayesianFit(forms="x,xdot").fit(s)
+    assert any(w.startswith("force is at an end of the 8-bit ADC") for w in est.warnings_)
+    s.meta["device"] = {"adc_bits": 8, "calibration": ForcepsModel().sensors.calibration.as_dict()}
+    gentle, _ = synthesize(ForcepsModel(seed=1), 5.0)
+    gentle.meta["device"] = s.meta["device"]
+    assert not any("ADC" in w for w in BayesianFit(forms="x,xdot").fit(gentle).warnings_)
+
+
+@pytest.mark.parametrize("rate", [5000.0, 10000.0])
+def test_high_rates_pick_a_kernel_from_the_motion_not_the_quantisation(rate):
+    s = session_for(DEFAULT_TISSUE, rate, 1, duration=5.0)
+    est = BayesianFit(forms="x,xdot").fit(s)
+    assert 2.0 < est.kinematics_.cutoff_hz < 60.0
+    assert abs(est.best_.posterior.mean[1] / 3.0 - 1) < 0.02

@@ -70,6 +70,28 @@ def prepare(session: Session, diff: Differentiator) -> Kinematics:
     return diff(session.time, x, f)
 
 
+def saturation_warnings(session: Session) -> list[str]:
+    """Warnings for samples at either end of the ADC, when the session knows its ADC."""
+    device = session.meta.get("device") or {}
+    bits, cal = device.get("adc_bits"), device.get("calibration")
+    if not isinstance(device, dict) or not bits or not isinstance(cal, dict):
+        return []
+    out = []
+    for channel, values in (("force", session.force), ("position", session.position)):
+        gain, offset = float(cal[channel]["gain"]), float(cal[channel]["offset"])
+        ends = offset + gain * np.array([-(2 ** (bits - 1)), 2 ** (bits - 1) - 1])
+        clipped = np.mean(
+            (np.abs(values - ends[0]) < abs(gain) / 2) | (np.abs(values - ends[1]) < abs(gain) / 2)
+        )
+        if clipped > 1e-3:
+            out.append(
+                f"{channel} is at an end of the {bits}-bit ADC in {100 * clipped:.1f} % of "
+                f"samples ({ends[0]:.4g} or {ends[1]:.4g}): clipped values bias every "
+                "parameter; grasp more gently or widen the sensor range"
+            )
+    return out
+
+
 def position_noise_sd(x: Array, fs: float) -> float:
     """SD of white noise on position from the flat top of its spectrum (m)."""
     freqs, p = welch(x - x.mean(), fs=fs, nperseg=int(min(x.size, 4096)))
@@ -229,7 +251,7 @@ class BayesianFit:
             self.sigma_x_ = max(position_noise_sd(x_full, fs), step / np.sqrt(12))
         y = kin.force
         rng = np.random.default_rng(self.seed)
-        self.warnings_: list[str] = []
+        self.warnings_: list[str] = saturation_warnings(session)
 
         designs = {m.name: design(m, kin, x_full) for m in models}
         # residual correlation from the best-fitting form: smoothing makes neighbouring
@@ -251,13 +273,19 @@ class BayesianFit:
         for m in models:
             A = designs[m.name]
             corr = eiv_correction(m, kin, x_full, self.sigma_x_) if self.eiv else None
-            if corr is not None and np.any(np.linalg.eigvalsh(A.T @ A - corr) <= 0):
-                corr = None  # noise dominates a column: leave it uncorrected (flagged below)
+            uncorrected = corr is not None and np.any(np.linalg.eigvalsh(A.T @ A - corr) <= 0)
+            if uncorrected:
+                corr = None  # noise dominates a column: the correction would be meaningless
             st = Stats.from_data(A, y, weight=weight, correction=corr)
             prior = Prior(scales=m.prior_scales())
             exact = ExactPosterior(st, prior)
             post = exact.summary(rng)
             flags = []
+            if uncorrected:
+                flags.append(
+                    "position noise dominates a column: left uncorrected, so M (and "
+                    "perhaps S) are biased towards zero"
+                )
             if corr is not None:
                 # the correction rests on an estimated noise level: say when it matters
                 shift = post.mean - _lstsq_scaled(A, y)

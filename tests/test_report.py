@@ -1,0 +1,196 @@
+"""The HTML report: one self-contained document with tables, figures and diagnostics."""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tissuecli.fit import FitOutcome, fit_session
+from tissuecli.models import Tissue, TissueModel, all_models
+from tissuecli.report import MAX_POINTS, _envelope, write_report
+from tissuecli.synth import ForcepsModel, synthesize
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+IMAGE = re.compile(r'<img\s[^>]*src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
+
+
+def _session(seed: int = 3, duration_s: float = 6.0, tissue: Tissue | None = None,
+             name: str = "liver-1"):
+    model = ForcepsModel(seed=seed) if tissue is None else ForcepsModel(tissue=tissue, seed=seed)
+    session, _ = synthesize(model, duration_s)
+    session.name = name
+    session.meta["tissue"] = "porcine liver"
+    return session
+
+
+def _write(tmp_path: Path, outcome: FitOutcome, name: str = "report.html") -> str:
+    path = tmp_path / name
+    write_report(path, outcome)
+    assert path.is_file()
+    return path.read_text(encoding="utf-8")
+
+
+def _assert_self_contained(text: str) -> None:
+    assert text.startswith("<!DOCTYPE html>")
+    for tag in ("<html", "<head", "<body", "</html>"):
+        assert text.count(tag) == 1, tag
+    assert text.rstrip().endswith("</html>")
+    plain = re.sub(r"base64,[A-Za-z0-9+/=]+", "base64,", text).lower()
+    assert "http" not in plain and "file:" not in plain
+    assert "<script" not in plain
+    for src in re.findall(r'src\s*=\s*["\']([^"\']*)', text):
+        assert src.startswith("data:image/"), src[:40]
+    for href in re.findall(r'href\s*=\s*["\']([^"\']*)', text):
+        assert href.startswith("#"), href
+    assert "<link" not in text.lower()
+
+
+def _images(text: str) -> list[bytes]:
+    return [base64.b64decode(m) for m in IMAGE.findall(text)]
+
+
+def _formula_numbers(text: str) -> list[float]:
+    m = re.search(r'<div class="formula">F = (.*?)</div>', text)
+    assert m is not None
+    return [float(v) for v in re.findall(r"(\d+(?:\.\d+)?)&#8201;", m.group(1))]
+
+
+@pytest.fixture(scope="module")
+def both(tmp_path_factory: pytest.TempPathFactory) -> tuple[FitOutcome, str]:
+    outcome = fit_session(_session(), method="both")
+    return outcome, _write(tmp_path_factory.mktemp("both"), outcome)
+
+
+def test_report_is_one_self_contained_html_document(both: tuple[FitOutcome, str]) -> None:
+    _assert_self_contained(both[1])
+
+
+def test_report_embeds_at_least_five_png_figures(both: tuple[FitOutcome, str]) -> None:
+    images = _images(both[1])
+    assert len(images) >= 5
+    assert all(img.startswith(PNG_MAGIC) for img in images)
+    for anchor in ("plot-time", "plot-loop", "plot-residuals", "plot-corner"):
+        assert f'id="{anchor}"' in both[1]
+
+
+def test_report_names_the_best_model_and_its_formula(both: tuple[FitOutcome, str]) -> None:
+    outcome, text = both
+    best = outcome.bayes.best_
+    assert best.name == "x,xdot"
+    assert f"Chosen form: <b>{best.name}</b>" in text
+    numbers = _formula_numbers(text)
+    assert len(numbers) == 3
+    post = best.posterior
+    np.testing.assert_allclose(numbers, post.mean, atol=0, rtol=0.01)
+    assert np.all(np.abs(np.array(numbers) - post.mean) <= post.sd)
+
+
+def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
+    outcome, text = both
+    section = text[text.index("id='parameters'"):text.index("id='comparison'")]
+    for head in ("<th>mean</th>", "<th>SD</th>", "<th>95 % interval</th>", "<th>unit (SI)</th>",
+                 "convenient units</th>"):
+        assert head in section
+    for unit in ("N/m<", "N s/m<", "kg<", "N/mm", "N s/mm", " g<", "mN"):
+        assert unit in section, unit
+    mass_g = outcome.bayes.best_.posterior.mean[2] * 1e3
+    assert re.search(rf"{int(mass_g)}\.\d+ \[", section), "mass in grams missing"
+    assert "noise SD" in section
+
+
+def test_report_compares_all_four_forms(both: tuple[FitOutcome, str]) -> None:
+    outcome, text = both
+    section = text[text.index("id='comparison'"):text.index("id='plots'")]
+    names = [m.name for m in all_models()]
+    assert len(names) == 4
+    for name in names:
+        assert f"<td><b>{html.escape(name)}</b></td>" in section
+    for head in ("ln evidence (exact)", "posterior probability", "ln BF vs best", "method",
+                 "cond (scaled)", "residual RMS (mN)"):
+        assert f"<th>{head}</th>" in section
+    for r in outcome.bayes.results_:
+        assert html.escape(r.reason) in section
+    assert section.count('class="best"') == 1
+
+
+def test_both_includes_the_windows_chart_and_comparison(both: tuple[FitOutcome, str]) -> None:
+    outcome, text = both
+    assert 'id="plot-windows"' in text
+    assert "Bayesian mean ± SD" in text
+    assert f"chosen window index {outcome.pinv.best_window_}" in text
+
+
+def test_report_has_diagnostics_and_provenance(both: tuple[FitOutcome, str]) -> None:
+    outcome, text = both
+    section = text[text.index("id='diagnostics'"):]
+    kin = outcome.bayes.kinematics_
+    assert html.escape(kin.method) in section
+    assert "Effective samples" in section and "autocorrelation" in section
+    assert "How to read this report" in text
+    footer = text[text.index("<footer>"):]
+    assert outcome.document["software"] in footer
+
+
+def test_pinv_only_report(tmp_path: Path) -> None:
+    outcome = fit_session(_session(), method="pinv", forms="x,xdot")
+    assert outcome.bayes is None
+    text = _write(tmp_path, outcome)
+    _assert_self_contained(text)
+    assert 'id="plot-windows"' in text and 'id="plot-residuals"' in text
+    assert 'id="plot-corner"' not in text
+    assert len(_images(text)) == 4
+    np.testing.assert_allclose(_formula_numbers(text), outcome.pinv.params_, rtol=1e-3)
+    assert "no uncertainty" in text
+
+
+def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
+    outcome = fit_session(_session(seed=4), method="bayes")
+    text = _write(tmp_path, outcome)
+    assert 'id="plot-windows"' not in text
+    assert len(_images(text)) == 4
+
+
+def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
+    massless = Tissue(TissueModel.from_names("x", "xdot"), K=350.0, S=3.0, M=0.0)
+    outcome = fit_session(_session(seed=5, duration_s=4.0, tissue=massless))
+    warnings = outcome.document["warnings"]
+    assert warnings, "a massless tissue should leave M unidentified"
+    text = _write(tmp_path, outcome)
+    box = re.search(r'<div class="box warn">(.*?)</div>', text, re.S)
+    assert box is not None
+    for w in warnings:
+        assert html.escape(w) in box.group(1)
+
+
+def test_emcee_fit_reports_chain_and_sampler_evidence(tmp_path: Path) -> None:
+    outcome = fit_session(_session(seed=6, duration_s=4.0), sampler="emcee")
+    text = _write(tmp_path, outcome)
+    assert "ln evidence (stepping-stone)" in text
+    assert "Sampler (emcee)" in text
+    diag = outcome.bayes.best_.posterior.diagnostics
+    assert f"{diag['steps']:,}" in text
+    assert "converged (chain &gt; 50 τ)" in text
+
+
+def test_text_is_escaped(tmp_path: Path) -> None:
+    outcome = fit_session(_session(name="<b>liver</b> & \"co\""), method="pinv",
+                          forms="x,xdot")
+    text = _write(tmp_path, outcome)
+    assert "<b>liver</b>" not in text
+    assert "&lt;b&gt;liver&lt;/b&gt; &amp; &quot;co&quot;" in text
+
+
+def test_envelope_keeps_extremes_and_bounds_points() -> None:
+    t = np.arange(200_001, dtype=float)
+    y = np.sin(t / 500.0)
+    y[123_457] = 9.0
+    y[77_777] = -9.0
+    tt, yy = _envelope(t, y)
+    assert yy.size <= MAX_POINTS + 2
+    assert yy.max() == 9.0 and yy.min() == -9.0
+    assert np.all(np.diff(tt) >= 0)
