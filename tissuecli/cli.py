@@ -519,7 +519,7 @@ def fit(
     help="Keep the files here instead of a temporary directory.",
 )
 def demo(duration: float, workdir: str | None) -> None:
-    """Everything on simulated devices: simulate, record, list, export."""
+    """Everything on simulated devices: simulate, record, list, export, fit and report."""
     from .demo import run_demo
 
     run_demo(duration_s=duration, workdir=workdir, say=click.echo)

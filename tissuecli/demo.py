@@ -9,7 +9,8 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from . import storage
-from .models import DEFAULT_TISSUE
+from .fit import fit_file
+from .models import DEFAULT_TISSUE, PARAMETERS
 from .record import record
 from .simulate import SimulatorProcess
 from .transfer import export_csv
@@ -20,7 +21,7 @@ def run_demo(
     workdir: str | os.PathLike[str] | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, str]:
-    """Simulate a forceps, record it, list and export the session; return the files made.
+    """Simulate a forceps, record, list, export and fit the session; return the files made.
 
     Parameters
     ----------
@@ -58,6 +59,19 @@ def run_demo(
             )
         export_csv(h5, name, csv)
         say(f"4. exported to {csv}")
+        params, report = root / "tissue.json", root / "report.html"
+        outcome = fit_file(h5, name, out=params, report=report)
+        best = outcome.bayes.best_  # type: ignore[union-attr]
+        post = best.posterior
+        say(f"5. fitted all forms: {best.name} chosen with probability {best.probability:.3f}")
+        for j, p in enumerate(PARAMETERS):
+            truth = getattr(t, p)
+            say(f"   {p} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {best.model.units[p]}"
+                f"  (true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %)")
+        for w in outcome.bayes.warnings_:  # type: ignore[union-attr]
+            say(f"   warning: {w}")
+        say(f"   parameters -> {params}, report -> {report}")
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")
-        return {"h5": str(h5), "csv": str(csv), "session": name}
+        return {"h5": str(h5), "csv": str(csv), "session": name, "params": str(params),
+                "report": str(report)}
