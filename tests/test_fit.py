@@ -255,3 +255,14 @@ def test_high_rates_pick_a_kernel_from_the_motion_not_the_quantisation(rate):
     est = BayesianFit(forms="x,xdot").fit(s)
     assert 2.0 < est.kinematics_.cutoff_hz < 60.0
     assert abs(est.best_.posterior.mean[1] / 3.0 - 1) < 0.02
+
+
+def test_lost_frames_fit_the_longest_gap_free_stretch():
+    s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
+    keep = np.ones(len(s), bool)
+    keep[[1500, 1501, 4000]] = False  # three lost frames, two gaps
+    gappy = Session(s.time[keep], s.force[keep], s.position[keep], meta=s.meta)
+    est = BayesianFit(forms="x,xdot").fit(gappy)
+    assert any("2 gap(s)" in w for w in est.warnings_), est.warnings_
+    assert est.kinematics_.time[0] > 1.5 and est.kinematics_.time[-1] < 4.0
+    assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3

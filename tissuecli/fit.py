@@ -112,6 +112,7 @@ def document(
         }
         doc["pinv"] = {**pinv.summary(), "parameters": block}
         if est is None:
+            doc["warnings"] = pinv.warnings_
             doc["model"] = {"f0": pinv.model_.f0.name, "f1": pinv.model_.f1.name}
             doc["parameters"] = {
                 name: {"mean": v["value"], "unit": v["unit"]} for name, v in block.items()
@@ -224,6 +225,8 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
             f"pinv ({p.model_.name}, best of {p.windows_.shape[0]} windows of "
             f"{p.window_samples_} samples): {vals}; cond {p.cond_:.3g}, scaled {p.cond_scaled_:.3g}"
         )
+        if est is None:
+            lines.extend(f"warning: {w}" for w in p.warnings_)
     return lines
 
 

@@ -53,6 +53,36 @@ def parse_forms(spec: str | Sequence[str] | None) -> list[TissueModel]:
     return models
 
 
+def longest_gapless(session: Session) -> tuple[Session, list[str]]:
+    """The longest stretch without gaps (lost frames), and a warning if that is not all of it.
+
+    The derivative filters need evenly spaced samples; rather than refuse a
+    session with a few lost frames, fit its longest gap-free stretch and say so.
+    """
+    steps = np.diff(session.time)
+    if steps.size == 0:
+        return session, []
+    dt = float(np.median(steps))
+    cuts = np.flatnonzero(np.abs(steps - dt) > 0.25 * dt) + 1
+    if cuts.size == 0:
+        return session, []
+    edges = np.concatenate([[0], cuts, [len(session)]])
+    i = int(np.argmax(np.diff(edges)))
+    a, b = int(edges[i]), int(edges[i + 1])
+    part = Session(
+        session.time[a:b],
+        session.force[a:b],
+        session.position[a:b],
+        name=session.name,
+        meta=dict(session.meta),
+    )
+    return part, [
+        f"the session has {cuts.size} gap(s) (lost frames); fitted the longest gap-free "
+        f"stretch, {session.time[a]:.3f}-{session.time[b - 1]:.3f} s "
+        f"({100 * (b - a) / len(session):.0f} % of the samples)"
+    ]
+
+
 def prepare(session: Session, diff: Differentiator) -> Kinematics:
     """Check that a session can identify anything, then differentiate it."""
     session.validate()
@@ -239,6 +269,8 @@ class BayesianFit:
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
+        session.validate()
+        session, gap_warnings = longest_gapless(session)
         kin = prepare(session, self._diff())
         x_full = session.position
         fs = 1.0 / float(np.median(np.diff(session.time)))
@@ -251,7 +283,7 @@ class BayesianFit:
             self.sigma_x_ = max(position_noise_sd(x_full, fs), step / np.sqrt(12))
         y = kin.force
         rng = np.random.default_rng(self.seed)
-        self.warnings_: list[str] = saturation_warnings(session)
+        self.warnings_: list[str] = gap_warnings + saturation_warnings(session)
 
         designs = {m.name: design(m, kin, x_full) for m in models}
         # residual correlation from the best-fitting form: smoothing makes neighbouring
@@ -440,6 +472,8 @@ class WindowedPinv:
     def fit(self, session: Session) -> WindowedPinv:
         (model,) = parse_forms(self.forms) if self.forms != "all" else (all_models()[0],)
         d = self.differentiator
+        session.validate()
+        session, self.warnings_ = longest_gapless(session)
         kin = prepare(session, differentiator(d) if isinstance(d, str) else d)
         A, y = design(model, kin, session.position), kin.force
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
