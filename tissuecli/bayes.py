@@ -238,17 +238,16 @@ def _mixture_quantile(q: float, w: Array, mu: Array, sd: Array) -> float:
 
 
 class PowerPosterior:
-    """``ln p(y | theta)^temperature + ln p(theta)`` over theta = (gamma, ln sigma).
+    """``ln p(y | theta) + ln p(theta)`` over theta = (gamma, ln sigma).
 
     gamma are the coefficients of unit-norm columns, so all walkers move on
     comparable scales; vectorised over walkers for emcee.
     """
 
-    def __init__(self, stats: Stats, prior: Prior, temperature: float = 1.0) -> None:
+    def __init__(self, stats: Stats, prior: Prior) -> None:
         self.s, self.d = stats.scaled()
         self.ws = prior.scales * self.d
         self.prior = prior
-        self.temperature = temperature
         self.lo, self.hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
         self._ln_prior_const = float(
             np.sum(np.log(2) - np.log(self.ws) - 0.5 * LN_2PI) - np.log(prior.ln_sigma_range)
@@ -268,12 +267,8 @@ class PowerPosterior:
         good = np.isfinite(lp)
         out = np.full(theta.shape[0], -np.inf)
         if np.any(good):
-            out[good] = lp[good] + self.temperature * self.log_likelihood(theta[good])
+            out[good] = lp[good] + self.log_likelihood(theta[good])
         return out
-
-    def draw_prior(self, k: int, rng: np.random.Generator) -> Array:
-        g = np.abs(rng.standard_normal((k, self.ws.size))) * self.ws
-        return np.column_stack([g, rng.uniform(self.lo, self.hi, k)])
 
     def to_si(self, theta: Array) -> Array:
         """(k, p + 1) array of SI coefficients and sigma."""
@@ -289,6 +284,16 @@ def _start(
     gamma = np.abs(beta * target.d)
     u = exact.u[int(np.argmax(exact.weights))] + 1e-3 * rng.standard_normal(walkers)
     return np.column_stack([gamma, u])
+
+
+def _ensemble(log_prob: Callable[[Array], Array], walkers: int, ndim: int,
+              rng: np.random.Generator) -> Any:
+    """A vectorised emcee sampler seeded from ``rng``, so runs are reproducible."""
+    import emcee  # only when sampling is needed
+
+    sampler = emcee.EnsembleSampler(walkers, ndim, log_prob, vectorize=True)
+    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+    return sampler
 
 
 def run_emcee(
@@ -307,13 +312,10 @@ def run_emcee(
     The evidence is the exact one (closed form times the orthant mass); run
     :func:`stepping_stone` for a sampler-based estimate.
     """
-    import emcee
-
     exact = ExactPosterior(stats, prior)
     target = PowerPosterior(stats, prior)
     p0 = _start(exact, target, walkers, rng)
-    sampler = emcee.EnsembleSampler(walkers, p0.shape[1], target, vectorize=True)
-    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+    sampler = _ensemble(target, walkers, p0.shape[1], rng)
     tau = np.full(p0.shape[1], np.inf)
     state = p0
     while sampler.iteration < max_steps:
@@ -399,13 +401,10 @@ def stepping_stone(
     variance of each rung; it needs only the unnormalised posterior, so it
     applies to models without a closed form.
     """
-    import emcee
-
     exact = ExactPosterior(stats_, prior)
     target = PowerPosterior(stats_, prior)
     state = _start(exact, target, walkers, rng)
-    sampler = emcee.EnsembleSampler(walkers, state.shape[1], target, vectorize=True)
-    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+    sampler = _ensemble(target, walkers, state.shape[1], rng)
     state = sampler.run_mcmc(state, burn + 2 * steps, progress=False).coords
     draws = sampler.get_chain(discard=burn, flat=True)
     path = ReferencePath(target, draws.mean(axis=0), np.cov(draws.T) * widen**2)
@@ -417,8 +416,7 @@ def stepping_stone(
             theta = path.q.rvs(size=walkers * steps, random_state=rng)
         else:
             path.t = t
-            sampler = emcee.EnsembleSampler(walkers, state.shape[1], path, vectorize=True)
-            sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+            sampler = _ensemble(path, walkers, state.shape[1], rng)
             state = sampler.run_mcmc(state, burn + steps, progress=False).coords
             theta = sampler.get_chain(discard=burn, flat=True)
         lr = path.log_ratio(theta)
