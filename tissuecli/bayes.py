@@ -35,8 +35,10 @@ class Prior:
     """Half-normal scales of the coefficients (SI) and the range of the noise SD (N)."""
 
     scales: Array
-    sigma_lo: float = 1e-6
-    sigma_hi: float = 100.0
+    # wide on purpose: the range only adds a constant to every form's ln evidence,
+    # and sessions in any physical scale (nN to MN) must fit inside it
+    sigma_lo: float = 1e-12
+    sigma_hi: float = 1e9
 
     @property
     def ln_sigma_range(self) -> float:
@@ -286,8 +288,9 @@ def _start(
     return np.column_stack([gamma, u])
 
 
-def _ensemble(log_prob: Callable[[Array], Array], walkers: int, ndim: int,
-              rng: np.random.Generator) -> Any:
+def _ensemble(
+    log_prob: Callable[[Array], Array], walkers: int, ndim: int, rng: np.random.Generator
+) -> Any:
     """A vectorised emcee sampler seeded from ``rng``, so runs are reproducible."""
     import emcee  # only when sampling is needed
 

@@ -457,6 +457,14 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
     show_default=True,
     help="pinv window length in s.",
 )
+@click.option(
+    "--force-scale",
+    type=click.FloatRange(min=0, min_open=True),
+    default=20.0,
+    show_default=True,
+    help="Prior scale in N: the force each term may reach at jaw-scale motion (5 mm, "
+    "50 mm/s, 10 m/s^2). Raise it for stiff materials.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sampler.")
 def fit(
     file: str,
@@ -468,6 +476,7 @@ def fit(
     sampler: str,
     differentiator: str,
     window: float,
+    force_scale: float,
     seed: int,
 ) -> None:
     """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F from a session.
@@ -490,6 +499,7 @@ def fit(
         sampler=sampler,
         differentiator=differentiator,
         window_s=window,
+        force_scale=force_scale,
         seed=seed,
         progress=_sampling_progress() if sys.stderr.isatty() else None,
     )

@@ -129,6 +129,7 @@ def fit_session(
     sampler: str = "auto",
     differentiator: str = "gaussian",
     window_s: float = 1.0,
+    force_scale: float = 20.0,
     seed: int = 0,
     progress: Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
@@ -147,7 +148,12 @@ def fit_session(
     est = pinv = None
     if method in ("bayes", "both"):
         est = BayesianFit(
-            forms, sampler=sampler, differentiator=differentiator, seed=seed, progress=progress
+            forms,
+            sampler=sampler,
+            differentiator=differentiator,
+            force_scale=force_scale,
+            seed=seed,
+            progress=progress,
         ).fit(session)
     if method in ("pinv", "both"):
         pinv_forms = (

@@ -27,7 +27,7 @@ from scipy.signal import welch
 from .bayes import ExactPosterior, Posterior, Prior, Stats, run_emcee, stepping_stone
 from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
 from .errors import FitError
-from .models import PARAMETERS, TissueModel, all_models
+from .models import FORCE_SCALE, PARAMETERS, TissueModel, all_models
 from .session import Session
 
 Array = NDArray[np.float64]
@@ -221,6 +221,9 @@ class BayesianFit:
     differentiator : str or Differentiator
     eiv : bool
         Correct the errors-in-variables bias from position noise.
+    force_scale : float
+        N. Sets the priors: each term of the law is expected to stay within a
+        few times this force at jaw-scale closure, speed and acceleration.
     decisive : float
         ln Bayes factor behind the best beyond which a form is not sampled.
     seed : int
@@ -250,10 +253,12 @@ class BayesianFit:
         differentiator: str | Differentiator = "gaussian",
         eiv: bool = True,
         decisive: float = DECISIVE,
+        force_scale: float = FORCE_SCALE,
         seed: int = 0,
         progress: Callable[[str, int, float], None] | None = None,
     ) -> None:
         self.forms = forms
+        self.force_scale = force_scale
         self.sampler = sampler
         self.differentiator = differentiator
         self.eiv = eiv
@@ -296,6 +301,7 @@ class BayesianFit:
             rss[m.name] = float(r @ r)
             taus[m.name] = residual_tau(r)
         best_ls = min(rss, key=rss.get)  # type: ignore[arg-type]
+        self._check_prior_conflict(models, designs, y, best_ls)
         self.tau_ = taus[best_ls]
         A = designs[best_ls]
         weight = data_weight(A, y - A @ _lstsq_scaled(A, y), self.tau_)
@@ -309,7 +315,7 @@ class BayesianFit:
             if uncorrected:
                 corr = None  # noise dominates a column: the correction would be meaningless
             st = Stats.from_data(A, y, weight=weight, correction=corr)
-            prior = Prior(scales=m.prior_scales())
+            prior = Prior(scales=m.prior_scales(self.force_scale))
             exact = ExactPosterior(st, prior)
             post = exact.summary(rng)
             flags = []
@@ -393,6 +399,29 @@ class BayesianFit:
         self.warnings_.extend(f"{self.best_.name}: {f}" for f in self.best_.flags)
         return self
 
+    def _check_prior_conflict(
+        self, models: list[TissueModel], designs: dict[str, Array], y: Array, best: str
+    ) -> None:
+        """Refuse data whose best fit lies far outside the priors: a units mistake, or a
+        material the priors were not written for, would otherwise give prior-driven answers."""
+        model = next(m for m in models if m.name == best)
+        beta = _lstsq_scaled(designs[best], y)
+        scales = model.prior_scales(self.force_scale)
+        ratio = np.abs(beta) / scales
+        j = int(np.argmax(ratio))
+        if not np.all(np.isfinite(beta)):
+            raise FitError(
+                "the least-squares fit is not finite; check the session for extreme values"
+            )
+        if ratio[j] > 10:
+            name = PARAMETERS[j]
+            raise FitError(
+                f"the data put {name} at {beta[j]:.3g} {model.units[name]}, {ratio[j]:.0f} times "
+                f"its prior scale ({scales[j]:.3g}) for forces of about {self.force_scale:g} N "
+                "at jaw-scale motion; check that position is in m and force in N, or set "
+                "--force-scale to the forces this material produces"
+            )
+
     def fitted_force(self, result: ModelResult | None = None) -> Array:
         """Force predicted by a form's posterior mean on the fitted samples (N)."""
         r = result or self.best_
@@ -404,7 +433,7 @@ def _identifiability(r: ModelResult) -> list[str]:
     flags = []
     post = r.posterior
     assert post is not None
-    scales = r.model.prior_scales()
+    scales = r.prior.scales if r.prior is not None else r.model.prior_scales()
     for j, name in enumerate(PARAMETERS):
         lo, hi = post.ci95[j]
         if (

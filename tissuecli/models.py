@@ -32,10 +32,10 @@ class Form(ABC):
     unit: ClassVar[str]
     label: ClassVar[str]  # for plots and reports
 
-    def prior_scale(self) -> float:
+    def prior_scale(self, force_scale: float = 20.0) -> float:  # N
         """Half-normal prior scale of the coefficient (SI): the coefficient that makes
-        this term give :data:`FORCE_SCALE` at the role's typical value (:data:`TYPICAL`)."""
-        return FORCE_SCALE / float(abs(self(np.array([TYPICAL[self.role]]))[0]))
+        this term give ``force_scale`` (N) at the role's typical value (:data:`TYPICAL`)."""
+        return force_scale / float(abs(self(np.array([TYPICAL[self.role]]))[0]))
 
     @abstractmethod
     def __call__(self, u: Array) -> Array:
@@ -149,10 +149,15 @@ class TissueModel:
     def name(self) -> str:
         return f"{self.f0.name},{self.f1.name}"
 
-    def prior_scales(self) -> NDArray[np.float64]:
-        """Half-normal prior scales of (K, S, M) in SI."""
-        return np.array([self.f0.prior_scale(), self.f1.prior_scale(),
-                         FORCE_SCALE / TYPICAL["inertia"]])
+    def prior_scales(self, force_scale: float = FORCE_SCALE) -> NDArray[np.float64]:
+        """Half-normal prior scales of (K, S, M) in SI, for terms reaching ``force_scale`` N."""
+        return np.array(
+            [
+                self.f0.prior_scale(force_scale),
+                self.f1.prior_scale(force_scale),
+                force_scale / TYPICAL["inertia"],
+            ]
+        )
 
     @property
     def units(self) -> dict[str, str]:
