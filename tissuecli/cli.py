@@ -210,6 +210,73 @@ def simulate_forceps(
     click.echo(f"stopped: {counters['sent']} frames sent", err=True)
 
 
+@simulate.command("display")
+@click.option(
+    "--link",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Make a symlink to the port here (e.g. /tmp/display), so its name is stable.",
+)
+@click.option(
+    "--profile",
+    "profile_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Display profile JSON (SI); the paper's prototype otherwise.",
+)
+@click.option(
+    "--rate",
+    type=click.FloatRange(min=1, max=20000),
+    default=1000.0,
+    show_default=True,
+    help="Control-loop rate in Hz.",
+)
+@click.option(
+    "--seed", type=int, default=0, show_default=True, help="Seed of the operator's presses."
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Exit after this many seconds (default: run until Ctrl-C or SIGTERM).",
+)
+def simulate_display(
+    link: str | None, profile_file: str | None, rate: float, seed: int, duration: float | None
+) -> None:
+    """A simulated solenoid display: piston, spring, solenoid, encoder and a pressing finger.
+
+    It prints its port, then sends an Encoder frame every period to whoever opens
+    it and sends START, and applies the SetVoltage frames it receives. With no
+    SetVoltage for 5 periods it switches the solenoid off (watchdog). The finger
+    presses 1-2.5 N a few times per 10 s. Stop it with Ctrl-C or SIGTERM.
+    """
+    from .play import read_profile, run_simulated_display
+
+    profile = read_profile(profile_file) if profile_file else None
+
+    def ready(p: Any) -> None:
+        click.echo(p.path if p.link is None else f"{p.link} -> {p.name}")
+        click.echo(
+            f"simulated display at {rate:g} Hz, operator seed {seed}; Ctrl-C to stop", err=True
+        )
+        sys.stdout.flush()
+
+    counters = run_simulated_display(
+        link,
+        profile=profile,
+        rate_hz=rate,
+        seed=seed,
+        duration_s=duration,
+        on_ready=ready,
+        say=lambda line: click.echo(line, err=True),
+    )
+    click.echo(
+        f"stopped: {counters['sent']} frames sent, {counters['commands']} SetVoltage received, "
+        f"{counters['watchdog_trips']} watchdog trips",
+        err=True,
+    )
+
+
 # --------------------------------------------------------------------------- record
 
 
@@ -508,6 +575,136 @@ def fit(
     for path, what in ((out, "parameters"), (report, "report")):
         if path:
             click.echo(f"{what} written to {path}")
+
+
+# --------------------------------------------------------------------------- play
+
+
+def _play_status() -> Callable[[dict[str, Any]], None]:
+    """Live one-line status on stderr while playing (rewritten in place on a terminal)."""
+    tty = sys.stderr.isatty()
+
+    def show(s: dict[str, Any]) -> None:
+        line = (
+            f"playing: {s['duration_s']:7.1f} s  error rms {s['tracking_rms_m'] * 1e6:6.1f} um  "
+            f"saturated {s['saturated_fraction']:6.1%}  unrenderable "
+            f"{s['unrenderable_fraction']:6.1%}  {s['loop_rate_hz']:7.1f} Hz  "
+            f"lost {s['frames_lost']}"
+        )
+        click.echo(("\r" + line) if tty else line, err=True, nl=not tty)
+
+    return show
+
+
+@cli.command()
+@click.argument("params_file", type=click.Path(dir_okay=False))
+@click.option(
+    "--port",
+    default=None,
+    help="Display path (e.g. /dev/ttyUSB1, /tmp/display) or pyserial URL; not needed with --check.",
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Seconds to play; default until Ctrl-C or SIGTERM.",
+)
+@click.option(
+    "--rate",
+    type=click.FloatRange(min=1, max=20000),
+    default=1000.0,
+    show_default=True,
+    help="Control-loop rate in Hz; must be the display's.",
+)
+@click.option(
+    "--log",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="HDF5 file to log every frame to, as group plays/<name> (never overwritten).",
+)
+@click.option(
+    "--summary",
+    "summary_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the summary (or with --check the verdict) as JSON here.",
+)
+@click.option(
+    "--check",
+    "check_only",
+    is_flag=True,
+    help="Only report the renderable band and the verdict; open no port, move nothing.",
+)
+@click.option(
+    "--profile",
+    "profile_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Display profile JSON (SI); default: what the display reports, else the paper's.",
+)
+def play(
+    params_file: str,
+    port: str | None,
+    duration: float | None,
+    rate: float,
+    log: str | None,
+    summary_file: str | None,
+    check_only: bool,
+    profile_file: str | None,
+) -> None:
+    """Render an identified tissue on the solenoid haptic display.
+
+    The tissue is checked first: a display that would saturate below a firm grasp
+    (3.4 N), a tissue softer than the display's spring, or an unstable loop are
+    refused with the reason. Ctrl-C, SIGTERM, a lost display or any error leave
+    the solenoid at 0 V.
+
+    \b
+    Examples:
+        tissuecli simulate display --link /tmp/display &
+        tissuecli play liver.json --port /tmp/display --duration 20 --log plays.h5
+        tissuecli play liver.json --check        # the band and the verdict only
+    """
+    from .display import PAPER_DISPLAY, check
+    from .errors import InputError, RenderError
+    from .params import read_tissue, write_json
+    from .play import play as run
+    from .play import read_profile, summary_lines
+    from .simulate import StopFlag
+
+    tissue = read_tissue(params_file)
+    profile = read_profile(profile_file) if profile_file else None
+    if check_only:
+        result = check(tissue, profile or PAPER_DISPLAY, rate)
+        for line in result.lines():
+            click.echo(line)
+        if summary_file:
+            write_json(summary_file, {"check": result.as_dict()})
+        if not result.renderable:
+            raise RenderError("the display cannot render this tissue: " + "; ".join(result.reasons))
+        return
+    if port is None:
+        raise InputError("give the display's port with --port (or use --check)")
+    stop = StopFlag().install()
+    status = _play_status()
+    try:
+        summary = run(
+            tissue,
+            port,
+            duration,
+            rate_hz=rate,
+            log=log,
+            stop=stop,
+            profile=profile,
+            on_status=status,
+        )
+    finally:
+        if sys.stderr.isatty():
+            click.echo(err=True)
+    if summary_file:
+        write_json(summary_file, summary)
+    for line in summary_lines(summary):
+        click.echo(line)
 
 
 # --------------------------------------------------------------------------- demo
