@@ -726,7 +726,7 @@ def play(
     help="Keep the files here instead of a temporary directory.",
 )
 def demo(duration: float, workdir: str | None) -> None:
-    """Everything on simulated devices: simulate, record, list, export, fit and report."""
+    """Everything on simulated devices: simulate, record, list, export, fit, report, play."""
     from .demo import run_demo
 
     run_demo(duration_s=duration, workdir=workdir, say=click.echo)

@@ -9,8 +9,11 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from . import storage
+from .display import PAPER_DISPLAY, check
 from .fit import fit_file
 from .models import DEFAULT_TISSUE, PARAMETERS
+from .params import read_tissue
+from .play import play, summary_lines
 from .record import record
 from .simulate import SimulatorProcess
 from .transfer import export_csv
@@ -21,7 +24,8 @@ def run_demo(
     workdir: str | os.PathLike[str] | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, str]:
-    """Simulate a forceps, record, list, export and fit the session; return the files made.
+    """Simulate a forceps, record, list, export and fit the session, then play the fitted
+    tissue on a simulated display; return the files made.
 
     Parameters
     ----------
@@ -71,7 +75,16 @@ def run_demo(
         for w in outcome.bayes.warnings_:  # type: ignore[union-attr]
             say(f"   warning: {w}")
         say(f"   parameters -> {params}, report -> {report}")
+        tissue = read_tissue(params)
+        verdict = check(tissue, PAPER_DISPLAY, 1000.0)
+        say(f"6. display check: {verdict.verdict}")
+        log = root / "play.h5"
+        with SimulatorProcess("display", root / "display") as disp:
+            summary = play(tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log)
+        say("7. played the fitted tissue on the simulated display:")
+        for line in summary_lines(summary):
+            say(f"   {line}")
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")
         return {"h5": str(h5), "csv": str(csv), "session": name, "params": str(params),
-                "report": str(report)}
+                "report": str(report), "play_log": str(log)}
