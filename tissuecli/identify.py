@@ -198,7 +198,8 @@ class ModelResult:
     cond_scaled: float = float("nan")
     residual_rms: float = float("nan")
     flags: list[str] = field(default_factory=list)
-    design: Array = field(default_factory=lambda: np.empty((0, 3)), repr=False)
+    gram: Array = field(default_factory=lambda: np.zeros((3, 3)), repr=False)  # A^T A
+    correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
     stats: Stats | None = field(default=None, repr=False)
     prior: Prior | None = field(default=None, repr=False)
 
@@ -290,34 +291,34 @@ class BayesianFit:
         rng = np.random.default_rng(self.seed)
         self.warnings_: list[str] = gap_warnings + saturation_warnings(session)
 
-        designs = {m.name: design(m, kin, x_full) for m in models}
+        # one pass per form keeps only its sufficient statistics, so memory holds one
+        # design matrix at a time whatever the number of forms
+        firsts = {
+            m.name: _first_pass(m, kin, x_full, y, self.sigma_x_ if self.eiv else 0.0)
+            for m in models
+        }
         # residual correlation from the best-fitting form: smoothing makes neighbouring
         # residuals alike, and treating them as independent would overstate certainty
-        rss, taus = {}, {}
-        for m in models:
-            A = designs[m.name]
-            beta = _lstsq_scaled(A, y)
-            r = y - A @ beta
-            rss[m.name] = float(r @ r)
-            taus[m.name] = residual_tau(r)
-        best_ls = min(rss, key=rss.get)  # type: ignore[arg-type]
-        self._check_prior_conflict(models, designs, y, best_ls)
-        self.tau_ = taus[best_ls]
-        A = designs[best_ls]
-        weight = data_weight(A, y - A @ _lstsq_scaled(A, y), self.tau_)
+        best_ls = min(firsts, key=lambda name: firsts[name].rss)
+        self._check_prior_conflict(models, firsts[best_ls].beta, best_ls)
+        self.tau_ = firsts[best_ls].tau
+        A = design(next(m for m in models if m.name == best_ls), kin, x_full)
+        weight = data_weight(A, y - A @ firsts[best_ls].beta, self.tau_)
+        del A
         self.n_eff_ = y.size * weight
+        self._x_full = x_full
 
         results = []
         for m in models:
-            A = designs[m.name]
-            corr = eiv_correction(m, kin, x_full, self.sigma_x_) if self.eiv else None
-            uncorrected = corr is not None and np.any(np.linalg.eigvalsh(A.T @ A - corr) <= 0)
+            fp = firsts[m.name]
+            corr = fp.correction
+            uncorrected = corr is not None and np.any(np.linalg.eigvalsh(fp.gram - corr) <= 0)
             if uncorrected:
                 corr = None  # noise dominates a column: the correction would be meaningless
-            st = Stats.from_data(A, y, weight=weight, correction=corr)
+            G = fp.gram - corr if corr is not None else fp.gram
+            st = Stats(weight * G, weight * fp.b, weight * fp.yy, weight * y.size)
             prior = Prior(scales=m.prior_scales(self.force_scale))
-            exact = ExactPosterior(st, prior)
-            post = exact.summary(rng)
+            post = ExactPosterior(st, prior).summary(rng)
             flags = []
             if uncorrected:
                 flags.append(
@@ -326,7 +327,7 @@ class BayesianFit:
                 )
             if corr is not None:
                 # the correction rests on an estimated noise level: say when it matters
-                shift = post.mean - _lstsq_scaled(A, y)
+                shift = post.mean - fp.beta
                 for j in np.flatnonzero(np.abs(shift) > post.sd):
                     flags.append(
                         f"{PARAMETERS[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
@@ -338,10 +339,11 @@ class BayesianFit:
                     model=m,
                     ln_evidence=post.ln_evidence,
                     posterior=post,
-                    cond=float(np.linalg.cond(A)),
-                    cond_scaled=float(np.linalg.cond(A / np.linalg.norm(A, axis=0))),
-                    residual_rms=float(np.sqrt(rss[m.name] / y.size)),
-                    design=A,
+                    cond=fp.cond,
+                    cond_scaled=fp.cond_scaled,
+                    residual_rms=float(np.sqrt(fp.rss / y.size)),
+                    gram=fp.gram,
+                    correction=corr,
                     stats=st,
                     prior=prior,
                     flags=flags,
@@ -399,13 +401,10 @@ class BayesianFit:
         self.warnings_.extend(f"{self.best_.name}: {f}" for f in self.best_.flags)
         return self
 
-    def _check_prior_conflict(
-        self, models: list[TissueModel], designs: dict[str, Array], y: Array, best: str
-    ) -> None:
+    def _check_prior_conflict(self, models: list[TissueModel], beta: Array, best: str) -> None:
         """Refuse data whose best fit lies far outside the priors: a units mistake, or a
         material the priors were not written for, would otherwise give prior-driven answers."""
         model = next(m for m in models if m.name == best)
-        beta = _lstsq_scaled(designs[best], y)
         scales = model.prior_scales(self.force_scale)
         ratio = np.abs(beta) / scales
         j = int(np.argmax(ratio))
@@ -425,7 +424,42 @@ class BayesianFit:
     def fitted_force(self, result: ModelResult | None = None) -> Array:
         """Force predicted by a form's posterior mean on the fitted samples (N)."""
         r = result or self.best_
-        return r.design @ r.posterior.mean  # type: ignore[union-attr]
+        return design(r.model, self.kinematics_, self._x_full) @ r.posterior.mean  # type: ignore[union-attr]
+
+
+@dataclass
+class _FirstPass:
+    """What the fit keeps of one form's design matrix: its sufficient statistics."""
+
+    gram: Array
+    b: Array
+    yy: float
+    beta: Array
+    rss: float
+    tau: float
+    cond: float
+    cond_scaled: float
+    correction: Array | None
+
+
+def _first_pass(
+    model: TissueModel, kin: Kinematics, x_full: Array, y: Array, sigma_x: float
+) -> _FirstPass:
+    A = design(model, kin, x_full)
+    beta = _lstsq_scaled(A, y)
+    r = y - A @ beta
+    norms = np.linalg.norm(A, axis=0)
+    return _FirstPass(
+        gram=A.T @ A,
+        b=A.T @ y,
+        yy=float(y @ y),
+        beta=beta,
+        rss=float(r @ r),
+        tau=residual_tau(r),
+        cond=float(np.linalg.cond(A)),
+        cond_scaled=float(np.linalg.cond(A / np.where(norms > 0, norms, 1.0))),
+        correction=eiv_correction(model, kin, x_full, sigma_x) if sigma_x > 0 else None,
+    )
 
 
 def _identifiability(r: ModelResult) -> list[str]:

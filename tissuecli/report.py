@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.special import logsumexp
 
 from .fit import FitOutcome, fitted_series
-from .identify import DECISIVE, BayesianFit, ModelResult, WindowedPinv, design, eiv_correction
+from .identify import DECISIVE, BayesianFit, ModelResult, WindowedPinv, design
 from .models import PARAMETERS, TissueModel
 
 Array = NDArray[np.float64]
@@ -53,8 +53,14 @@ CONVENIENT: dict[str, tuple[str, float]] = {
 }
 
 _ROLE = {"K": "stiffness", "S": "damping", "M": "moving mass"}
-_COLOURS = {"measured": "#1f5fa8", "fitted": "#d9601a", "raw": "#b8b8b8", "band": "#9fc4e8",
-            "pick": "#c0182b", "open": "#c0182b"}
+_COLOURS = {
+    "measured": "#1f5fa8",
+    "fitted": "#d9601a",
+    "raw": "#b8b8b8",
+    "band": "#9fc4e8",
+    "pick": "#c0182b",
+    "open": "#c0182b",
+}
 
 _CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;color:#1d1d1d;
@@ -111,7 +117,8 @@ def _sig(v: float | None, digits: int = 4) -> str:
         return text.replace("-", "−")
     mant, power = f"{v:.{digits - 1}e}".split("e")
     return f"{mant.replace('-', '−')}&#8239;×&#8239;10<sup>{int(power)}</sup>".replace(
-        "<sup>-", "<sup>−")
+        "<sup>-", "<sup>−"
+    )
 
 
 def _fixed(v: float, decimals: int = 2, sign: bool = False) -> str:
@@ -166,8 +173,11 @@ def _jeffreys(ln_bf: float) -> str:
     """Jeffreys' words for the evidence against a form, from its ln Bayes factor."""
     if ln_bf <= 0:
         return "best"
-    for limit, word in ((math.log(10 ** 0.5), "barely worth mentioning"),
-                        (math.log(10.0), "substantial"), (DECISIVE, "strong")):
+    for limit, word in (
+        (math.log(10**0.5), "barely worth mentioning"),
+        (math.log(10.0), "substantial"),
+        (DECISIVE, "strong"),
+    ):
         if ln_bf < limit:
             return word
     return "decisive"
@@ -213,17 +223,32 @@ def _series(outcome: FitOutcome) -> _Series:
         s = fitted_series(outcome)
         post = est.best_.posterior
         assert post is not None
-        return _Series(time=s["time"], raw=session.force[est.kinematics_.keep], force=s["force"],
-                       fitted=s["fitted"], x=s["x"], model=est.best_.model,
-                       source="posterior mean of the best form", sigma=post.sigma_mean,
-                       expected_sd=_expected_residual_sd(est, session.position))
+        return _Series(
+            time=s["time"],
+            raw=session.force[est.kinematics_.keep],
+            force=s["force"],
+            fitted=s["fitted"],
+            x=s["x"],
+            model=est.best_.model,
+            source="posterior mean of the best form",
+            sigma=post.sigma_mean,
+            expected_sd=_expected_residual_sd(est, session.position),
+        )
     pinv = outcome.pinv
     assert pinv is not None
     kin = pinv.kinematics_
     fitted = design(pinv.model_, kin, session.position) @ pinv.params_
-    return _Series(time=kin.time, raw=session.force[kin.keep], force=kin.force, fitted=fitted,
-                   x=kin.x, model=pinv.model_, source="pseudoinverse, best window",
-                   sigma=None, expected_sd=None)
+    return _Series(
+        time=kin.time,
+        raw=session.force[kin.keep],
+        force=kin.force,
+        fitted=fitted,
+        x=kin.x,
+        model=pinv.model_,
+        source="pseudoinverse, best window",
+        sigma=None,
+        expected_sd=None,
+    )
 
 
 def _expected_residual_sd(est: BayesianFit, x_full: Array) -> float:
@@ -239,11 +264,10 @@ def _expected_residual_sd(est: BayesianFit, x_full: Array) -> float:
     sigma = float(post.sigma_mean)
     if not est.eiv or est.sigma_x_ <= 0:
         return sigma
-    corr = eiv_correction(best.model, est.kinematics_, x_full, est.sigma_x_)
-    A = best.design
-    if np.any(np.linalg.eigvalsh(A.T @ A - corr) <= 0):
-        return sigma  # the fit leaves such a form uncorrected
-    extra = float(post.mean @ corr @ post.mean) / max(A.shape[0], 1)
+    corr = best.correction
+    if corr is None:
+        return sigma  # the fit left this form uncorrected
+    extra = float(post.mean @ corr @ post.mean) / max(est.kinematics_.time.size, 1)
     return float(np.sqrt(sigma**2 + max(extra, 0.0)))
 
 
@@ -284,10 +308,12 @@ def _figure(fig: Figure, anchor: str, title: str, alt: str, caption: str) -> str
     """A figure as an embedded image with a caption (what to look at)."""
     w, h = fig.get_size_inches()
     data = _png(fig)
-    return (f'<figure id="{_e(anchor)}"><h3>{_e(title)}</h3>'
-            f'<img src="data:image/png;base64,{data}" alt="{_e(alt)}" '
-            f'width="{int(w * 96)}" height="{int(h * 96)}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
+    return (
+        f'<figure id="{_e(anchor)}"><h3>{_e(title)}</h3>'
+        f'<img src="data:image/png;base64,{data}" alt="{_e(alt)}" '
+        f'width="{int(w * 96)}" height="{int(h * 96)}">'
+        f"<figcaption>{_e(caption)}</figcaption></figure>"
+    )
 
 
 def _new_figure(w: float, h: float) -> Figure:
@@ -298,12 +324,17 @@ def _new_figure(w: float, h: float) -> Figure:
 def _time_figure(s: _Series) -> Figure:
     fig = _new_figure(9.5, 4.6)
     ax, bx = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-    ax.plot(*_envelope(s.time, s.raw), color=_COLOURS["raw"], lw=0.7,
-            label="raw (unfiltered)")
-    ax.plot(*_envelope(s.time, s.force), color=_COLOURS["measured"], lw=1.3,
-            label="measured (filtered)")
-    ax.plot(*_envelope(s.time, s.fitted), color=_COLOURS["fitted"], lw=1.1, ls="--",
-            label=f"fitted ({s.source})")
+    ax.plot(*_envelope(s.time, s.raw), color=_COLOURS["raw"], lw=0.7, label="raw (unfiltered)")
+    ax.plot(
+        *_envelope(s.time, s.force), color=_COLOURS["measured"], lw=1.3, label="measured (filtered)"
+    )
+    ax.plot(
+        *_envelope(s.time, s.fitted),
+        color=_COLOURS["fitted"],
+        lw=1.1,
+        ls="--",
+        label=f"fitted ({s.source})",
+    )
     ax.set_ylabel("grasp force F (N)")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8, ncols=3, framealpha=0.9)
@@ -323,10 +354,20 @@ def _loop_figure(s: _Series) -> Figure:
     i = _stride(s.x.size)
     x, f = s.x[i] * 1e3, s.force[i]
     closing = np.gradient(s.x)[i] >= 0
-    ax.plot(x, np.where(closing, f, np.nan), color=_COLOURS["measured"], lw=1.3,
-            label="measured, closing (loading)")
-    ax.plot(x, np.where(closing, np.nan, f), color=_COLOURS["open"], lw=1.3,
-            label="measured, opening (unloading)")
+    ax.plot(
+        x,
+        np.where(closing, f, np.nan),
+        color=_COLOURS["measured"],
+        lw=1.3,
+        label="measured, closing (loading)",
+    )
+    ax.plot(
+        x,
+        np.where(closing, np.nan, f),
+        color=_COLOURS["open"],
+        lw=1.3,
+        label="measured, opening (unloading)",
+    )
     ax.plot(x, s.fitted[i], color="k", lw=0.6, ls=(0, (3, 3)), alpha=0.8, label="fitted")
     ax.set_xlabel("jaw closure x (mm)")
     ax.set_ylabel("grasp force F (N)")
@@ -342,15 +383,26 @@ def _residual_figure(s: _Series) -> Figure:
     ax = fig.add_subplot(gs[0])
     hx = fig.add_subplot(gs[1])
     rms = float(np.sqrt(np.mean(r**2)))
-    ax.plot(*_envelope(s.time, r), color=_COLOURS["measured"], lw=0.7,
-            label=f"residual, RMS {rms:.3g} mN")
+    ax.plot(
+        *_envelope(s.time, r),
+        color=_COLOURS["measured"],
+        lw=0.7,
+        label=f"residual, RMS {rms:.3g} mN",
+    )
     ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("residual, measured − fitted (mN)")
     ax.set_xlim(s.time[0], s.time[-1])
     ax.grid(alpha=0.3)
-    hx.hist(r, bins=min(80, max(15, int(np.sqrt(r.size)))), orientation="horizontal",
-            density=True, color=_COLOURS["band"], edgecolor="none", label="histogram")
+    hx.hist(
+        r,
+        bins=min(80, max(15, int(np.sqrt(r.size)))),
+        orientation="horizontal",
+        density=True,
+        color=_COLOURS["band"],
+        edgecolor="none",
+        label="histogram",
+    )
     curves = []
     if s.sigma is not None and s.expected_sd is not None:
         if abs(s.expected_sd / s.sigma - 1) > 0.01:
@@ -361,17 +413,24 @@ def _residual_figure(s: _Series) -> Figure:
     top = max(sd for sd, _, _ in curves)
     grid = np.linspace(min(r.min(), -4 * top), max(r.max(), 4 * top), 300)
     for sd, what, ls in curves:
-        hx.plot(np.exp(-0.5 * (grid / sd) ** 2) / (sd * np.sqrt(2 * np.pi)), grid, ls=ls,
-                color=_COLOURS["fitted"] if ls == "-" else "k", lw=1.3,
-                label=f"Gaussian, {what} {sd:.3g} mN")
+        hx.plot(
+            np.exp(-0.5 * (grid / sd) ** 2) / (sd * np.sqrt(2 * np.pi)),
+            grid,
+            ls=ls,
+            color=_COLOURS["fitted"] if ls == "-" else "k",
+            lw=1.3,
+            label=f"Gaussian, {what} {sd:.3g} mN",
+        )
     hx.set_xlabel("density (1/mN)")
     hx.tick_params(labelleft=False)
     hx.grid(alpha=0.3)
     lo, hi = float(grid[0]), float(grid[-1])
     for a in (ax, hx):
         a.set_ylim(lo, hi + 0.3 * (hi - lo))  # room for the legend
-    handles, labels = (a + b for a, b in zip(ax.get_legend_handles_labels(),
-                                             hx.get_legend_handles_labels(), strict=True))
+    handles, labels = (
+        a + b
+        for a, b in zip(ax.get_legend_handles_labels(), hx.get_legend_handles_labels(), strict=True)
+    )
     ax.legend(handles, labels, loc="upper right", fontsize=8, ncols=2, framealpha=0.9)
     return fig
 
@@ -417,12 +476,25 @@ def _corner_figure(draws: Array, model: TissueModel, mean: Array, ci: Array) -> 
                     ax.axvline(q * scaled[j], color=_COLOURS["measured"], lw=0.9, ls="--")
                 ax.set_yticks([])
             else:
-                ax.scatter(v[:, j], v[:, i], s=2, alpha=0.25, color=_COLOURS["measured"],
-                           linewidths=0, rasterized=True)
+                ax.scatter(
+                    v[:, j],
+                    v[:, i],
+                    s=2,
+                    alpha=0.25,
+                    color=_COLOURS["measured"],
+                    linewidths=0,
+                    rasterized=True,
+                )
                 rho = float(np.corrcoef(draws[:, j], draws[:, i])[0, 1])
-                ax.text(0.03, 0.95, f"ρ = {rho:+.2f}", transform=ax.transAxes, va="top",
-                        fontsize=8, bbox={"facecolor": "white", "alpha": 0.8,
-                                          "edgecolor": "none"})
+                ax.text(
+                    0.03,
+                    0.95,
+                    f"ρ = {rho:+.2f}",
+                    transform=ax.transAxes,
+                    va="top",
+                    fontsize=8,
+                    bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+                )
                 _tidy_axis(ax.yaxis)
             _tidy_axis(ax.xaxis)
             ax.tick_params(labelsize=8)
@@ -451,23 +523,43 @@ def _windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
     units = pinv.model_.units
     fig = _new_figure(9.5, 5.6)
     axes = fig.subplots(2, 2, sharex=True).ravel()
-    panels = [(name, pinv.windows_[:, j], _unit_tex(units[name])) for j, name in
-              enumerate(PARAMETERS)]
+    panels = [
+        (name, pinv.windows_[:, j], _unit_tex(units[name])) for j, name in enumerate(PARAMETERS)
+    ]
     panels.append(("residual RMS", pinv.residuals_ * 1e3, "mN"))
     post = band.posterior if band is not None else None
     for k, (ax, (name, values, unit)) in enumerate(zip(axes, panels, strict=True)):
         factor, prefix = _axis_scale(values)
-        ax.plot(centre, values * factor, "o-", color=_COLOURS["measured"], ms=4, lw=0.8,
-                label="each window")
-        ax.plot(centre[best], values[best] * factor, "*", color=_COLOURS["pick"], ms=15,
-                label=f"chosen window (index {best})")
+        ax.plot(
+            centre,
+            values * factor,
+            "o-",
+            color=_COLOURS["measured"],
+            ms=4,
+            lw=0.8,
+            label="each window",
+        )
+        ax.plot(
+            centre[best],
+            values[best] * factor,
+            "*",
+            color=_COLOURS["pick"],
+            ms=15,
+            label=f"chosen window (index {best})",
+        )
         if k < 3:
-            ax.axhline(pinv.pooled_[k] * factor, color="k", lw=0.9, ls=":",
-                       label="all windows pooled")
+            ax.axhline(
+                pinv.pooled_[k] * factor, color="k", lw=0.9, ls=":", label="all windows pooled"
+            )
             if post is not None:
                 mu, sd = post.mean[k] * factor, post.sd[k] * factor
-                ax.axhspan(mu - 2 * sd, mu + 2 * sd, color=_COLOURS["band"], alpha=0.6,
-                           label="Bayesian mean ± 2 SD")
+                ax.axhspan(
+                    mu - 2 * sd,
+                    mu + 2 * sd,
+                    color=_COLOURS["band"],
+                    alpha=0.6,
+                    label="Bayesian mean ± 2 SD",
+                )
                 ax.axhline(mu, color=_COLOURS["fitted"], lw=1.1)
         ax.set_ylabel(f"{name} ({prefix}{unit})")
         ax.grid(alpha=0.3)
@@ -481,15 +573,21 @@ def _windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
 # --------------------------------------------------------------------------- html parts
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence[str]], numeric: Sequence[bool],
-           classes: Sequence[str] | None = None) -> str:
+def _table(
+    head: Sequence[str],
+    rows: Sequence[Sequence[str]],
+    numeric: Sequence[bool],
+    classes: Sequence[str] | None = None,
+) -> str:
     """A table; ``head`` is text (escaped), cells are markup already."""
     th = "".join(f"<th>{_e(h)}</th>" for h in head)
     body = []
     for k, row in enumerate(rows):
         cls = f' class="{classes[k]}"' if classes and classes[k] else ""
-        tds = "".join(f'<td class="n">{c}</td>' if num else f"<td>{c}</td>"
-                      for c, num in zip(row, numeric, strict=True))
+        tds = "".join(
+            f'<td class="n">{c}</td>' if num else f"<td>{c}</td>"
+            for c, num in zip(row, numeric, strict=True)
+        )
         body.append(f"<tr{cls}>{tds}</tr>")
     return f'<div class="wide"><table><tr>{th}</tr>{"".join(body)}</table></div>'
 
@@ -505,13 +603,16 @@ def _term_labels(model: TissueModel) -> dict[str, str]:
 
 def _formula(model: TissueModel, values: Sequence[str]) -> str:
     labels = _term_labels(model)
-    terms = " + ".join(f"{v}&#8201;{_e(labels[n])}" for n, v in zip(PARAMETERS, values,
-                                                                      strict=True))
+    terms = " + ".join(
+        f"{v}&#8201;{_e(labels[n])}" for n, v in zip(PARAMETERS, values, strict=True)
+    )
     units = model.units
-    return (f'<div class="formula">F = {terms}</div>'
-            f'<p class="units">F in N, x in m, ẋ in m/s, ẍ in m/s²; '
-            f"K in {_e(_unit(units['K']))}, S in {_e(_unit(units['S']))}, "
-            f"M in {_e(_unit(units['M']))}.</p>")
+    return (
+        f'<div class="formula">F = {terms}</div>'
+        f'<p class="units">F in N, x in m, ẋ in m/s, ẍ in m/s²; '
+        f"K in {_e(_unit(units['K']))}, S in {_e(_unit(units['S']))}, "
+        f"M in {_e(_unit(units['M']))}.</p>"
+    )
 
 
 def _convenient(value: float, unit: str) -> tuple[str, float] | None:
@@ -526,8 +627,10 @@ def _header(outcome: FitOutcome, s: _Series) -> str:
     session = outcome.session
     data = doc.get("data", {})
     if outcome.bayes is not None and outcome.pinv is not None:
-        how = (f"Bayesian model choice over {len(outcome.bayes.results_)} form(s), and the "
-               "windowed pseudoinverse")
+        how = (
+            f"Bayesian model choice over {len(outcome.bayes.results_)} form(s), and the "
+            "windowed pseudoinverse"
+        )
     elif outcome.bayes is not None:
         how = f"Bayesian model choice over {len(outcome.bayes.results_)} form(s)"
     else:
@@ -541,8 +644,10 @@ def _header(outcome: FitOutcome, s: _Series) -> str:
         ("Duration", f"{_sig(session.duration_s, 4)} s"),
         ("Sample rate", f"{_sig(session.rate_hz, 4)} Hz"),
         ("Jaw closure range", f"{_sig(float(x_mm.min()), 3)} to {_sig(float(x_mm.max()), 3)} mm"),
-        ("Force range", f"{_sig(float(session.force.min()), 3)} to "
-                        f"{_sig(float(session.force.max()), 3)} N"),
+        (
+            "Force range",
+            f"{_sig(float(session.force.min()), 3)} to {_sig(float(session.force.max()), 3)} N",
+        ),
         ("Identification", _e(how)),
         ("Software", _e(doc.get("software", ""))),
     ]
@@ -552,17 +657,21 @@ def _header(outcome: FitOutcome, s: _Series) -> str:
         post = best.posterior
         assert post is not None
         values = [_with_sd(post.mean[j], post.sd[j]) for j in range(len(PARAMETERS))]
-        chosen = (f"<p>Chosen form: <b>{_e(best.name)}</b> "
-                  f"(posterior probability {_probability(_ln_probabilities(outcome.bayes)[0])}), "
-                  "posterior means:</p>")
+        chosen = (
+            f"<p>Chosen form: <b>{_e(best.name)}</b> "
+            f"(posterior probability {_probability(_ln_probabilities(outcome.bayes)[0])}), "
+            "posterior means:</p>"
+        )
     else:
         pinv = outcome.pinv
         assert pinv is not None
         values = [_sig(v, 4) for v in pinv.params_]
-        chosen = (f"<p>Form: <b>{_e(pinv.model_.name)}</b> (given, not chosen), "
-                  "estimate of the best window:</p>")
+        chosen = (
+            f"<p>Form: <b>{_e(pinv.model_.name)}</b> (given, not chosen), "
+            "estimate of the best window:</p>"
+        )
     title = f"Tissue identification: {session.name or 'session'}"
-    return (f"<h1>{_e(title)}</h1>{_meta_table(items)}{chosen}{_formula(model, values)}")
+    return f"<h1>{_e(title)}</h1>{_meta_table(items)}{chosen}{_formula(model, values)}"
 
 
 def _ln_probabilities(est: BayesianFit) -> Array:
@@ -574,14 +683,18 @@ def _ln_probabilities(est: BayesianFit) -> Array:
 def _warnings_box(outcome: FitOutcome) -> str:
     warnings = list(outcome.document.get("warnings", []))
     if outcome.bayes is None:
-        warnings.append("Point estimates only: the windowed pseudoinverse gives no uncertainty "
-                        "and no model choice; the Bayesian fit gives both.")
+        warnings.append(
+            "Point estimates only: the windowed pseudoinverse gives no uncertainty "
+            "and no model choice; the Bayesian fit gives both."
+        )
         items = "".join(f"<li>{_e(w)}</li>" for w in warnings)
         return f'<div class="box warn"><b>Note</b><ul>{items}</ul></div>'
     if not warnings:
-        return ('<div class="box ok"><b>No warnings.</b> Every parameter of the chosen form is '
-                "identified: its 95 % interval stays clear of zero and its SD is below 25 % "
-                "of its value.</div>")
+        return (
+            '<div class="box ok"><b>No warnings.</b> Every parameter of the chosen form is '
+            "identified: its 95 % interval stays clear of zero and its SD is below 25 % "
+            "of its value.</div>"
+        )
     items = "".join(f"<li>{_e(w)}</li>" for w in warnings)
     return f'<div class="box warn"><b>Warnings ({len(warnings)})</b><ul>{items}</ul></div>'
 
@@ -601,37 +714,67 @@ def _parameters_bayes(est: BayesianFit, s: _Series) -> str:
         if conv is not None:
             cname, factor = CONVENIENT[units[name]]
             cplace = place + round(math.log10(factor))
-            conv_cell = (f"{_at_place(mean * factor, cplace)} "
-                         f"[{_at_place(lo * factor, cplace)}, {_at_place(hi * factor, cplace)}]"
-                         f" {_e(cname)}")
+            conv_cell = (
+                f"{_at_place(mean * factor, cplace)} "
+                f"[{_at_place(lo * factor, cplace)}, {_at_place(hi * factor, cplace)}]"
+                f" {_e(cname)}"
+            )
         else:
             conv_cell = "—"
         rel = f"{100 * sd / abs(mean):.2g} %" if mean != 0 else "—"
-        rows.append([f"<b>{name}</b> · {_e(labels[name])} <span class='small'>"
-                     f"({_e(_ROLE[name])})</span>",
-                     _with_sd(mean, sd), _sig(sd, 2),
-                     f"[{_at_place(lo, place)}, {_at_place(hi, place)}]",
-                     _e(_unit(units[name])), rel, conv_cell])
+        rows.append(
+            [
+                f"<b>{name}</b> · {_e(labels[name])} <span class='small'>"
+                f"({_e(_ROLE[name])})</span>",
+                _with_sd(mean, sd),
+                _sig(sd, 2),
+                f"[{_at_place(lo, place)}, {_at_place(hi, place)}]",
+                _e(_unit(units[name])),
+                rel,
+                conv_cell,
+            ]
+        )
     sig = post.samples[:, -1] if post.samples.shape[0] > 1 else np.empty(0)
     sig_sd = float(np.std(sig, ddof=1)) * 1e3 if sig.size > 1 else float("nan")
     lo, hi = (1e3 * q for q in post.sigma_ci95)
     place = _place(sig_sd)
-    rows.append(["<b>σ</b> noise SD of the filtered force",
-                 _with_sd(post.sigma_mean * 1e3, sig_sd), _sig(sig_sd, 2),
-                 f"[{_at_place(lo, place)}, {_at_place(hi, place)}]", "mN",
-                 f"{100 * sig_sd / (post.sigma_mean * 1e3):.2g} %", "—"])
-    table = _table(["parameter", "mean", "SD", "95 % interval", "unit (SI)", "SD / mean",
-                    "mean [95 % interval], convenient units"], rows,
-                   [False, True, True, True, False, True, True])
-    note = (f"<p class='small'>Form <b>{_e(best.name)}</b>; posterior from "
-            f"{_e('the closed form (exact)' if best.status == 'exact' else 'emcee sampling')}. "
-            "Means and intervals are shown to the second significant digit of their SD. "
-            "The noise SD σ is of the force after the same smoothing as the kinematics")
+    rows.append(
+        [
+            "<b>σ</b> noise SD of the filtered force",
+            _with_sd(post.sigma_mean * 1e3, sig_sd),
+            _sig(sig_sd, 2),
+            f"[{_at_place(lo, place)}, {_at_place(hi, place)}]",
+            "mN",
+            f"{100 * sig_sd / (post.sigma_mean * 1e3):.2g} %",
+            "—",
+        ]
+    )
+    table = _table(
+        [
+            "parameter",
+            "mean",
+            "SD",
+            "95 % interval",
+            "unit (SI)",
+            "SD / mean",
+            "mean [95 % interval], convenient units",
+        ],
+        rows,
+        [False, True, True, True, False, True, True],
+    )
+    note = (
+        f"<p class='small'>Form <b>{_e(best.name)}</b>; posterior from "
+        f"{_e('the closed form (exact)' if best.status == 'exact' else 'emcee sampling')}. "
+        "Means and intervals are shown to the second significant digit of their SD. "
+        "The noise SD σ is of the force after the same smoothing as the kinematics"
+    )
     if s.expected_sd is not None and abs(s.expected_sd / post.sigma_mean - 1) > 0.01:
         rms = float(np.sqrt(np.mean(s.residual**2)))
-        note += (f"; with the errors-in-variables correction it excludes position noise, which "
-                 f"the fit expects to raise the residual SD to {_sig(s.expected_sd * 1e3, 3)} mN "
-                 f"(observed residual RMS {_sig(rms * 1e3, 3)} mN)")
+        note += (
+            f"; with the errors-in-variables correction it excludes position noise, which "
+            f"the fit expects to raise the residual SD to {_sig(s.expected_sd * 1e3, 3)} mN "
+            f"(observed residual RMS {_sig(rms * 1e3, 3)} mN)"
+        )
     return table + note + ".</p>"
 
 
@@ -643,14 +786,31 @@ def _parameters_pinv(pinv: WindowedPinv) -> str:
         w = pinv.windows_[:, j]
         spread = float(np.std(w, ddof=1)) if w.size > 1 else float("nan")
         conv = _convenient(float(pinv.params_[j]), units[name])
-        rows.append([f"<b>{name}</b> · {_e(labels[name])} <span class='small'>"
-                     f"({_e(_ROLE[name])})</span>",
-                     _sig(float(pinv.params_[j]), 4), _sig(float(pinv.pooled_[j]), 4),
-                     _sig(float(np.mean(w)), 4), _sig(spread, 2), _e(_unit(units[name])),
-                     f"{_sig(conv[1], 4)} {_e(conv[0])}" if conv else "—"])
-    return _table(["parameter", "best window", "all windows pooled", "mean over windows",
-                   "SD over windows", "unit (SI)", "best window, convenient units"], rows,
-                  [False, True, True, True, True, False, True])
+        rows.append(
+            [
+                f"<b>{name}</b> · {_e(labels[name])} <span class='small'>"
+                f"({_e(_ROLE[name])})</span>",
+                _sig(float(pinv.params_[j]), 4),
+                _sig(float(pinv.pooled_[j]), 4),
+                _sig(float(np.mean(w)), 4),
+                _sig(spread, 2),
+                _e(_unit(units[name])),
+                f"{_sig(conv[1], 4)} {_e(conv[0])}" if conv else "—",
+            ]
+        )
+    return _table(
+        [
+            "parameter",
+            "best window",
+            "all windows pooled",
+            "mean over windows",
+            "SD over windows",
+            "unit (SI)",
+            "best window, convenient units",
+        ],
+        rows,
+        [False, True, True, True, True, False, True],
+    )
 
 
 def _comparison(est: BayesianFit) -> str:
@@ -661,8 +821,17 @@ def _comparison(est: BayesianFit) -> str:
     head = ["form", "law", "ln evidence (exact)"]
     if sampler:
         head += ["ln evidence (stepping-stone)", "sampler − exact"]
-    head += ["posterior probability", "ln BF vs best", "BF vs best", "evidence against (Jeffreys)",
-             "method", "note", "cond", "cond (scaled)", "residual RMS (mN)"]
+    head += [
+        "posterior probability",
+        "ln BF vs best",
+        "BF vs best",
+        "evidence against (Jeffreys)",
+        "method",
+        "note",
+        "cond",
+        "cond (scaled)",
+        "residual RMS (mN)",
+    ]
     rows, classes = [], []
     for r, lp in zip(results, ln_p, strict=True):
         lbf = top - r.ln_evidence
@@ -673,28 +842,52 @@ def _comparison(est: BayesianFit) -> str:
             if r.ln_evidence_sampler is None:
                 row += ["—", "—"]
             else:
-                row += [_fixed(r.ln_evidence_sampler),
-                        _fixed(r.ln_evidence_sampler - r.ln_evidence, sign=True)]
-        flags = ("<div class='small'>flags:<ul>" + "".join(f"<li>{_e(f)}</li>" for f in r.flags)
-                 + "</ul></div>") if r.flags else ""
-        row += [_probability(float(lp)), _fixed(lbf), _power_of_ten(lbf), _e(_jeffreys(lbf)),
-                _e(r.status), f"<span class='small'>{_e(r.reason)}</span>{flags}",
-                _sig(r.cond, 3), _sig(r.cond_scaled, 3), _sig(r.residual_rms * 1e3, 3)]
+                row += [
+                    _fixed(r.ln_evidence_sampler),
+                    _fixed(r.ln_evidence_sampler - r.ln_evidence, sign=True),
+                ]
+        flags = (
+            (
+                "<div class='small'>flags:<ul>"
+                + "".join(f"<li>{_e(f)}</li>" for f in r.flags)
+                + "</ul></div>"
+            )
+            if r.flags
+            else ""
+        )
+        row += [
+            _probability(float(lp)),
+            _fixed(lbf),
+            _power_of_ten(lbf),
+            _e(_jeffreys(lbf)),
+            _e(r.status),
+            f"<span class='small'>{_e(r.reason)}</span>{flags}",
+            _sig(r.cond, 3),
+            _sig(r.cond_scaled, 3),
+            _sig(r.residual_rms * 1e3, 3),
+        ]
         rows.append(row)
         classes.append("best" if r is est.best_ else "")
-    numeric = [False, False, True] + ([True, True] if sampler else []) + [
-        True, True, True, False, False, False, True, True, True]
-    explain = ("<p class='small'>Forms are ranked by their evidence (marginal likelihood), with "
-               "equal prior probability for each form. The Bayes factor (BF) against the best is "
-               "Z<sub>best</sub> / Z<sub>form</sub>; on Jeffreys' scale a ln BF above "
-               f"{DECISIVE:.1f} (100 : 1) is decisive. <i>exact</i>: closed-form posterior; "
-               "<i>emcee</i>: sampled because the positivity bound cuts the closed form, or on "
-               "request; <i>skipped</i>: decisively behind, so not sampled (its evidence is still "
-               "exact). cond: condition number of the design matrix, raw (depends on units) and "
-               "with unit-norm columns (collinearity of the terms alone).</p>")
+    numeric = (
+        [False, False, True]
+        + ([True, True] if sampler else [])
+        + [True, True, True, False, False, False, True, True, True]
+    )
+    explain = (
+        "<p class='small'>Forms are ranked by their evidence (marginal likelihood), with "
+        "equal prior probability for each form. The Bayes factor (BF) against the best is "
+        "Z<sub>best</sub> / Z<sub>form</sub>; on Jeffreys' scale a ln BF above "
+        f"{DECISIVE:.1f} (100 : 1) is decisive. <i>exact</i>: closed-form posterior; "
+        "<i>emcee</i>: sampled because the positivity bound cuts the closed form, or on "
+        "request; <i>skipped</i>: decisively behind, so not sampled (its evidence is still "
+        "exact). cond: condition number of the design matrix, raw (depends on units) and "
+        "with unit-norm columns (collinearity of the terms alone).</p>"
+    )
     if sampler:
-        explain += ("<p class='small'>Stepping-stone is an independent, sampler-based estimate of "
-                    "the same evidence; differences well below 1 confirm the exact value.</p>")
+        explain += (
+            "<p class='small'>Stepping-stone is an independent, sampler-based estimate of "
+            "the same evidence; differences well below 1 confirm the exact value.</p>"
+        )
     return _table(head, rows, numeric, classes) + explain
 
 
@@ -707,8 +900,12 @@ def _pinv_table(pinv: WindowedPinv, est: BayesianFit | None) -> str:
         head += ["Bayesian mean ± SD", "best window − Bayesian mean (in SD)"]
     rows = []
     for j, name in enumerate(PARAMETERS):
-        row = [f"<b>{name}</b>", _sig(float(pinv.params_[j]), 4),
-               _sig(float(pinv.pooled_[j]), 4), _e(_unit(units[name]))]
+        row = [
+            f"<b>{name}</b>",
+            _sig(float(pinv.params_[j]), 4),
+            _sig(float(pinv.pooled_[j]), 4),
+            _e(_unit(units[name])),
+        ]
         if match is not None and match.posterior is not None:
             mu, sd = float(match.posterior.mean[j]), float(match.posterior.sd[j])
             z = (pinv.params_[j] - mu) / sd if sd > 0 else float("nan")
@@ -720,11 +917,13 @@ def _pinv_table(pinv: WindowedPinv, est: BayesianFit | None) -> str:
 
 def _pinv_info(pinv: WindowedPinv) -> str:
     rms = float(pinv.residuals_[pinv.best_window_]) * 1e3
-    return (f"<p class='small'>Form {_e(pinv.model_.name)}; {pinv.windows_.shape[0]} windows "
-            f"of {pinv.window_samples_} samples; chosen window index {pinv.best_window_} "
-            f"(from 0; smallest residual, {_sig(rms, 3)} mN RMS); "
-            f"condition number of its design {_sig(pinv.cond_, 3)}, scaled "
-            f"{_sig(pinv.cond_scaled_, 3)}.</p>")
+    return (
+        f"<p class='small'>Form {_e(pinv.model_.name)}; {pinv.windows_.shape[0]} windows "
+        f"of {pinv.window_samples_} samples; chosen window index {pinv.best_window_} "
+        f"(from 0; smallest residual, {_sig(rms, 3)} mN RMS); "
+        f"condition number of its design {_sig(pinv.cond_, 3)}, scaled "
+        f"{_sig(pinv.cond_scaled_, 3)}.</p>"
+    )
 
 
 def _matching(pinv: WindowedPinv, est: BayesianFit | None) -> ModelResult | None:
@@ -746,64 +945,110 @@ def _diagnostics(outcome: FitOutcome) -> str:
     items = [
         ("Differentiator", f"<code>{_e(kin.method)}</code>"),
         ("Cutoff (−3 dB)", f"{_sig(kin.cutoff_hz, 3)} Hz"),
-        ("Noise gain", f"position {_sig(g[0], 3)}, velocity {_sig(g[1], 3)} 1/s, "
-                       f"acceleration {_sig(g[2], 3)} 1/s² "
-                       "<span class='small'>(output SD per unit SD of white input noise)</span>"),
-        ("Samples used", f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where "
-                         "the filter is one-sided)"),
+        (
+            "Noise gain",
+            f"position {_sig(g[0], 3)}, velocity {_sig(g[1], 3)} 1/s, "
+            f"acceleration {_sig(g[2], 3)} 1/s² "
+            "<span class='small'>(output SD per unit SD of white input noise)</span>",
+        ),
+        (
+            "Samples used",
+            f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where "
+            "the filter is one-sided)",
+        ),
     ]
     if est is not None:
         tau_ms = est.tau_ / max(outcome.session.rate_hz, 1e-300) * 1e3
         items += [
-            ("Residual autocorrelation time",
-             f"{_sig(est.tau_, 3)} samples ({_sig(tau_ms, 3)} ms)"),
+            (
+                "Residual autocorrelation time",
+                f"{_sig(est.tau_, 3)} samples ({_sig(tau_ms, 3)} ms)",
+            ),
             ("Effective samples", f"{_sig(est.n_eff_, 3)} (samples used / autocorrelation time)"),
-            ("Position noise SD", f"{_sig(est.sigma_x_ * 1e6, 3)} µm "
-                                  f"(errors-in-variables correction "
-                                  f"{'on' if est.eiv else 'off'})"),
-            ("Settings", _e(f"sampler {est.sampler}, seed {est.seed}, forms {est.forms}, "
-                            f"decisive ln BF {est.decisive:.2f}")),
+            (
+                "Position noise SD",
+                f"{_sig(est.sigma_x_ * 1e6, 3)} µm "
+                f"(errors-in-variables correction "
+                f"{'on' if est.eiv else 'off'})",
+            ),
+            (
+                "Settings",
+                _e(
+                    f"sampler {est.sampler}, seed {est.seed}, forms {est.forms}, "
+                    f"decisive ln BF {est.decisive:.2f}"
+                ),
+            ),
         ]
     if pinv is not None:
-        items.append(("Pseudoinverse", _e(f"form {pinv.model_.name}, window {pinv.window_s:g} s "
-                                          f"({pinv.window_samples_} samples), "
-                                          f"{pinv.windows_.shape[0]} windows")))
+        items.append(
+            (
+                "Pseudoinverse",
+                _e(
+                    f"form {pinv.model_.name}, window {pinv.window_s:g} s "
+                    f"({pinv.window_samples_} samples), "
+                    f"{pinv.windows_.shape[0]} windows"
+                ),
+            )
+        )
     out = _meta_table(items)
     if est is not None:
-        out += ("<p class='small'>Why the effective sample count is smaller than the sample "
-                "count: the smoothing filter makes neighbouring residuals alike, so the "
-                "likelihood is tempered by 1/τ to count only independent information; "
-                "treating every sample as independent would make the intervals too narrow.</p>")
+        out += (
+            "<p class='small'>Why the effective sample count is smaller than the sample "
+            "count: the smoothing filter makes neighbouring residuals alike, so the "
+            "likelihood is tempered by 1/τ to count only independent information; "
+            "treating every sample as independent would make the intervals too narrow.</p>"
+        )
         sampled = [r for r in est.results_ if r.status == "emcee" and r.posterior is not None]
         if sampled:
             rows = []
             for r in sampled:
                 d = r.posterior.diagnostics  # type: ignore[union-attr]
                 tau = list(d.get("tau", []))
-                tau_text = ", ".join(f"{lab} {_sig(t, 3)}"
-                                     for lab, t in zip(("K", "S", "M", "σ"), tau, strict=False))
+                tau_text = ", ".join(
+                    f"{lab} {_sig(t, 3)}" for lab, t in zip(("K", "S", "M", "σ"), tau, strict=False)
+                )
                 steps = int(d.get("steps", 0))
                 need = 50 * max(tau) if tau else float("nan")
                 conv = d.get("converged")
-                rows.append([f"<b>{_e(r.name)}</b>", f"{steps:,}", _e(d.get("walkers", "—")),
-                             _e(tau_text), _sig(d.get("acceptance"), 2),
-                             f"{'yes' if conv else '<b>no</b>'} "
-                             f"<span class='small'>({steps:,} vs 50 τ = {_sig(need, 3)})</span>",
-                             _e(d.get("independent_samples", "—"))])
+                rows.append(
+                    [
+                        f"<b>{_e(r.name)}</b>",
+                        f"{steps:,}",
+                        _e(d.get("walkers", "—")),
+                        _e(tau_text),
+                        _sig(d.get("acceptance"), 2),
+                        f"{'yes' if conv else '<b>no</b>'} "
+                        f"<span class='small'>({steps:,} vs 50 τ = {_sig(need, 3)})</span>",
+                        _e(d.get("independent_samples", "—")),
+                    ]
+                )
             out += "<h3>Sampler (emcee)</h3>" + _table(
-                ["form", "steps", "walkers", "autocorrelation time τ (steps)",
-                 "acceptance fraction", "converged (chain > 50 τ)", "independent draws"],
-                rows, [False, True, True, False, True, False, True])
+                [
+                    "form",
+                    "steps",
+                    "walkers",
+                    "autocorrelation time τ (steps)",
+                    "acceptance fraction",
+                    "converged (chain > 50 τ)",
+                    "independent draws",
+                ],
+                rows,
+                [False, True, True, False, True, False, True],
+            )
         else:
-            out += ("<p class='small'>No form needed sampling: every posterior in this report "
-                    "is closed-form, so there are no chain diagnostics.</p>")
+            out += (
+                "<p class='small'>No form needed sampling: every posterior in this report "
+                "is closed-form, so there are no chain diagnostics.</p>"
+            )
     return out
 
 
 def _how_to_read(outcome: FitOutcome) -> str:
-    law = ("<p>The tissue law is <i>F = K f0(x) + S f1(ẋ) + M ẍ</i>: a stiffness term in jaw "
-           "closure x, a damping term in closing speed ẋ and an inertia term in acceleration "
-           "ẍ. ")
+    law = (
+        "<p>The tissue law is <i>F = K f0(x) + S f1(ẋ) + M ẍ</i>: a stiffness term in jaw "
+        "closure x, a damping term in closing speed ẋ and an inertia term in acceleration "
+        "ẍ. "
+    )
     if outcome.bayes is not None:
         body = (
             "Each candidate form (a stiffness law f0 with a damping law f1, such as x³ with ẋ) "
@@ -813,18 +1058,25 @@ def _how_to_read(outcome: FitOutcome) -> str:
             "parameter is trustworthy when its interval is narrow and well away from zero and "
             "no warning names it. The plots should show the fitted force on top of the measured "
             "one, residuals without structure (no repeated pattern, histogram close to the "
-            "Gaussian) and compact posterior clouds. ")
+            "Gaussian) and compact posterior clouds. "
+        )
         if outcome.pinv is not None:
-            body += ("The paper's windowed pseudoinverse fits each window separately: the "
-                     "spread of its window estimates shows how much one window's answer can "
-                     "vary, to be read against the Bayesian band. ")
+            body += (
+                "The paper's windowed pseudoinverse fits each window separately: the "
+                "spread of its window estimates shows how much one window's answer can "
+                "vary, to be read against the Bayesian band. "
+            )
     else:
-        body = ("Only the paper's windowed pseudoinverse ran: it fits one given form to each "
-                "window separately and keeps the window with the smallest residual. It gives "
-                "no uncertainty and no choice between forms; the spread of the window estimates "
-                "is the only indication of how much the answer can vary. ")
-    return (law + body + "All values are in SI units; only the columns marked convenient units "
-            "convert to N/mm, N s/mm and g.</p>")
+        body = (
+            "Only the paper's windowed pseudoinverse ran: it fits one given form to each "
+            "window separately and keeps the window with the smallest residual. It gives "
+            "no uncertainty and no choice between forms; the spread of the window estimates "
+            "is the only indication of how much the answer can vary. "
+        )
+    return (
+        law + body + "All values are in SI units; only the columns marked convenient units "
+        "convert to N/mm, N s/mm and g.</p>"
+    )
 
 
 def _provenance(outcome: FitOutcome) -> str:
@@ -837,8 +1089,10 @@ def _provenance(outcome: FitOutcome) -> str:
     parts = [
         f"{_e(doc.get('software', ''))}",
         _e(f"parameter format {doc.get('format', '')} version {doc.get('version', '')}"),
-        _e(f"Python {platform.python_version()}, numpy {np.__version__}, scipy "
-           f"{scipy.__version__}, emcee {emcee.__version__}, matplotlib {matplotlib.__version__}"),
+        _e(
+            f"Python {platform.python_version()}, numpy {np.__version__}, scipy "
+            f"{scipy.__version__}, emcee {emcee.__version__}, matplotlib {matplotlib.__version__}"
+        ),
         _e(f"generated {when}"),
     ]
     return "<footer><b>Provenance:</b> " + " · ".join(parts) + "</footer>"
@@ -863,15 +1117,18 @@ def render_report(outcome: FitOutcome) -> str:
     """
     s = _series(outcome)
     est, pinv = outcome.bayes, outcome.pinv
-    sections = [("parameters", "Parameters"), ("comparison", "Model comparison"),
-                ("plots", "Plots"), ("diagnostics", "Diagnostics"),
-                ("reading", "How to read this report")]
+    sections = [
+        ("parameters", "Parameters"),
+        ("comparison", "Model comparison"),
+        ("plots", "Plots"),
+        ("diagnostics", "Diagnostics"),
+        ("reading", "How to read this report"),
+    ]
     nav = " · ".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in sections)
     parts = [_header(outcome, s), f'<p class="small">Contents: {nav}</p>']
 
     parts.append("<h2 id='parameters'>Parameters</h2>")
-    parts.append(_parameters_bayes(est, s) if est is not None
-                 else _parameters_pinv(pinv))  # type: ignore[arg-type]
+    parts.append(_parameters_bayes(est, s) if est is not None else _parameters_pinv(pinv))  # type: ignore[arg-type]
     parts.append(_warnings_box(outcome))
 
     parts.append("<h2 id='comparison'>Model comparison</h2>")
@@ -879,29 +1136,48 @@ def render_report(outcome: FitOutcome) -> str:
         parts.append(_comparison(est))
     else:
         assert pinv is not None
-        parts.append(f"<p>Only the form {_e(pinv.model_.name)} was fitted, by the windowed "
-                     "pseudoinverse, so there is no comparison between forms.</p>")
+        parts.append(
+            f"<p>Only the form {_e(pinv.model_.name)} was fitted, by the windowed "
+            "pseudoinverse, so there is no comparison between forms.</p>"
+        )
         parts.append(_pinv_info(pinv))
 
     parts.append("<h2 id='plots'>Plots</h2>")
     figs = [
-        (_time_figure(s), "plot-time", "Force over time",
-         "measured and fitted grasp force against time",
-         "The dashed fitted force should lie on the measured (filtered) force throughout; "
-         "the grey trace is the raw signal before smoothing."),
-        (_loop_figure(s), "plot-loop", "Force against jaw closure",
-         "grasp force against jaw closure, measured and fitted",
-         "The loop opens because damping adds force while closing and removes it while "
-         "opening; the fitted loop should trace the measured one, including its curvature."),
-        (_residual_figure(s), "plot-residuals", "Residuals",
-         "residual force over time and its histogram",
-         "Residuals should look like noise: no drift or pattern repeating with the squeezes, "
-         "and a histogram matching the solid Gaussian"
-         + (" of the SD the fit expects (force noise σ plus position noise carried through the "
-            "law; σ alone is dashed)." if s.sigma is not None and s.expected_sd is not None
-            and abs(s.expected_sd / s.sigma - 1) > 0.01 else
-            " of the posterior noise SD." if s.sigma is not None else
-            " of the residual RMS.")),
+        (
+            _time_figure(s),
+            "plot-time",
+            "Force over time",
+            "measured and fitted grasp force against time",
+            "The dashed fitted force should lie on the measured (filtered) force throughout; "
+            "the grey trace is the raw signal before smoothing.",
+        ),
+        (
+            _loop_figure(s),
+            "plot-loop",
+            "Force against jaw closure",
+            "grasp force against jaw closure, measured and fitted",
+            "The loop opens because damping adds force while closing and removes it while "
+            "opening; the fitted loop should trace the measured one, including its curvature.",
+        ),
+        (
+            _residual_figure(s),
+            "plot-residuals",
+            "Residuals",
+            "residual force over time and its histogram",
+            "Residuals should look like noise: no drift or pattern repeating with the squeezes, "
+            "and a histogram matching the solid Gaussian"
+            + (
+                " of the SD the fit expects (force noise σ plus position noise carried through the "
+                "law; σ alone is dashed)."
+                if s.sigma is not None
+                and s.expected_sd is not None
+                and abs(s.expected_sd / s.sigma - 1) > 0.01
+                else " of the posterior noise SD."
+                if s.sigma is not None
+                else " of the residual RMS."
+            ),
+        ),
     ]
     if est is not None:
         post = est.best_.posterior
@@ -911,26 +1187,40 @@ def render_report(outcome: FitOutcome) -> str:
             keep = np.random.default_rng(0).choice(draws.shape[0], MAX_DRAWS, replace=False)
             draws = draws[np.sort(keep)]
         if draws.shape[0] >= 20:
-            figs.append((_corner_figure(draws, est.best_.model, post.mean, post.ci95),
-                         "plot-corner", f"Posterior of K, S, M ({est.best_.name})",
-                         "corner plot of the posterior draws of K, S and M",
-                         f"{draws.shape[0]:,} posterior draws in SI units; solid lines: means, "
-                         "dashed: 95 % intervals. Look for compact clouds away from zero; ρ is "
-                         "the correlation between two parameters (near ±1: the data separate "
-                         "them poorly)."))
+            figs.append(
+                (
+                    _corner_figure(draws, est.best_.model, post.mean, post.ci95),
+                    "plot-corner",
+                    f"Posterior of K, S, M ({est.best_.name})",
+                    "corner plot of the posterior draws of K, S and M",
+                    f"{draws.shape[0]:,} posterior draws in SI units; solid lines: means, "
+                    "dashed: 95 % intervals. Look for compact clouds away from zero; ρ is "
+                    "the correlation between two parameters (near ±1: the data separate "
+                    "them poorly).",
+                )
+            )
         else:
-            parts.append("<p>Too few posterior draws inside the positivity bounds for a "
-                         "corner plot.</p>")
+            parts.append(
+                "<p>Too few posterior draws inside the positivity bounds for a corner plot.</p>"
+            )
     if pinv is not None:
         match = _matching(pinv, est)
-        figs.append((_windows_figure(pinv, match), "plot-windows",
-                     "Windowed pseudoinverse, per window",
-                     "pseudoinverse estimates of K, S, M and residual RMS for each window",
-                     "Each point is one window's estimate; the star is the window the paper's "
-                     "method keeps (smallest residual)"
-                     + ("; the shaded band is the Bayesian posterior mean ± 2 SD of the same "
-                        "form. Points far outside the band show how much one window can mislead."
-                        if match is not None else ".")))
+        figs.append(
+            (
+                _windows_figure(pinv, match),
+                "plot-windows",
+                "Windowed pseudoinverse, per window",
+                "pseudoinverse estimates of K, S, M and residual RMS for each window",
+                "Each point is one window's estimate; the star is the window the paper's "
+                "method keeps (smallest residual)"
+                + (
+                    "; the shaded band is the Bayesian posterior mean ± 2 SD of the same "
+                    "form. Points far outside the band show how much one window can mislead."
+                    if match is not None
+                    else "."
+                ),
+            )
+        )
     for k, (fig, anchor, title, alt, caption) in enumerate(figs):
         parts.append(_figure(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
         if anchor == "plot-windows" and est is not None:
@@ -943,10 +1233,13 @@ def render_report(outcome: FitOutcome) -> str:
     parts.append(_provenance(outcome))
 
     title = f"Tissue identification: {outcome.session.name or 'session'}"
-    return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-            "<meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>"
-            + "\n".join(parts) + "</body></html>\n")
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>"
+        + "\n".join(parts)
+        + "</body></html>\n"
+    )
 
 
 def write_report(path: str | os.PathLike[str], outcome: FitOutcome) -> None:
