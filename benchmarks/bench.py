@@ -1,0 +1,300 @@
+"""Run time against error for every identification configuration, with peers.
+
+Usage::
+
+    python benchmarks/bench.py                      # the full run (about 10 min here)
+    python benchmarks/bench.py --quick              # a smoke run (seconds)
+    python benchmarks/bench.py --out docs/img       # where the plots go
+
+It draws synthetic sessions with known truth (every form; 250 Hz to 10 kHz;
+8- to 16-bit ADCs; random operators; fixed seeds), runs each configuration:
+
+- ``pinv``: the paper's windowed pseudoinverse, the form with the smallest
+  best-window residual;
+- ``bayes``: the default fit (exact posteriors), once per differentiator;
+- ``bayes+emcee N``: the default fit, then emcee on the chosen form for N steps;
+- peers when installed (``pip install '.[bench]'``): PySINDy and lmfit+emcee;
+
+and prints, per configuration, the median run time, the median |error| of K,
+S and M and how often the true form was chosen, marks the Pareto front (no
+other configuration both faster and more accurate), compares every scene
+family with the peers and the Cramer-Rao bound, and measures how run time
+grows with session length. Plots are written to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from tissuecli.bayes import run_emcee  # noqa: E402
+from tissuecli.identify import BayesianFit, WindowedPinv  # noqa: E402
+from tissuecli.models import Tissue, TissueModel, all_models  # noqa: E402
+from tissuecli.session import Session  # noqa: E402
+from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize  # noqa: E402
+
+TISSUES = [
+    Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
+    Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 3.0, 0.05),
+    Tissue(TissueModel.from_names("x", "xdot^2"), 350.0, 60.0, 0.05),
+    Tissue(TissueModel.from_names("x^3", "xdot^2"), 8e6, 60.0, 0.05),
+]
+
+
+@dataclass
+class Scene:
+    tissue: Tissue
+    rate_hz: float
+    bits: int
+    seed: int
+    duration_s: float
+
+    @property
+    def family(self) -> str:
+        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit"
+
+    def draw(self) -> tuple[Session, ForcepsModel]:
+        rng = np.random.default_rng(self.seed)
+        model = ForcepsModel(tissue=self.tissue, rate_hz=self.rate_hz, seed=self.seed,
+                             operator=Operator.random(rng), sensors=Sensors(bits=self.bits))
+        s, _ = synthesize(model, self.duration_s)
+        s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
+        return s, model
+
+
+@dataclass
+class Outcome:
+    form: str
+    params: np.ndarray
+    seconds: float
+
+
+@dataclass
+class Tally:
+    times: list[float] = field(default_factory=list)
+    errors: list[np.ndarray] = field(default_factory=list)  # |rel error| of K, S, M when right
+    right: list[bool] = field(default_factory=list)
+    families: dict[str, list[np.ndarray]] = field(default_factory=dict)
+
+
+def _timed(fn: Callable[[], tuple[str, np.ndarray]]) -> Outcome:
+    t0 = time.perf_counter()
+    form, params = fn()
+    return Outcome(form, np.asarray(params, float), time.perf_counter() - t0)
+
+
+def pinv_config(s: Session) -> tuple[str, np.ndarray]:
+    fits = [WindowedPinv(m.name).fit(s) for m in all_models()]
+    best = min(fits, key=lambda p: p.residuals_[p.best_window_])
+    return best.model_.name, best.params_
+
+
+def bayes_config(differentiator: str) -> Callable[[Session], tuple[str, np.ndarray]]:
+    def run(s: Session) -> tuple[str, np.ndarray]:
+        est = BayesianFit(differentiator=differentiator).fit(s)
+        return est.best_.name, est.best_.posterior.mean  # type: ignore[union-attr]
+    return run
+
+
+def emcee_config(steps: int) -> Callable[[Session], tuple[str, np.ndarray]]:
+    def run(s: Session) -> tuple[str, np.ndarray]:
+        est = BayesianFit().fit(s)
+        best = est.best_
+        post = run_emcee(best.stats, best.prior, np.random.default_rng(0), chunk=steps,  # type: ignore[arg-type]
+                         min_steps=steps, max_steps=steps)
+        return best.name, post.mean
+    return run
+
+
+def configurations(quick: bool) -> dict[str, Callable[[Session], tuple[str, np.ndarray]]]:
+    configs: dict[str, Callable[[Session], tuple[str, np.ndarray]]] = {
+        "pinv (paper)": pinv_config,
+        "bayes gaussian (default)": bayes_config("gaussian"),
+        "bayes savgol": bayes_config("savgol"),
+        "bayes gradient": bayes_config("gradient"),
+    }
+    for steps in ((300,) if quick else (500, 2000, 8000)):
+        configs[f"bayes + emcee {steps}"] = emcee_config(steps)
+    try:
+        import peers
+    except ImportError:
+        return configs
+    for name, fn in (("pysindy", getattr(peers, "pysindy_fit", None)),
+                     ("lmfit+emcee", getattr(peers, "lmfit_emcee_fit", None))):
+        if fn is None:
+            continue
+        try:
+            __import__("pysindy" if name == "pysindy" else "lmfit")
+        except ImportError:
+            continue
+
+        def run(s: Session, fn: Callable = fn) -> tuple[str, np.ndarray]:
+            r = fn(s)
+            return r.model, r.params
+
+        configs[name] = run
+    return configs
+
+
+def scenes(quick: bool, seeds: int) -> list[Scene]:
+    rates = (1000.0,) if quick else (250.0, 1000.0, 10000.0)
+    bits = (8,) if quick else (8, 12, 16)
+    tissues = TISSUES[:2] if quick else TISSUES
+    return [Scene(t, r, b, seed, 2.0 if quick else 10.0)
+            for t in tissues for r in rates for b in bits for seed in range(seeds)]
+
+
+def pareto(rows: list[tuple[str, float, float]]) -> set[str]:
+    """Names not dominated: no other row both faster and at least as accurate (lower error)."""
+    front = set()
+    for name, t, e in rows:
+        if not any((t2 <= t and e2 <= e) and (t2 < t or e2 < e) for n2, t2, e2 in rows
+                   if n2 != name):
+            front.add(name)
+    return front
+
+
+def cramer_rao_rel(scene: Scene, model: ForcepsModel) -> np.ndarray:
+    try:
+        import peers
+    except ImportError:
+        return np.full(3, np.nan)
+    crb = peers.cramer_rao(scene.tissue, model, scene.duration_s)
+    return crb / scene.tissue.p
+
+
+def length_scaling(quick: bool) -> list[tuple[int, float]]:
+    """Default fit time against session length at 1 kHz (one x,xdot session each)."""
+    out = []
+    for duration in ((1.0, 4.0) if quick else (1.0, 10.0, 60.0, 600.0)):
+        s, _ = synthesize(ForcepsModel(seed=1), duration)
+        BayesianFit().fit(s)  # warm caches (FFT plans) once
+        t0 = time.perf_counter()
+        BayesianFit().fit(s)
+        out.append((len(s), time.perf_counter() - t0))
+    return out
+
+
+def plots(out: Path, summary: dict[str, tuple[float, float, float]], front: set[str],
+          lengths: list[tuple[int, float]]) -> list[Path]:
+    from matplotlib.figure import Figure
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for key, label, fname in ((1, "median |error| of K and S (%)", "bench_time_error.png"),
+                              (2, "form chosen wrongly (%)", "bench_time_choice.png")):
+        fig = Figure(figsize=(7, 4.5))
+        ax = fig.subplots()
+        for name, vals in summary.items():
+            y = vals[key] if key == 1 else 100 * (1 - vals[2])
+            ax.scatter(vals[0], max(y, 1e-3), color="C3" if name in front else "C0")
+            ax.annotate(name, (vals[0], max(y, 1e-3)), fontsize=7, xytext=(4, 2),
+                        textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("median run time per session (s)")
+        ax.set_ylabel(label)
+        ax.set_title("red: Pareto front (nothing both faster and more accurate)", fontsize=9)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=110)
+        paths.append(out / fname)
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    n, t = np.array(lengths, float).T
+    ax.loglog(n, t, "o-")
+    ax.set_xlabel("samples")
+    ax.set_ylabel("default fit time (s)")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(out / "bench_length.png", dpi=110)
+    paths.append(out / "bench_length.png")
+    return paths
+
+
+def main(argv: list[str] | None = None) -> dict[str, object]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a smoke run in seconds")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=Path("docs/img"))
+    args = ap.parse_args(argv)
+    configs = configurations(args.quick)
+    tallies = {name: Tally() for name in configs}
+    crb: dict[str, list[np.ndarray]] = {}
+    all_scenes = scenes(args.quick, 1 if args.quick else args.seeds)
+    for i, scene in enumerate(all_scenes, 1):
+        s, model = scene.draw()
+        crb.setdefault(scene.family, []).append(cramer_rao_rel(scene, model))
+        for name, fn in configs.items():
+            try:
+                o = _timed(lambda fn=fn, s=s: fn(s))
+            except Exception as exc:  # a refusal counts as a miss, with its time unknown
+                print(f"  {name} on {scene.family}: {type(exc).__name__}: {exc}", file=sys.stderr)
+                tallies[name].right.append(False)
+                continue
+            tally = tallies[name]
+            tally.times.append(o.seconds)
+            ok = o.form == scene.tissue.model.name
+            tally.right.append(ok)
+            if ok:
+                err = np.abs(o.params / scene.tissue.p - 1)
+                tally.errors.append(err)
+                tally.families.setdefault(scene.family, []).append(err)
+        print(f"\r{i}/{len(all_scenes)} sessions", end="", file=sys.stderr, flush=True)
+    print(file=sys.stderr)
+
+    summary: dict[str, tuple[float, float, float]] = {}
+    print(f"{'configuration':<26} {'time s':>8} {'|dK| %':>8} {'|dS| %':>8} {'|dM| %':>8} "
+          f"{'right':>7}  front")
+    rows = []
+    for name, t in tallies.items():
+        if not t.times:
+            continue
+        med = np.median(t.errors, axis=0) * 100 if t.errors else np.full(3, np.nan)
+        acc = float(np.mean(t.right))
+        summary[name] = (float(np.median(t.times)), float(np.mean(med[:2])), acc)
+        # one accuracy figure: K and S error plus the share of wrong forms, in %;
+        # a configuration that never got the form right has no error to show: infinite
+        err = summary[name][1] if np.isfinite(summary[name][1]) else np.inf
+        rows.append((name, summary[name][0], err + 100 * (1 - acc)))
+    front = pareto(rows)
+    for name, t in tallies.items():
+        if name not in summary:
+            continue
+        med = np.median(t.errors, axis=0) * 100 if t.errors else np.full(3, np.nan)
+        print(f"{name:<26} {summary[name][0]:8.3f} {med[0]:8.4f} {med[1]:8.3f} {med[2]:8.2f} "
+              f"{100 * summary[name][2]:6.1f}%  {'*' if name in front else ''}")
+
+    print("\nper scene family: median |error| of K / S (%), and the Cramer-Rao floor")
+    names = list(summary)
+    print(f"{'family':<28} " + " ".join(f"{n[:16]:>17}" for n in names) + f" {'CRB':>17}")
+    for family, bounds in crb.items():
+        cells = []
+        for n in names:
+            errs = tallies[n].families.get(family)
+            cells.append(f"{np.median(errs, axis=0)[0] * 100:7.4f}/{np.median(errs, axis=0)[1] * 100:<9.3f}"
+                         if errs else f"{'-':>17}")
+        b = (np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any()
+             else np.full(3, np.nan))
+        print(f"{family:<28} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
+
+    lengths = length_scaling(args.quick)
+    per_sample = [t / n for n, t in lengths]
+    print("\ndefault fit time against session length (1 kHz):")
+    for n, t in lengths:
+        print(f"  {n:>9} samples: {t:7.3f} s ({1e6 * t / n:.2f} us per sample)")
+    paths = plots(args.out, summary, front, lengths)
+    print("\nplots: " + ", ".join(str(p) for p in paths))
+    return {"summary": summary, "front": front, "lengths": lengths, "per_sample": per_sample}
+
+
+if __name__ == "__main__":
+    main()
