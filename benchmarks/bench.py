@@ -63,8 +63,13 @@ class Scene:
 
     def draw(self) -> tuple[Session, ForcepsModel]:
         rng = np.random.default_rng(self.seed)
-        model = ForcepsModel(tissue=self.tissue, rate_hz=self.rate_hz, seed=self.seed,
-                             operator=Operator.random(rng), sensors=Sensors(bits=self.bits))
+        model = ForcepsModel(
+            tissue=self.tissue,
+            rate_hz=self.rate_hz,
+            seed=self.seed,
+            operator=Operator.random(rng),
+            sensors=Sensors(bits=self.bits),
+        )
         s, _ = synthesize(model, self.duration_s)
         s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
         return s, model
@@ -101,6 +106,7 @@ def bayes_config(differentiator: str) -> Callable[[Session], tuple[str, np.ndarr
     def run(s: Session) -> tuple[str, np.ndarray]:
         est = BayesianFit(differentiator=differentiator).fit(s)
         return est.best_.name, est.best_.posterior.mean  # type: ignore[union-attr]
+
     return run
 
 
@@ -108,9 +114,16 @@ def emcee_config(steps: int) -> Callable[[Session], tuple[str, np.ndarray]]:
     def run(s: Session) -> tuple[str, np.ndarray]:
         est = BayesianFit().fit(s)
         best = est.best_
-        post = run_emcee(best.stats, best.prior, np.random.default_rng(0), chunk=steps,  # type: ignore[arg-type]
-                         min_steps=steps, max_steps=steps)
+        post = run_emcee(
+            best.stats,
+            best.prior,
+            np.random.default_rng(0),
+            chunk=steps,  # type: ignore[arg-type]
+            min_steps=steps,
+            max_steps=steps,
+        )
         return best.name, post.mean
+
     return run
 
 
@@ -121,14 +134,16 @@ def configurations(quick: bool) -> dict[str, Callable[[Session], tuple[str, np.n
         "bayes savgol": bayes_config("savgol"),
         "bayes gradient": bayes_config("gradient"),
     }
-    for steps in ((300,) if quick else (500, 2000, 8000)):
+    for steps in (300,) if quick else (500, 2000, 8000):
         configs[f"bayes + emcee {steps}"] = emcee_config(steps)
     try:
         import peers
     except ImportError:
         return configs
-    for name, fn in (("pysindy", getattr(peers, "pysindy_fit", None)),
-                     ("lmfit+emcee", getattr(peers, "lmfit_emcee_fit", None))):
+    for name, fn in (
+        ("pysindy", getattr(peers, "pysindy_fit", None)),
+        ("lmfit+emcee", getattr(peers, "lmfit_emcee_fit", None)),
+    ):
         if fn is None:
             continue
         try:
@@ -148,16 +163,22 @@ def scenes(quick: bool, seeds: int) -> list[Scene]:
     rates = (1000.0,) if quick else (250.0, 1000.0, 10000.0)
     bits = (8,) if quick else (8, 12, 16)
     tissues = TISSUES[:2] if quick else TISSUES
-    return [Scene(t, r, b, seed, 2.0 if quick else 10.0)
-            for t in tissues for r in rates for b in bits for seed in range(seeds)]
+    return [
+        Scene(t, r, b, seed, 2.0 if quick else 10.0)
+        for t in tissues
+        for r in rates
+        for b in bits
+        for seed in range(seeds)
+    ]
 
 
 def pareto(rows: list[tuple[str, float, float]]) -> set[str]:
     """Names not dominated: no other row both faster and at least as accurate (lower error)."""
     front = set()
     for name, t, e in rows:
-        if not any((t2 <= t and e2 <= e) and (t2 < t or e2 < e) for n2, t2, e2 in rows
-                   if n2 != name):
+        if not any(
+            (t2 <= t and e2 <= e) and (t2 < t or e2 < e) for n2, t2, e2 in rows if n2 != name
+        ):
             front.add(name)
     return front
 
@@ -174,7 +195,7 @@ def cramer_rao_rel(scene: Scene, model: ForcepsModel) -> np.ndarray:
 def length_scaling(quick: bool) -> list[tuple[int, float]]:
     """Default fit time against session length at 1 kHz (one x,xdot session each)."""
     out = []
-    for duration in ((1.0, 4.0) if quick else (1.0, 10.0, 60.0, 600.0)):
+    for duration in (1.0, 4.0) if quick else (1.0, 10.0, 60.0, 600.0):
         s, _ = synthesize(ForcepsModel(seed=1), duration)
         BayesianFit().fit(s)  # warm caches (FFT plans) once
         t0 = time.perf_counter()
@@ -183,21 +204,28 @@ def length_scaling(quick: bool) -> list[tuple[int, float]]:
     return out
 
 
-def plots(out: Path, summary: dict[str, tuple[float, float, float]], front: set[str],
-          lengths: list[tuple[int, float]]) -> list[Path]:
+def plots(
+    out: Path,
+    summary: dict[str, tuple[float, float, float]],
+    front: set[str],
+    lengths: list[tuple[int, float]],
+) -> list[Path]:
     from matplotlib.figure import Figure
 
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for key, label, fname in ((1, "median |error| of K and S (%)", "bench_time_error.png"),
-                              (2, "form chosen wrongly (%)", "bench_time_choice.png")):
+    for key, label, fname in (
+        (1, "median |error| of K and S (%)", "bench_time_error.png"),
+        (2, "form chosen wrongly (%)", "bench_time_choice.png"),
+    ):
         fig = Figure(figsize=(7, 4.5))
         ax = fig.subplots()
         for name, vals in summary.items():
             y = vals[key] if key == 1 else 100 * (1 - vals[2])
             ax.scatter(vals[0], max(y, 1e-3), color="C3" if name in front else "C0")
-            ax.annotate(name, (vals[0], max(y, 1e-3)), fontsize=7, xytext=(4, 2),
-                        textcoords="offset points")
+            ax.annotate(
+                name, (vals[0], max(y, 1e-3)), fontsize=7, xytext=(4, 2), textcoords="offset points"
+            )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("median run time per session (s)")
@@ -252,8 +280,10 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     print(file=sys.stderr)
 
     summary: dict[str, tuple[float, float, float]] = {}
-    print(f"{'configuration':<26} {'time s':>8} {'|dK| %':>8} {'|dS| %':>8} {'|dM| %':>8} "
-          f"{'right':>7}  front")
+    print(
+        f"{'configuration':<26} {'time s':>8} {'|dK| %':>8} {'|dS| %':>8} {'|dM| %':>8} "
+        f"{'right':>7}  front"
+    )
     rows = []
     for name, t in tallies.items():
         if not t.times:
@@ -270,8 +300,10 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         if name not in summary:
             continue
         med = np.median(t.errors, axis=0) * 100 if t.errors else np.full(3, np.nan)
-        print(f"{name:<26} {summary[name][0]:8.3f} {med[0]:8.4f} {med[1]:8.3f} {med[2]:8.2f} "
-              f"{100 * summary[name][2]:6.1f}%  {'*' if name in front else ''}")
+        print(
+            f"{name:<26} {summary[name][0]:8.3f} {med[0]:8.4f} {med[1]:8.3f} {med[2]:8.2f} "
+            f"{100 * summary[name][2]:6.1f}%  {'*' if name in front else ''}"
+        )
 
     print("\nper scene family: median |error| of K / S (%), and the Cramer-Rao floor")
     names = list(summary)
@@ -280,10 +312,12 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         cells = []
         for n in names:
             errs = tallies[n].families.get(family)
-            cells.append(f"{np.median(errs, axis=0)[0] * 100:7.4f}/{np.median(errs, axis=0)[1] * 100:<9.3f}"
-                         if errs else f"{'-':>17}")
-        b = (np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any()
-             else np.full(3, np.nan))
+            cells.append(
+                f"{np.median(errs, axis=0)[0] * 100:7.4f}/{np.median(errs, axis=0)[1] * 100:<9.3f}"
+                if errs
+                else f"{'-':>17}"
+            )
+        b = np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any() else np.full(3, np.nan)
         print(f"{family:<28} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
 
     lengths = length_scaling(args.quick)

@@ -40,11 +40,13 @@ def main() -> None:
         pinv = timed(lambda s=s: fit_session(s, method="pinv", forms="x,xdot"))
         outcome = fit_session(s)
         with tempfile.TemporaryDirectory() as tmp:
-            report = timed(lambda: write_report(Path(tmp) / "r.html", outcome), repeat=3)
+            report = timed(lambda o=outcome: write_report(Path(tmp) / "r.html", o), repeat=3)
         emcee = timed(lambda s=s: fit_session(s, sampler="emcee"), repeat=1)
-        print(f"{duration:4.0f} s at {rate:5.0f} Hz ({len(s):>7} samples): all four forms exact "
-              f"{exact:.3f} s; pinv {pinv:.3f} s; report {report:.3f} s; "
-              f"--sampler emcee (+ stepping-stone) {emcee:.1f} s")
+        print(
+            f"{duration:4.0f} s at {rate:5.0f} Hz ({len(s):>7} samples): all four forms exact "
+            f"{exact:.3f} s; pinv {pinv:.3f} s; report {report:.3f} s; "
+            f"--sampler emcee (+ stepping-stone) {emcee:.1f} s"
+        )
 
 
 if __name__ == "__main__":

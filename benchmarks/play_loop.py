@@ -29,18 +29,22 @@ def main() -> None:
         "K=600 N/m, M=50 g": Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, 0.05),
         "M = Mp": Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, PAPER_DISPLAY.Mp),
     }
-    print(f"{'tissue':<18} {'run':>3} {'rate Hz':>9} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
-          f"{'lost':>5} {'rms um':>7} {'bound um':>9} {'sat %':>6} {'unrend %':>8}")
+    print(
+        f"{'tissue':<18} {'run':>3} {'rate Hz':>9} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
+        f"{'lost':>5} {'rms um':>7} {'bound um':>9} {'sat %':>6} {'unrend %':>8}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for label, tissue in tissues.items():
             for run in range(args.runs):
                 with SimulatorProcess("display", Path(tmp) / f"d{run}") as disp:
                     s = play(tissue, str(disp.link), args.duration, log=Path(tmp) / "log.h5")
-                print(f"{label:<18} {run:>3} {s['loop_rate_hz']:9.2f} {s['period_p50_ms']:7.2f} "
-                      f"{s['period_p99_ms']:7.2f} {s['period_max_ms']:7.2f} {s['frames_lost']:>5} "
-                      f"{s['tracking_rms_m'] * 1e6:7.2f} {s['tracking_bound_m'] * 1e6:9.1f} "
-                      f"{100 * s['saturated_fraction']:6.2f} {100 * s['unrenderable_fraction']:8.2f}",
-                      flush=True)
+                print(
+                    f"{label:<18} {run:>3} {s['loop_rate_hz']:9.2f} {s['period_p50_ms']:7.2f} "
+                    f"{s['period_p99_ms']:7.2f} {s['period_max_ms']:7.2f} {s['frames_lost']:>5} "
+                    f"{s['tracking_rms_m'] * 1e6:7.2f} {s['tracking_bound_m'] * 1e6:9.1f} "
+                    f"{100 * s['saturated_fraction']:6.2f} {100 * s['unrenderable_fraction']:8.2f}",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -27,9 +27,24 @@ def run(rate: float, duration: float, root: Path) -> dict[str, float]:
     with SimulatorProcess("forceps", root / f"forceps{int(rate)}", ["--rate", str(rate)]) as sim:
         t0 = time.monotonic()
         proc = subprocess.Popen(
-            [sys.executable, "-m", "tissuecli", "record", "--quiet", "--port", str(sim.link),
-             "--out", str(out), "--session", "bench", "--duration", str(duration)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            [
+                sys.executable,
+                "-m",
+                "tissuecli",
+                "record",
+                "--quiet",
+                "--port",
+                str(sim.link),
+                "--out",
+                str(out),
+                "--session",
+                "bench",
+                "--duration",
+                str(duration),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.monotonic() - t0
@@ -53,12 +68,16 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--rates", default="1000,10000,20000")
     args = ap.parse_args()
-    print(f"{'rate Hz':>8} {'expected':>9} {'stored':>9} {'lost':>5} {'bad':>5} {'CPU':>6} {'MB':>7}")
+    print(
+        f"{'rate Hz':>8} {'expected':>9} {'stored':>9} {'lost':>5} {'bad':>5} {'CPU':>6} {'MB':>7}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for rate in (float(r) for r in args.rates.split(",")):
             r = run(rate, args.duration, Path(tmp))
-            print(f"{r['rate_hz']:8.0f} {r['expected']:9d} {r['stored']:9d} {r['lost']:5d} "
-                  f"{r['bad']:5d} {100 * r['cpu_fraction']:5.1f}% {r['file_mb']:7.2f}")
+            print(
+                f"{r['rate_hz']:8.0f} {r['expected']:9d} {r['stored']:9d} {r['lost']:5d} "
+                f"{r['bad']:5d} {100 * r['cpu_fraction']:5.1f}% {r['file_mb']:7.2f}"
+            )
 
 
 if __name__ == "__main__":
