@@ -399,7 +399,25 @@ class BayesianFit:
         self.results_ = results
         self.best_ = results[0]
         self.warnings_.extend(f"{self.best_.name}: {f}" for f in self.best_.flags)
+        self.warnings_.extend(self._outlier_warnings())
         return self
+
+    def _outlier_warnings(self, z: float = 8.0) -> list[str]:
+        """Residuals beyond ``z`` noise SDs: glitches (ADC spikes, a knock) the Gaussian
+        noise model does not explain, and which pull every parameter."""
+        r = self.kinematics_.force - self.fitted_force()
+        scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # robust SD
+        if not scale > 0:
+            return []
+        bad = np.flatnonzero(np.abs(r) > z * scale)
+        if bad.size == 0:
+            return []
+        t = self.kinematics_.time[bad]
+        return [
+            f"{bad.size} filtered sample(s) lie beyond {z:g} noise SDs of the fit, first at "
+            f"t = {t[0]:.3f} s: a glitching sensor or a knock; the parameters absorb it, so "
+            "inspect the residuals in the report and fit a clean stretch"
+        ]
 
     def _check_prior_conflict(self, models: list[TissueModel], beta: Array, best: str) -> None:
         """Refuse data whose best fit lies far outside the priors: a units mistake, or a
