@@ -113,3 +113,25 @@ def test_adc_glitches_do_not_pass_silently():
     assert any("beyond 8 noise SDs" in w for w in est.warnings_), est.warnings_
     clean = BayesianFit().fit(s)
     assert not any("noise SDs" in w for w in clean.warnings_)
+
+
+@pytest.mark.slow
+def test_ten_million_samples_fit_in_bounded_memory():
+    """1e7 samples (2.8 h at 1 kHz): the fit must finish, right, under 6 GB peak."""
+    import subprocess
+    import sys
+
+    code = (
+        "import resource, numpy as np\n"
+        "from tissuecli.synth import ForcepsModel, synthesize\n"
+        "from tissuecli.identify import BayesianFit\n"
+        "s, _ = synthesize(ForcepsModel(seed=1), 1e4)\n"
+        "e = BayesianFit().fit(s)\n"
+        "print(e.best_.name, e.best_.posterior.mean[0],\n"
+        "      resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=600, check=True).stdout.split()
+    assert out[0] == "x,xdot"
+    assert abs(float(out[1]) / DEFAULT_TISSUE.K - 1) < 1e-3
+    assert float(out[2]) < 6000  # MB
