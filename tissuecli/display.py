@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .models import Cubic, Form, Linear, Quadratic, Tissue, Viscous
+from .models import Tissue
 from .protocol import FLAG_LIMIT
 
 Array = NDArray[np.float64]
@@ -307,34 +307,17 @@ class OperatorForce:
 
 
 @lru_cache(maxsize=64)
-def _press(
-    seed: int, i: int, first: float, slot: float, force_range: tuple[float, float]
-) -> Press:
+def _press(seed: int, i: int, first: float, slot: float, force_range: tuple[float, float]) -> Press:
     rng = np.random.default_rng([seed % 2**32, i])  # any int seed, negative ones too
     jitter, rise, hold, fall, force = rng.uniform(
         [0.0, 0.25, 0.2, 0.25, force_range[0]], [0.3, 0.5, 0.8, 0.5, force_range[1]]
     )
-    return Press(first + i * slot + float(jitter), float(rise), float(hold), float(fall),
-                 float(force))
+    return Press(
+        first + i * slot + float(jitter), float(rise), float(hold), float(fall), float(force)
+    )
 
 
 # --------------------------------------------------------------------------- control law
-
-
-def _scalar(form: Form) -> Callable[[float], float]:
-    """A float -> float version of a form: the 1 kHz loop cannot afford numpy per scalar."""
-    if isinstance(form, Linear | Viscous):
-        return lambda u: u
-    if isinstance(form, Cubic):
-        return lambda u: u * u * u
-    if isinstance(form, Quadratic):
-        return lambda u: u * abs(u)
-
-    def general(u: float) -> float:
-        with np.errstate(all="ignore"):
-            return float(form(np.array([u]))[0])
-
-    return general
 
 
 @dataclass(frozen=True)
@@ -384,8 +367,8 @@ class RenderLaw:
         return cls(
             K=tissue.K,
             S=tissue.S,
-            f0=_scalar(tissue.model.f0),
-            f1=_scalar(tissue.model.f1),
+            f0=tissue.model.f0.scalar,
+            f1=tissue.model.f1.scalar,
             Kp=profile.Kp,
             b=profile.b,
             alpha=profile.alpha,
@@ -479,13 +462,21 @@ def _local_slopes(tissue: Tissue, depth: float, speed: float = TYPICAL_SPEED) ->
     with np.errstate(all="ignore"):
         k = tissue.K * tissue.model.f0.derivative(x)
         s = tissue.S * tissue.model.f1.derivative(v)
-    return {"k_lo": float(k.min()), "k_hi": float(k.max()),
-            "s_lo": float(s.min()), "s_hi": float(s.max())}
+    return {
+        "k_lo": float(k.min()),
+        "k_hi": float(k.max()),
+        "s_lo": float(s.min()),
+        "s_hi": float(s.max()),
+    }
 
 
 def design_gains(
-    tissue: Tissue, profile: DisplayProfile, rate_hz: float, depth: float,
-    bandwidth_fraction: float = BANDWIDTH_FRACTIONS[0], mass_floor: float = MASS_FLOORS[0],
+    tissue: Tissue,
+    profile: DisplayProfile,
+    rate_hz: float,
+    depth: float,
+    bandwidth_fraction: float = BANDWIDTH_FRACTIONS[0],
+    mass_floor: float = MASS_FLOORS[0],
 ) -> Gains:
     """Gains making the error dynamics critically damped or slower, never below a bandwidth.
 
@@ -521,7 +512,10 @@ def design_gains(
 
 
 def choose_gains(
-    tissue: Tissue, profile: DisplayProfile, rate_hz: float, depth: float,
+    tissue: Tissue,
+    profile: DisplayProfile,
+    rate_hz: float,
+    depth: float,
     **controller_kw: Any,
 ) -> tuple[Gains, float]:
     """The first well-damped design, from the fastest error bandwidth and the lightest model.
@@ -710,8 +704,9 @@ class Controller:
         """
         if not (math.isfinite(position) and math.isfinite(volts)):
             # nothing sane to act on: switch off for this frame, keep the estimates
-            return Step(0.0, NONFINITE, self.x, self.v, self.a, self.xm, self.vm, math.nan,
-                        math.nan)
+            return Step(
+                0.0, NONFINITE, self.x, self.v, self.a, self.xm, self.vm, math.nan, math.nan
+            )
         if not self.started:
             self.start(position, volts)
         dt = self.period if dt is None or not dt > 0 else dt
@@ -769,7 +764,10 @@ class Controller:
 
 
 def tracking_bound(
-    model_mass: float, piston_mass: float, max_accel: float, min_stiffness: float,
+    model_mass: float,
+    piston_mass: float,
+    max_accel: float,
+    min_stiffness: float,
     resolution: float,
 ) -> float:
     """Bound on |e| from the error equation, m.
@@ -816,8 +814,10 @@ def simulate_offline(
     ctrl = Controller(tissue, profile, rate_hz, gains, **controller_kw)
     n = int(round(duration_s * rate_hz))
     dt = 1.0 / rate_hz
-    out = {k: np.zeros(n) for k in ("time", "x", "xp", "xm", "e", "volts", "force",
-                                    "force_observed", "ap")}
+    out = {
+        k: np.zeros(n)
+        for k in ("time", "x", "xp", "xm", "e", "volts", "force", "force_observed", "ap")
+    }
     out["flags"] = np.zeros(n, dtype=np.int64)
     x = v = 0.0
     pending = 0.0
@@ -828,10 +828,17 @@ def simulate_offline(
         step = ctrl.update(reading, applied, dt)
         pending = step.volts
         x_new, v, limit = piston_step(profile, x, v, applied, operator, t, dt)
-        for key, value in (("time", t), ("x", x), ("xp", step.xp), ("xm", step.xm),
-                           ("e", step.xp - step.xm), ("volts", applied),
-                           ("force", operator(t)), ("force_observed", step.force),
-                           ("ap", step.ap)):
+        for key, value in (
+            ("time", t),
+            ("x", x),
+            ("xp", step.xp),
+            ("xm", step.xm),
+            ("e", step.xp - step.xm),
+            ("volts", applied),
+            ("force", operator(t)),
+            ("force_observed", step.force),
+            ("ap", step.ap),
+        ):
             out[key][i] = value
         out["flags"][i] = step.flags | (FLAG_LIMIT if limit else 0)
         x = x_new
@@ -959,13 +966,12 @@ class CheckResult:
             if math.isfinite(self.saturation_depth)
             else "never saturates within the stroke"
         )
-        out.append(
-            f"  working depth {self.working_depth * mm:.2f} mm at {self.force:g} N; {sat}"
-        )
+        out.append(f"  working depth {self.working_depth * mm:.2f} mm at {self.force:g} N; {sat}")
         i = np.searchsorted(self.depth, [1e-3, 5e-3, 10e-3])
         band = ", ".join(
             f"{self.depth[j] * mm:.0f} mm: {self.k_min[j]:.0f}..{self.k_max[j]:.0f} N/m"
-            for j in i if j < self.depth.size
+            for j in i
+            if j < self.depth.size
         )
         out.append(f"  renderable secant stiffness {band}")
         g = self.gains
@@ -987,7 +993,11 @@ def _finite(value: float) -> float | None:
 
 
 def loop_radius(
-    tissue: Tissue, profile: DisplayProfile, rate_hz: float, gains: Gains, depth: float,
+    tissue: Tissue,
+    profile: DisplayProfile,
+    rate_hz: float,
+    gains: Gains,
+    depth: float,
     **controller_kw: Any,
 ) -> float:
     """Spectral radius of the sampled loop linearised at static equilibrium at ``depth``.
@@ -1024,7 +1034,12 @@ def loop_radius(
 
 
 def _free_step(
-    profile: DisplayProfile, x: float, v: float, volts: float, force: float, dt: float,
+    profile: DisplayProfile,
+    x: float,
+    v: float,
+    volts: float,
+    force: float,
+    dt: float,
     substeps: int = 10,
 ) -> tuple[float, float]:
     """:func:`piston_step` without end stops or clamping (signed pull), for linearisation."""
@@ -1086,7 +1101,8 @@ def check(
     x_work = working_depth(tissue, profile, force)
     x_sat = _solve(
         lambda x: tissue.K * _f0(tissue, x) - profile.Kp * x - profile.max_pull,
-        0.0, profile.stroke,
+        0.0,
+        profile.stroke,
     )
     f_limit = tissue.K * _f0(tissue, x_sat) if math.isfinite(x_sat) else math.inf
     mm = 1e3

@@ -45,6 +45,12 @@ class Form(ABC):
     def derivative(self, u: Array) -> Array:
         """d form / du at ``u``: the local slope a controller needs."""
 
+    def scalar(self, u: float) -> float:
+        """The form at one float, for real-time loops where a numpy call per sample costs
+        too much; forms override it with plain arithmetic."""
+        with np.errstate(all="ignore"):
+            return float(self(np.array([u]))[0])
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
@@ -73,6 +79,9 @@ class Linear(Form):
     def __call__(self, u: Array) -> Array:
         return np.asarray(u, dtype=float)
 
+    def scalar(self, u: float) -> float:
+        return u
+
     def derivative(self, u: Array) -> Array:
         return np.ones_like(u, dtype=float)
 
@@ -87,6 +96,9 @@ class Cubic(Form):
         u = np.asarray(u, dtype=float)
         return u * u * u
 
+    def scalar(self, u: float) -> float:
+        return u * u * u
+
     def derivative(self, u: Array) -> Array:
         return 3.0 * np.asarray(u, dtype=float) ** 2
 
@@ -99,6 +111,9 @@ class Viscous(Form):
 
     def __call__(self, u: Array) -> Array:
         return np.asarray(u, dtype=float)
+
+    def scalar(self, u: float) -> float:
+        return u
 
     def derivative(self, u: Array) -> Array:
         return np.ones_like(u, dtype=float)
@@ -117,6 +132,9 @@ class Quadratic(Form):
     def __call__(self, u: Array) -> Array:
         u = np.asarray(u, dtype=float)
         return u * np.abs(u)
+
+    def scalar(self, u: float) -> float:
+        return u * abs(u)
 
     def derivative(self, u: Array) -> Array:
         return 2.0 * np.abs(np.asarray(u, dtype=float))
