@@ -65,23 +65,35 @@ class Kinematics:
         """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
         return oaconvolve(u, self.kernels[0], mode="valid")
 
-    def damping_input(self, f1: Form, x_full: Array) -> Array:
+    def stiffness_input(self, f0: Form, x_full: Array, noise_var: float = 0.0) -> Array:
+        """The stiffness column ``g * f0(x)`` from the untrimmed raw position.
+
+        Position noise of variance ``noise_var`` (m^2) inside a curved f0 adds
+        ``f0'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
+        taken off, so the column matches ``g * F`` to second order.
+        """
+        u = f0(x_full)
+        if noise_var > 0:
+            u = u - 0.5 * f0.curvature(x_full) * noise_var
+        return self.smooth(u)
+
+    def damping_input(self, f1: Form, x_full: Array, noise_var: float = 0.0) -> Array:
         """The damping column ``~ g * f1(v)`` from the untrimmed position.
 
-        With half kernels ``g_h * [f1(v_h) + f1''(v_h) s^2 a_h^2 / 2]``, where
-        ``v_h = g_h' * x``, ``a_h = g_h'' * x`` and ``s`` is g_h's SD: the second
+        With half kernels ``g_h * [f1(v_h) + f1''(v_h) (s^2 a_h^2 - n_v) / 2]``, where
+        ``v_h = g_h' * x``, ``a_h = g_h'' * x``, ``s`` is g_h's SD and ``n_v`` the
+        variance position noise of ``noise_var`` (m^2) gives v_h: the smoothing
         term is the second-order effect of smoothing inside the nonlinearity
-        (``g_h * f1(v) = f1(g_h * v) + f1'' Var / 2``). Exact for a linear f1.
-        Without half kernels: ``f1(v)``.
+        (``g_h * f1(v) = f1(g_h * v) + f1'' Var / 2``) and the noise term removes
+        the same effect of noise. Exact for a linear f1. Without half kernels: ``f1(v)``.
         """
         if self.half is None:
             return f1(self.v)
         gh, gh1, gh2, s2 = self.half
         v = oaconvolve(x_full, gh1, mode="valid")
         a = oaconvolve(x_full, gh2, mode="valid")
-        dv = 1e-6 * max(float(np.max(np.abs(v))), 1e-12)
-        curvature = (f1.derivative(v + dv) - f1.derivative(v - dv)) / (2 * dv)
-        col = oaconvolve(f1(v) + 0.5 * curvature * s2 * a * a, gh, mode="valid")
+        n_v = noise_var * float(gh1 @ gh1)
+        col = oaconvolve(f1(v) + 0.5 * f1.curvature(v) * (s2 * a * a - n_v), gh, mode="valid")
         trim = (col.size - self.v.size) // 2
         return col[trim : col.size - trim]
 

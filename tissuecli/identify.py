@@ -129,15 +129,21 @@ def position_noise_sd(x: Array, fs: float) -> float:
     return float(np.sqrt(np.median(top) * fs / 2)) if top.size else 0.0
 
 
-def design(model: TissueModel, kin: Kinematics, x_full: Array) -> Array:
+def design(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: float = 0.0) -> Array:
     """Design matrix (m, 3) consistent with the filtered force.
 
     The stiffness column filters f0 of the raw position, ``g * f0(x)``, which
     matches ``g * F`` for any f0; damping uses :meth:`Kinematics.damping_input` (exact for
-    a linear f1) and inertia the filtered acceleration (exact).
+    a linear f1) and inertia the filtered acceleration (exact). ``sigma_x`` (m), the
+    position noise, removes the mean that noise adds inside curved forms.
     """
+    var = sigma_x**2
     return np.column_stack(
-        [kin.smooth(model.f0(x_full)), kin.damping_input(model.f1, x_full), kin.a]
+        [
+            kin.stiffness_input(model.f0, x_full, var),
+            kin.damping_input(model.f1, x_full, var),
+            kin.a,
+        ]
     )
 
 
@@ -302,7 +308,7 @@ class BayesianFit:
         best_ls = min(firsts, key=lambda name: firsts[name].rss)
         self._check_prior_conflict(models, firsts[best_ls].beta, best_ls)
         self.tau_ = firsts[best_ls].tau
-        A = design(next(m for m in models if m.name == best_ls), kin, x_full)
+        A = design(next(m for m in models if m.name == best_ls), kin, x_full, self.sigma_x_)
         weight = data_weight(A, y - A @ firsts[best_ls].beta, self.tau_)
         del A
         self.n_eff_ = y.size * weight
@@ -442,7 +448,8 @@ class BayesianFit:
     def fitted_force(self, result: ModelResult | None = None) -> Array:
         """Force predicted by a form's posterior mean on the fitted samples (N)."""
         r = result or self.best_
-        return design(r.model, self.kinematics_, self._x_full) @ r.posterior.mean  # type: ignore[union-attr]
+        A = design(r.model, self.kinematics_, self._x_full, self.sigma_x_)
+        return A @ r.posterior.mean  # type: ignore[union-attr]
 
 
 @dataclass
@@ -463,7 +470,7 @@ class _FirstPass:
 def _first_pass(
     model: TissueModel, kin: Kinematics, x_full: Array, y: Array, sigma_x: float
 ) -> _FirstPass:
-    A = design(model, kin, x_full)
+    A = design(model, kin, x_full, sigma_x)
     beta = _lstsq_scaled(A, y)
     r = y - A @ beta
     norms = np.linalg.norm(A, axis=0)

@@ -45,6 +45,13 @@ class Form(ABC):
     def derivative(self, u: Array) -> Array:
         """d form / du at ``u``: the local slope a controller needs."""
 
+    def curvature(self, u: Array) -> Array:
+        """Second derivative at ``u`` (central difference of :meth:`derivative`); what
+        turns noise or smoothing inside the form into bias."""
+        u = np.asarray(u, dtype=float)
+        h = 1e-6 * max(float(np.max(np.abs(u))) if u.size else 0.0, 1e-12)
+        return (self.derivative(u + h) - self.derivative(u - h)) / (2 * h)
+
     def scalar(self, u: float) -> float:
         """The form at one float, for real-time loops where a numpy call per sample costs
         too much; forms override it with plain arithmetic."""
