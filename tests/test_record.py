@@ -152,3 +152,13 @@ def test_sixty_seconds_lose_no_frame(forceps, tmp_path, rate):
     sim = forceps("--rate", str(rate))
     res = record(str(sim.link), tmp_path / "g.h5", "long", duration_s=60.0)
     assert (res.samples, res.lost_frames, res.bad_frames) == (60 * rate, 0, 0)
+
+
+def test_a_display_is_not_recorded(tmp_path):
+    from tissuecli.simulate import SimulatorProcess
+
+    with SimulatorProcess("display", tmp_path / "display") as disp:
+        result = tissuecli("record", "--port", str(disp.link), "--out", str(tmp_path / "g.h5"),
+                           "--duration", "1")
+    assert_clean_error(result, "not a forceps")
+    assert not (tmp_path / "g.h5").exists()

@@ -111,13 +111,13 @@ class Link:
 
 
 def _reason(exc: BaseException) -> str:
-    """The useful part of a pyserial/OS error message."""
-    if isinstance(exc, OSError) and exc.strerror:
-        return exc.strerror.lower()
+    """The useful part of a pyserial/OS error message ("no such file or directory")."""
     text = str(exc)
-    return (
-        text.split(": ", 1)[-1] if text.startswith(("could not open port", "read failed")) else text
-    )
+    if "] " in text:  # "could not open port X: [Errno 2] No such file or directory: 'X'"
+        return text.rsplit("] ", 1)[1].split(":", 1)[0].lower()
+    if isinstance(exc, OSError) and exc.strerror:
+        return str(exc.strerror).lower()
+    return text
 
 
 class VirtualPort:

@@ -53,6 +53,11 @@ def _check_device(
     info: dict[str, Any] | None, url: str, calibration: Calibration | None
 ) -> Calibration:
     """The calibration to use, after checking the device's protocol version."""
+    if info is not None and info.get("device", "forceps") != "forceps":
+        raise DeviceError(
+            f"{url} is a {info.get('device')!r}, not a forceps; record reads the forceps "
+            "(a display is driven by `tissuecli play`)"
+        )
     if info is not None:
         version = info.get("protocol")
         if version != PROTOCOL_VERSION:
