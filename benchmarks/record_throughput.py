@@ -63,6 +63,17 @@ def run(rate: float, duration: float, root: Path) -> dict[str, float]:
     }
 
 
+def decode_rate(frames: int = 100_000) -> float:
+    """Frames per second the host's decoder handles, on one core."""
+    from tissuecli.protocol import FrameDecoder, Sample, encode
+
+    stream = b"".join(encode(Sample(k, k * 1000, -3, 120)) for k in range(frames))
+    t0 = time.perf_counter()
+    got = FrameDecoder().feed(stream)
+    assert len(got) == frames
+    return frames / (time.perf_counter() - t0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0)
@@ -71,6 +82,7 @@ def main() -> None:
     print(
         f"{'rate Hz':>8} {'expected':>9} {'stored':>9} {'lost':>5} {'bad':>5} {'CPU':>6} {'MB':>7}"
     )
+    print(f"decoder alone: {decode_rate():,.0f} frames/s on one core")
     with tempfile.TemporaryDirectory() as tmp:
         for rate in (float(r) for r in args.rates.split(",")):
             r = run(rate, args.duration, Path(tmp))
