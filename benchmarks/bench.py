@@ -163,8 +163,8 @@ def configurations(quick: bool) -> dict[str, Callable[[Session], tuple[str, np.n
     return configs
 
 
-def scenes(quick: bool, seeds: int) -> list[Scene]:
-    rates = (1000.0,) if quick else (250.0, 1000.0, 10000.0)
+def scenes(quick: bool, seeds: int, rates: tuple[float, ...] | None = None) -> list[Scene]:
+    rates = rates or ((1000.0,) if quick else (250.0, 1000.0, 10000.0))
     bits = (8,) if quick else (8, 16)
     tissues = TISSUES[:2] if quick else TISSUES
     return [
@@ -257,11 +257,19 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     ap.add_argument("--quick", action="store_true", help="a smoke run in seconds")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("docs/img"))
+    ap.add_argument("--rates", default=None, help="comma-separated rates in Hz")
+    ap.add_argument("--configs", default=None,
+                    help="comma-separated configuration names to run (default: all)")
+    ap.add_argument("--no-scaling", action="store_true", help="skip the session-length study")
     args = ap.parse_args(argv)
     configs = configurations(args.quick)
+    if args.configs:
+        wanted = {c.strip() for c in args.configs.split(",")}
+        configs = {k: v for k, v in configs.items() if k in wanted}
     tallies = {name: Tally() for name in configs}
     crb: dict[str, list[np.ndarray]] = {}
-    all_scenes = scenes(args.quick, 1 if args.quick else args.seeds)
+    rates = tuple(float(r) for r in args.rates.split(",")) if args.rates else None
+    all_scenes = scenes(args.quick, 1 if args.quick else args.seeds, rates)
     for i, scene in enumerate(all_scenes, 1):
         s, model = scene.draw()
         crb.setdefault(scene.family, []).append(cramer_rao_rel(scene, model))
@@ -326,6 +334,8 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         b = np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any() else np.full(3, np.nan)
         print(f"{family:<28} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
 
+    if args.no_scaling:
+        return {"summary": summary, "front": front}
     lengths = length_scaling(args.quick)
     per_sample = [t / n for n, t in lengths]
     print("\ndefault fit time against session length (1 kHz):")
