@@ -258,8 +258,9 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("docs/img"))
     ap.add_argument("--rates", default=None, help="comma-separated rates in Hz")
-    ap.add_argument("--configs", default=None,
-                    help="comma-separated configuration names to run (default: all)")
+    ap.add_argument(
+        "--configs", default=None, help="comma-separated configuration names to run (default: all)"
+    )
     ap.add_argument("--no-scaling", action="store_true", help="skip the session-length study")
     args = ap.parse_args(argv)
     configs = configurations(args.quick)

@@ -36,16 +36,23 @@ def main() -> None:
     ap.add_argument("--rates", default="250,500,1000,2000")
     ap.add_argument("--bits", default="8,12")
     args = ap.parse_args()
-    print(f"{'form':<11} {'bits':>4} {'rate':>5} {'right':>6} {'|dK| %':>8} {'|dS| %':>8} "
-          f"{'|dM| %':>8} {'K in':>5} {'S in':>5} {'M in':>5} {'M flag':>6} {'s/fit':>6}")
+    print(
+        f"{'form':<11} {'bits':>4} {'rate':>5} {'right':>6} {'|dK| %':>8} {'|dS| %':>8} "
+        f"{'|dM| %':>8} {'K in':>5} {'S in':>5} {'M in':>5} {'M flag':>6} {'s/fit':>6}"
+    )
     for tissue in TISSUES:
         for bits in (int(b) for b in args.bits.split(",")):
             for rate in (float(r) for r in args.rates.split(",")):
                 right, errs, inside, flags, secs = 0, [], [], 0, 0.0
                 for seed in range(args.seeds):
                     rng = np.random.default_rng(seed)
-                    model = ForcepsModel(tissue=tissue, rate_hz=rate, seed=seed,
-                                         operator=Operator.random(rng), sensors=Sensors(bits=bits))
+                    model = ForcepsModel(
+                        tissue=tissue,
+                        rate_hz=rate,
+                        seed=seed,
+                        operator=Operator.random(rng),
+                        sensors=Sensors(bits=bits),
+                    )
                     s, _ = synthesize(model, args.duration)
                     s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
                     t0 = time.perf_counter()
@@ -62,9 +69,12 @@ def main() -> None:
                 n = args.seeds
                 med = np.median(errs, axis=0) if errs else np.full(3, np.nan)
                 cov = np.mean(inside, axis=0) if inside else np.full(3, np.nan)
-                print(f"{tissue.model.name:<11} {bits:>4} {rate:>5.0f} {right:>3}/{n:<2} "
-                      f"{med[0]:8.3f} {med[1]:8.3f} {med[2]:8.2f} {cov[0]:5.2f} {cov[1]:5.2f} "
-                      f"{cov[2]:5.2f} {flags:>6} {secs / n:6.3f}", flush=True)
+                print(
+                    f"{tissue.model.name:<11} {bits:>4} {rate:>5.0f} {right:>3}/{n:<2} "
+                    f"{med[0]:8.3f} {med[1]:8.3f} {med[2]:8.2f} {cov[0]:5.2f} {cov[1]:5.2f} "
+                    f"{cov[2]:5.2f} {flags:>6} {secs / n:6.3f}",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -31,8 +31,15 @@ from tissuecli.storage import read_session  # noqa: E402
 
 
 def trial(path: Path, args: argparse.Namespace, rng: random.Random) -> str:
-    cmd = [sys.executable, str(ROOT / "tests" / "_writer_child.py"), str(path),
-           "--interval", str(args.interval), "--block", str(args.block)]
+    cmd = [
+        sys.executable,
+        str(ROOT / "tests" / "_writer_child.py"),
+        str(path),
+        "--interval",
+        str(args.interval),
+        "--block",
+        str(args.block),
+    ]
     if args.no_fsync:
         cmd.append("--no-fsync")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
@@ -53,8 +60,11 @@ def trial(path: Path, args: argparse.Namespace, rng: random.Random) -> str:
     if len(s) < flushed:
         return f"lost rows: {len(s)} < {flushed} committed"
     exp = expected_rows(0, len(s))
-    if not (np.array_equal(s.time, exp["time"]) and np.array_equal(s.force, exp["force"])
-            and np.array_equal(s.meta["raw"]["raw/sequence"], exp["raw/sequence"])):
+    if not (
+        np.array_equal(s.time, exp["time"])
+        and np.array_equal(s.force, exp["force"])
+        and np.array_equal(s.meta["raw"]["raw/sequence"], exp["raw/sequence"])
+    ):
         return "wrong values"
     return "ok"
 
@@ -74,9 +84,11 @@ def main() -> None:
             result = trial(Path(tmp) / f"k{k}.h5", args, rng)
             key = result.split(":")[0]
             outcomes[key] = outcomes.get(key, 0) + 1
-    print(f"{args.kills} kills (flush every {args.interval} s, blocks of {args.block} rows, "
-          f"fsync {'off' if args.no_fsync else 'on'}): "
-          + ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())))
+    print(
+        f"{args.kills} kills (flush every {args.interval} s, blocks of {args.block} rows, "
+        f"fsync {'off' if args.no_fsync else 'on'}): "
+        + ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items()))
+    )
 
 
 if __name__ == "__main__":

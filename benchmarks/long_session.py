@@ -32,9 +32,11 @@ def main() -> None:
     t0 = time.perf_counter()
     est = BayesianFit().fit(session)
     seconds = time.perf_counter() - t0
-    print(f"{n} samples: fit in {seconds:.1f} s; peak memory {peak_mb():.0f} MB "
-          f"({data_mb:.0f} MB after drawing the session); {est.best_.name}, "
-          f"K = {est.best_.posterior.mean[0]:.4f} N/m")
+    print(
+        f"{n} samples: fit in {seconds:.1f} s; peak memory {peak_mb():.0f} MB "
+        f"({data_mb:.0f} MB after drawing the session); {est.best_.name}, "
+        f"K = {est.best_.posterior.mean[0]:.4f} N/m"
+    )
 
 
 if __name__ == "__main__":

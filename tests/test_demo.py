@@ -12,8 +12,13 @@ from .conftest import tissuecli
 def test_demo_runs_every_step_and_keeps_its_files(tmp_path):
     r = tissuecli("demo", "--duration", "2", "--dir", str(tmp_path), timeout=120)
     assert r.returncode == 0, r.stderr
-    for step in ("1. simulated forceps", "2. recorded 2000 samples", "5. fitted all forms",
-                 "6. display check", "7. played"):
+    for step in (
+        "1. simulated forceps",
+        "2. recorded 2000 samples",
+        "5. fitted all forms",
+        "6. display check",
+        "7. played",
+    ):
         assert step in r.stdout, r.stdout
     assert storage.session_names(tmp_path / "grasp.h5") == ["demo-1"]
     doc = json.loads((tmp_path / "tissue.json").read_text())

@@ -149,8 +149,15 @@ gain = st.one_of(st.floats(0.0, 1e5), anything)
 
 @settings(max_examples=400, deadline=None)
 @given(
-    xp=state, vp=state, xm=state, vm=state,
-    K=gain, S=gain, Cp=gain, Cv=gain, b=gain,
+    xp=state,
+    vp=state,
+    xm=state,
+    vm=state,
+    K=gain,
+    S=gain,
+    Cp=gain,
+    Cv=gain,
+    b=gain,
     Kp=st.one_of(st.floats(1.0, 1e4), anything),
     alpha=st.one_of(st.floats(1e-6, 1e3), anything),
     v_max=st.one_of(st.floats(1e-3, 100.0), anything),
@@ -159,8 +166,9 @@ gain = st.one_of(st.floats(0.0, 1e5), anything)
 def test_voltage_never_leaves_0_vmax(xp, vp, xm, vm, K, S, Cp, Cv, b, Kp, alpha, v_max, forms):
     tissue = Tissue(TissueModel.from_names(*forms), 1.0, 1.0, 0.05)
     law = RenderLaw.build(tissue, PAPER_DISPLAY, Gains(Cp, Cv, 20.0, 0.05))
-    law = RenderLaw(K=K, S=S, f0=law.f0, f1=law.f1, Kp=Kp, b=b, alpha=alpha, v_max=v_max,
-                    Cp=Cp, Cv=Cv)
+    law = RenderLaw(
+        K=K, S=S, f0=law.f0, f1=law.f1, Kp=Kp, b=b, alpha=alpha, v_max=v_max, Cp=Cp, Cv=Cv
+    )
     volts, flags = control_voltage(law, xp, vp, xm, vm)
     assert isinstance(volts, float) and math.isfinite(volts)
     if 0 < v_max < math.inf:
@@ -277,8 +285,9 @@ def _rms(e: np.ndarray) -> float:
 def test_offline_tracking_is_within_the_error_equation_bound():
     out = simulate_offline(INSIDE, duration_s=4.0)
     g, _ = choose_gains(INSIDE, PAPER_DISPLAY, 1000.0, 5.67e-3)
-    bound = tracking_bound(g.M, PAPER_DISPLAY.Mp, np.abs(out["ap"]).max(), INSIDE.K + g.Cp,
-                           PAPER_DISPLAY.resolution)
+    bound = tracking_bound(
+        g.M, PAPER_DISPLAY.Mp, np.abs(out["ap"]).max(), INSIDE.K + g.Cp, PAPER_DISPLAY.resolution
+    )
     assert _rms(out["e"]) < bound
     assert np.all((out["volts"] >= 0) & (out["volts"] <= PAPER_DISPLAY.v_max))
     assert not np.any(out["flags"] & SATURATED)

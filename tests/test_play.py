@@ -155,8 +155,12 @@ def test_stop_flag_ends_with_zero_volts_received_by_the_display(display, tmp_pat
 
 def test_watchdog_zeroes_the_voltage_when_the_host_dies(display):
     d = display()
-    host = subprocess.Popen([sys.executable, "-c", HOST, str(d.link)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    host = subprocess.Popen(
+        [sys.executable, "-c", HOST, str(d.link)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert host.stdout is not None
         assert host.stdout.readline().strip() == "playing", host.stderr.read()

@@ -158,7 +158,8 @@ def test_a_display_is_not_recorded(tmp_path):
     from tissuecli.simulate import SimulatorProcess
 
     with SimulatorProcess("display", tmp_path / "display") as disp:
-        result = tissuecli("record", "--port", str(disp.link), "--out", str(tmp_path / "g.h5"),
-                           "--duration", "1")
+        result = tissuecli(
+            "record", "--port", str(disp.link), "--out", str(tmp_path / "g.h5"), "--duration", "1"
+        )
     assert_clean_error(result, "not a forceps")
     assert not (tmp_path / "g.h5").exists()

@@ -19,8 +19,9 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 IMAGE = re.compile(r'<img\s[^>]*src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
 
 
-def _session(seed: int = 3, duration_s: float = 6.0, tissue: Tissue | None = None,
-             name: str = "liver-1"):
+def _session(
+    seed: int = 3, duration_s: float = 6.0, tissue: Tissue | None = None, name: str = "liver-1"
+):
     model = ForcepsModel(seed=seed) if tissue is None else ForcepsModel(tissue=tissue, seed=seed)
     session, _ = synthesize(model, duration_s)
     session.name = name
@@ -92,9 +93,14 @@ def test_report_names_the_best_model_and_its_formula(both: tuple[FitOutcome, str
 
 def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
-    section = text[text.index("id='parameters'"):text.index("id='comparison'")]
-    for head in ("<th>mean</th>", "<th>SD</th>", "<th>95 % interval</th>", "<th>unit (SI)</th>",
-                 "convenient units</th>"):
+    section = text[text.index("id='parameters'") : text.index("id='comparison'")]
+    for head in (
+        "<th>mean</th>",
+        "<th>SD</th>",
+        "<th>95 % interval</th>",
+        "<th>unit (SI)</th>",
+        "convenient units</th>",
+    ):
         assert head in section
     for unit in ("N/m<", "N s/m<", "kg<", "N/mm", "N s/mm", " g<", "mN"):
         assert unit in section, unit
@@ -105,13 +111,19 @@ def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
 
 def test_report_compares_all_four_forms(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
-    section = text[text.index("id='comparison'"):text.index("id='plots'")]
+    section = text[text.index("id='comparison'") : text.index("id='plots'")]
     names = [m.name for m in all_models()]
     assert len(names) == 4
     for name in names:
         assert f"<td><b>{html.escape(name)}</b></td>" in section
-    for head in ("ln evidence (exact)", "posterior probability", "ln BF vs best", "method",
-                 "cond (scaled)", "residual RMS (mN)"):
+    for head in (
+        "ln evidence (exact)",
+        "posterior probability",
+        "ln BF vs best",
+        "method",
+        "cond (scaled)",
+        "residual RMS (mN)",
+    ):
         assert f"<th>{head}</th>" in section
     for r in outcome.bayes.results_:
         assert html.escape(r.reason) in section
@@ -127,12 +139,12 @@ def test_both_includes_the_windows_chart_and_comparison(both: tuple[FitOutcome, 
 
 def test_report_has_diagnostics_and_provenance(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
-    section = text[text.index("id='diagnostics'"):]
+    section = text[text.index("id='diagnostics'") :]
     kin = outcome.bayes.kinematics_
     assert html.escape(kin.method) in section
     assert "Effective samples" in section and "autocorrelation" in section
     assert "How to read this report" in text
-    footer = text[text.index("<footer>"):]
+    footer = text[text.index("<footer>") :]
     assert outcome.document["software"] in footer
 
 
@@ -178,8 +190,7 @@ def test_emcee_fit_reports_chain_and_sampler_evidence(tmp_path: Path) -> None:
 
 
 def test_text_is_escaped(tmp_path: Path) -> None:
-    outcome = fit_session(_session(name="<b>liver</b> & \"co\""), method="pinv",
-                          forms="x,xdot")
+    outcome = fit_session(_session(name='<b>liver</b> & "co"'), method="pinv", forms="x,xdot")
     text = _write(tmp_path, outcome)
     assert "<b>liver</b>" not in text
     assert "&lt;b&gt;liver&lt;/b&gt; &amp; &quot;co&quot;" in text

@@ -130,8 +130,9 @@ def test_ten_million_samples_fit_in_bounded_memory():
         "print(e.best_.name, e.best_.posterior.mean[0],\n"
         "      resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=600, check=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True
+    ).stdout.split()
     assert out[0] == "x,xdot"
     assert abs(float(out[1]) / DEFAULT_TISSUE.K - 1) < 1e-3
     assert float(out[2]) < 6000  # MB

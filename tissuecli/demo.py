@@ -70,8 +70,10 @@ def run_demo(
         say(f"5. fitted all forms: {best.name} chosen with probability {best.probability:.3f}")
         for j, p in enumerate(PARAMETERS):
             truth = getattr(t, p)
-            say(f"   {p} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {best.model.units[p]}"
-                f"  (true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %)")
+            say(
+                f"   {p} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {best.model.units[p]}"
+                f"  (true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %)"
+            )
         for w in outcome.bayes.warnings_:  # type: ignore[union-attr]
             say(f"   warning: {w}")
         say(f"   parameters -> {params}, report -> {report}")
@@ -86,5 +88,11 @@ def run_demo(
             say(f"   {line}")
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")
-        return {"h5": str(h5), "csv": str(csv), "session": name, "params": str(params),
-                "report": str(report), "play_log": str(log)}
+        return {
+            "h5": str(h5),
+            "csv": str(csv),
+            "session": name,
+            "params": str(params),
+            "report": str(report),
+            "play_log": str(log),
+        }

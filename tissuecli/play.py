@@ -235,8 +235,12 @@ class _Firmware:
         if self.k_start < 0:
             self.k_start = self.ticks_run
         # armed by the first SetVoltage after START, so a host's start-up is not a trip
-        if (self.streaming and self.armed and not self.tripped
-                and self.ticks_run - self.tick_command > WATCHDOG_PERIODS):
+        if (
+            self.streaming
+            and self.armed
+            and not self.tripped
+            and self.ticks_run - self.tick_command > WATCHDOG_PERIODS
+        ):
             self.volts, self.tripped = 0.0, True
             self.trips += 1
             if self.say is not None:
@@ -405,24 +409,48 @@ class _LogThread:
 
 
 LOG_COLUMNS = [
-    storage.Column("time", "float64", attrs={"unit": "s",
-                   "description": "display clock since the first frame"}),
-    storage.Column("xp", "float64", attrs={"unit": "m",
-                   "description": "piston position, filtered estimate, positive down"}),
-    storage.Column("xm", "float64", attrs={"unit": "m",
-                   "description": "tissue model position under the observed force"}),
+    storage.Column(
+        "time", "float64", attrs={"unit": "s", "description": "display clock since the first frame"}
+    ),
+    storage.Column(
+        "xp",
+        "float64",
+        attrs={"unit": "m", "description": "piston position, filtered estimate, positive down"},
+    ),
+    storage.Column(
+        "xm",
+        "float64",
+        attrs={"unit": "m", "description": "tissue model position under the observed force"},
+    ),
     storage.Column("e", "float64", attrs={"unit": "m", "description": "xp - xm"}),
-    storage.Column("V", "float64", attrs={"unit": "V",
-                   "description": "voltage sent in answer to this frame"}),
-    storage.Column("V_applied", "float64", attrs={"unit": "V",
-                   "description": "voltage the display reported applying"}),
-    storage.Column("force_observed", "float64", attrs={"unit": "N",
-                   "description": "Mp xp'' + b xp' + Kp xp + alpha V^2 over the last period"}),
-    storage.Column("flags", "uint8", attrs={"unit": "1", "description":
-                   "0x01 watchdog, 0x02 end stop (display); 0x10 saturated, 0x20 "
-                   "unrenderable, 0x40 non-finite (controller)"}),
-    storage.Column("counts", "int32", attrs={"unit": "count",
-                   "description": "raw encoder reading"}),
+    storage.Column(
+        "V", "float64", attrs={"unit": "V", "description": "voltage sent in answer to this frame"}
+    ),
+    storage.Column(
+        "V_applied",
+        "float64",
+        attrs={"unit": "V", "description": "voltage the display reported applying"},
+    ),
+    storage.Column(
+        "force_observed",
+        "float64",
+        attrs={
+            "unit": "N",
+            "description": "Mp xp'' + b xp' + Kp xp + alpha V^2 over the last period",
+        },
+    ),
+    storage.Column(
+        "flags",
+        "uint8",
+        attrs={
+            "unit": "1",
+            "description": "0x01 watchdog, 0x02 end stop (display); 0x10 saturated, 0x20 "
+            "unrenderable, 0x40 non-finite (controller)",
+        },
+    ),
+    storage.Column(
+        "counts", "int32", attrs={"unit": "count", "description": "raw encoder reading"}
+    ),
 ]
 
 
@@ -617,23 +645,47 @@ def play(
                 "source": f"serial:{url}",
                 "device": info,
                 "rate_hz": rate_hz,
-                "tissue": {"model": tissue.model.name, "K": tissue.K, "S": tissue.S,
-                           "M": tissue.M, "units": tissue.model.units},
+                "tissue": {
+                    "model": tissue.model.name,
+                    "K": tissue.K,
+                    "S": tissue.S,
+                    "M": tissue.M,
+                    "units": tissue.model.units,
+                },
                 "profile": profile.as_dict(),
                 "gains": asdict(verdict.gains),
                 "check": verdict.as_dict(),
             }
             writer = _LogThread(
-                storage.SeriesWriter(log, f"plays/{name}", LOG_COLUMNS, meta, kind="play",
-                                     flush_interval_s=LOG_FLUSH_S)
+                storage.SeriesWriter(
+                    log,
+                    f"plays/{name}",
+                    LOG_COLUMNS,
+                    meta,
+                    kind="play",
+                    flush_interval_s=LOG_FLUSH_S,
+                )
             )
         with _realtime():
-            summary = _loop(link, ctrl, profile, rate_hz, duration_s, stop, writer,
-                            idle_timeout_s, on_status, status_interval_s)
+            summary = _loop(
+                link,
+                ctrl,
+                profile,
+                rate_hz,
+                duration_s,
+                stop,
+                writer,
+                idle_timeout_s,
+                on_status,
+                status_interval_s,
+            )
     except BaseException as exc:
         if writer is not None:
-            reason = (f"device lost: {exc}" if isinstance(exc, DeviceLost)
-                      else f"error: {type(exc).__name__}: {exc}")
+            reason = (
+                f"device lost: {exc}"
+                if isinstance(exc, DeviceLost)
+                else f"error: {type(exc).__name__}: {exc}"
+            )
             try:
                 writer.close(complete=False, stop_reason=reason)
             except Exception:  # the first error is the one to report
@@ -863,8 +915,7 @@ def _summary(
 ) -> dict[str, Any]:
     n = max(stats.frames, 1)
     if stats.x_hi >= stats.x_lo:
-        k_min = min(ctrl.local_stiffness(float(x))
-                    for x in np.linspace(stats.x_lo, stats.x_hi, 51))
+        k_min = min(ctrl.local_stiffness(float(x)) for x in np.linspace(stats.x_lo, stats.x_hi, 51))
     else:
         k_min = ctrl.local_stiffness(0.0)
     return {
@@ -875,8 +926,9 @@ def _summary(
         "missed_periods": missed,
         "tracking_rms_m": math.sqrt(stats.sum_e2 / n),
         "tracking_max_m": stats.max_e,
-        "tracking_bound_m": tracking_bound(ctrl.gains.M, profile.Mp, stats.max_a, k_min,
-                                           profile.resolution),
+        "tracking_bound_m": tracking_bound(
+            ctrl.gains.M, profile.Mp, stats.max_a, k_min, profile.resolution
+        ),
         "max_accel_m_s2": stats.max_a,
         "saturated_fraction": stats.saturated / n,
         "unrenderable_fraction": stats.unrenderable / n,
