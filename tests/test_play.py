@@ -257,3 +257,25 @@ def test_wrong_rate_and_wrong_device_are_refused(display, forceps):
 def test_nothing_answering_is_a_clear_error():
     with pytest.raises(DeviceError, match="simulate display"):
         play(INSIDE, "loop://", RUN_S)
+
+
+def test_check_command_verdicts_and_exit_codes(tmp_path):
+    from click.testing import CliRunner
+
+    from tissuecli.cli import cli
+    from tissuecli.models import TissueModel
+    from tissuecli.params import tissue_to_dict, write_json
+
+    soft, stiff = tmp_path / "soft.json", tmp_path / "stiff.json"
+    model = TissueModel.from_names("x", "xdot")
+    write_json(soft, tissue_to_dict(Tissue(model, 600.0, 3.0, 0.05)))
+    write_json(stiff, tissue_to_dict(Tissue(model, 5000.0, 3.0, 0.05)))
+    ok = CliRunner().invoke(
+        cli, ["play", str(soft), "--check", "--summary", str(tmp_path / "c.json")]
+    )
+    assert ok.exit_code == 0, ok.output
+    assert "renderable" in ok.output and (tmp_path / "c.json").exists()
+    bad = CliRunner().invoke(cli, ["play", str(stiff), "--check"])
+    assert bad.exit_code == 1
+    assert "Error: the display cannot render this tissue" in bad.output
+    assert "Traceback" not in bad.output
