@@ -210,7 +210,7 @@ class Gaussian(Differentiator):
 
     name = "gaussian"
 
-    def __init__(self, sigma_s: float | None = None, cutoff_ratio: float = 2.5) -> None:
+    def __init__(self, sigma_s: float | None = None, cutoff_ratio: float = 1.5) -> None:
         self.sigma_s = sigma_s
         self.cutoff_ratio = cutoff_ratio
 
