@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from tissuecli.derivatives import Gaussian
 from tissuecli.identify import BayesianFit
 from tissuecli.models import Tissue, TissueModel
 from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize
@@ -35,6 +36,12 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--rates", default="250,500,1000,2000")
     ap.add_argument("--bits", default="8,12")
+    ap.add_argument(
+        "--cutoff-ratio",
+        type=float,
+        default=None,
+        help="Gaussian kernel cutoff over the signal band (default: the fit's)",
+    )
     args = ap.parse_args()
     print(
         f"{'form':<11} {'bits':>4} {'rate':>5} {'right':>6} {'|dK| %':>8} {'|dS| %':>8} "
@@ -56,7 +63,12 @@ def main() -> None:
                     s, _ = synthesize(model, args.duration)
                     s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
                     t0 = time.perf_counter()
-                    est = BayesianFit().fit(s)
+                    diff = (
+                        Gaussian(cutoff_ratio=args.cutoff_ratio)
+                        if args.cutoff_ratio
+                        else Gaussian()
+                    )
+                    est = BayesianFit(differentiator=diff).fit(s)
                     secs += time.perf_counter() - t0
                     best = est.best_
                     if best.name != tissue.model.name:
