@@ -39,7 +39,7 @@ from tissuecli.bayes import run_emcee  # noqa: E402
 from tissuecli.identify import BayesianFit, WindowedPinv  # noqa: E402
 from tissuecli.models import Tissue, TissueModel, all_models  # noqa: E402
 from tissuecli.session import Session  # noqa: E402
-from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize  # noqa: E402
+from tissuecli.synth import ForcepsModel, random_session, synthesize  # noqa: E402
 
 TISSUES = [
     Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
@@ -66,17 +66,13 @@ class Scene:
         return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit"
 
     def draw(self) -> tuple[Session, ForcepsModel]:
-        rng = np.random.default_rng(self.seed)
-        model = ForcepsModel(
-            tissue=self.tissue,
+        return random_session(
+            self.tissue,
             rate_hz=self.rate_hz,
             seed=self.seed,
-            operator=Operator.random(rng),
-            sensors=Sensors(bits=self.bits),
+            duration_s=self.duration_s,
+            bits=self.bits,
         )
-        s, _ = synthesize(model, self.duration_s)
-        s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
-        return s, model
 
 
 @dataclass

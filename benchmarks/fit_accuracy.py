@@ -20,7 +20,7 @@ import numpy as np
 from tissuecli.derivatives import Gaussian
 from tissuecli.identify import BayesianFit
 from tissuecli.models import Tissue, TissueModel
-from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize
+from tissuecli.synth import random_session
 
 TISSUES = [
     Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
@@ -52,16 +52,9 @@ def main() -> None:
             for rate in (float(r) for r in args.rates.split(",")):
                 right, errs, inside, flags, secs = 0, [], [], 0, 0.0
                 for seed in range(args.seeds):
-                    rng = np.random.default_rng(seed)
-                    model = ForcepsModel(
-                        tissue=tissue,
-                        rate_hz=rate,
-                        seed=seed,
-                        operator=Operator.random(rng),
-                        sensors=Sensors(bits=bits),
+                    s, _ = random_session(
+                        tissue, rate_hz=rate, seed=seed, duration_s=args.duration, bits=bits
                     )
-                    s, _ = synthesize(model, args.duration)
-                    s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
                     t0 = time.perf_counter()
                     diff = (
                         Gaussian(cutoff_ratio=args.cutoff_ratio)

@@ -18,7 +18,7 @@ from tissuecli.identify import BayesianFit, WindowedPinv
 from tissuecli.models import DEFAULT_TISSUE, Tissue, TissueModel
 from tissuecli.params import read_tissue, tissue_from_dict
 from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Operator, Sensors, synthesize
+from tissuecli.synth import ForcepsModel, Operator, random_session, synthesize
 
 from .conftest import assert_clean_error
 
@@ -33,17 +33,7 @@ TISSUES = [
 def session_for(
     tissue: Tissue, rate: float = 1000.0, seed: int = 0, duration: float = 10.0, **sensors: float
 ) -> Session:
-    rng = np.random.default_rng(seed)
-    model = ForcepsModel(
-        tissue=tissue,
-        rate_hz=rate,
-        seed=seed,
-        operator=Operator.random(rng),
-        sensors=Sensors(**sensors),
-    )
-    s, _ = synthesize(model, duration)
-    s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
-    return s
+    return random_session(tissue, rate_hz=rate, seed=seed, duration_s=duration, **sensors)[0]
 
 
 def _regression(n: int = 200, beta=(350.0, 3.0, 0.05), seed: int = 0):

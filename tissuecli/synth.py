@@ -162,3 +162,30 @@ def synthesize(model: ForcepsModel, duration_s: float) -> tuple[Session, dict[st
     )
     x, v, a, f = model.truth(np.arange(n))
     return session, {"x": x, "v": v, "a": a, "F": f, "counts": counts}
+
+
+def random_session(
+    tissue: Tissue,
+    *,
+    rate_hz: float = 1000.0,
+    seed: int = 0,
+    duration_s: float = 10.0,
+    **sensors: float,
+) -> tuple[Session, ForcepsModel]:
+    """A session with known truth and its own random operator, as tests and benchmarks draw.
+
+    The operator's frequencies, amplitudes and phases come from ``seed`` (see
+    :meth:`Operator.random`), and so does the noise; ``sensors`` are
+    :class:`Sensors` fields (``bits=12``, ...). The session's meta records the
+    ADC step of position (``position_resolution_m``), as a recorded file does.
+    """
+    model = ForcepsModel(
+        tissue=tissue,
+        rate_hz=rate_hz,
+        seed=seed,
+        operator=Operator.random(np.random.default_rng(seed)),
+        sensors=Sensors(**sensors),
+    )  # type: ignore[arg-type]
+    session, _ = synthesize(model, duration_s)
+    session.meta["position_resolution_m"] = model.sensors.calibration.position.gain
+    return session, model
