@@ -83,9 +83,20 @@ def longest_gapless(session: Session) -> tuple[Session, list[str]]:
     ]
 
 
-def prepare(session: Session, diff: Differentiator) -> Kinematics:
-    """Check that a session can identify anything, then differentiate it."""
+def prepare(session: Session, diff: Differentiator) -> tuple[Session, Kinematics, list[str]]:
+    """Validate a session, keep its longest gap-free stretch, check that it can identify
+    anything, and differentiate it.
+
+    Returns
+    -------
+    session : Session
+        The stretch that is fitted (the whole session when it has no gaps).
+    kinematics : Kinematics
+    warnings : list of str
+        Says so when lost frames cut the session.
+    """
     session.validate()
+    session, warnings = longest_gapless(session)
     n = len(session)
     if n < MIN_SAMPLES:
         raise FitError(f"session has {n} samples; at least {MIN_SAMPLES} are needed to fit")
@@ -97,7 +108,7 @@ def prepare(session: Session, diff: Differentiator) -> Kinematics:
         )
     if np.ptp(f) <= 0:
         raise FitError("force is constant: check the force sensor and its calibration")
-    return diff(session.time, x, f)
+    return session, diff(session.time, x, f), warnings
 
 
 def saturation_warnings(session: Session) -> list[str]:
@@ -281,9 +292,7 @@ class BayesianFit:
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
-        session.validate()
-        session, gap_warnings = longest_gapless(session)
-        kin = prepare(session, self._diff())
+        session, kin, gap_warnings = prepare(session, self._diff())
         x_full = session.position
         fs = 1.0 / float(np.median(np.diff(session.time)))
         self.kinematics_ = kin
@@ -560,9 +569,9 @@ class WindowedPinv:
     def fit(self, session: Session) -> WindowedPinv:
         (model,) = parse_forms(self.forms) if self.forms != "all" else (all_models()[0],)
         d = self.differentiator
-        session.validate()
-        session, self.warnings_ = longest_gapless(session)
-        kin = prepare(session, differentiator(d) if isinstance(d, str) else d)
+        session, kin, self.warnings_ = prepare(
+            session, differentiator(d) if isinstance(d, str) else d
+        )
         A, y = design(model, kin, session.position), kin.force
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
         m = A.shape[0] // n
