@@ -5,6 +5,7 @@ Usage::
     python benchmarks/bench.py                      # the full run (about 10 min here)
     python benchmarks/bench.py --quick              # a smoke run (seconds)
     python benchmarks/bench.py --out docs/img       # where the plots go
+    python benchmarks/bench.py --duration 60 --noise 4 --rates 1000   # other scenes
 
 It draws synthetic sessions with known truth (every form; 250 Hz to 10 kHz;
 8- to 16-bit ADCs; random operators; fixed seeds), runs each configuration:
@@ -18,8 +19,12 @@ It draws synthetic sessions with known truth (every form; 250 Hz to 10 kHz;
 and prints, per configuration, the median run time, the median |error| of K,
 S and M and how often the true form was chosen, marks the Pareto front (no
 other configuration both faster and more accurate), compares every scene
-family with the peers and the Cramer-Rao bound, and measures how run time
-grows with session length. Plots are written to ``--out``.
+family with the peers and the Cramer-Rao bound (with a paired test of the
+default against each peer: RMS error in units of each session's bound, and a
+bootstrap interval on the ratio), and measures how run time grows with
+session length. Plots are written to ``--out``. Every scene stays inside the
+sensor ranges (:func:`tissuecli.synth.random_session`): a clipped session has no
+truth to score against.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from tissuecli.bayes import run_emcee  # noqa: E402
 from tissuecli.identify import BayesianFit, WindowedPinv  # noqa: E402
 from tissuecli.models import Tissue, TissueModel, all_models  # noqa: E402
 from tissuecli.session import Session  # noqa: E402
-from tissuecli.synth import ForcepsModel, random_session, synthesize  # noqa: E402
+from tissuecli.synth import ForcepsModel, Sensors, random_session, synthesize  # noqa: E402
 
 TISSUES = [
     Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
@@ -60,10 +65,12 @@ class Scene:
     bits: int
     seed: int
     duration_s: float
+    noise: float = 1.0  # times the default analogue noise of both sensors
 
     @property
     def family(self) -> str:
-        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit"
+        noise = f" noise x{self.noise:g}" if self.noise != 1.0 else ""
+        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit{noise}"
 
     def draw(self) -> tuple[Session, ForcepsModel]:
         return random_session(
@@ -72,6 +79,8 @@ class Scene:
             seed=self.seed,
             duration_s=self.duration_s,
             bits=self.bits,
+            force_noise_n=self.noise * Sensors.force_noise_n,
+            position_noise_m=self.noise * Sensors.position_noise_m,
         )
 
 
@@ -88,6 +97,8 @@ class Tally:
     errors: list[np.ndarray] = field(default_factory=list)  # |rel error| of K, S, M when right
     right: list[bool] = field(default_factory=list)
     families: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    #: signed relative error of (K, S, M) per scene index, when the form was right
+    signed: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def _timed(fn: Callable[[], tuple[str, np.ndarray]]) -> Outcome:
@@ -159,12 +170,21 @@ def configurations(quick: bool) -> dict[str, Callable[[Session], tuple[str, np.n
     return configs
 
 
-def scenes(quick: bool, seeds: int, rates: tuple[float, ...] | None = None) -> list[Scene]:
+def scenes(
+    quick: bool,
+    seeds: int,
+    rates: tuple[float, ...] | None = None,
+    duration_s: float = 10.0,
+    forms: list[str] | None = None,
+    noise: float = 1.0,
+) -> list[Scene]:
     rates = rates or ((1000.0,) if quick else (250.0, 1000.0, 10000.0))
     bits = (8,) if quick else (8, 16)
     tissues = TISSUES[:2] if quick else TISSUES
+    if forms:
+        tissues = [t for t in tissues if t.model.name in forms]
     return [
-        Scene(t, r, b, seed, 2.0 if quick else 10.0)
+        Scene(t, r, b, seed, 2.0 if quick else duration_s, noise)
         for t in tissues
         for r in rates
         for b in bits
@@ -190,6 +210,66 @@ def cramer_rao_rel(scene: Scene, model: ForcepsModel) -> np.ndarray:
         return np.full(3, np.nan)
     crb = peers.cramer_rao(scene.tissue, model, scene.duration_s)
     return crb / scene.tissue.p
+
+
+def paired_ratio(
+    ours: np.ndarray, peer: np.ndarray, rng: np.random.Generator, draws: int = 2000
+) -> tuple[float, float, float]:
+    """RMS error of ours over the peer's on the same sessions, with a 95 % bootstrap interval.
+
+    ``ours`` and ``peer`` are (n,) errors in units of each session's Cramer-Rao
+    bound, so sessions of different difficulty weigh alike. Sessions are
+    resampled in pairs, which keeps the correlation the shared noise puts
+    between the two estimators.
+    """
+    ratio = float(np.sqrt(np.mean(ours**2) / np.mean(peer**2)))
+    idx = rng.integers(0, ours.size, (draws, ours.size))
+    boot = np.sqrt(np.mean(ours[idx] ** 2, axis=1) / np.mean(peer[idx] ** 2, axis=1))
+    lo, hi = np.quantile(boot, [0.025, 0.975])
+    return ratio, float(lo), float(hi)
+
+
+def peer_table(
+    tallies: dict[str, Tally],
+    bounds: dict[int, np.ndarray],
+    families: dict[int, str],
+    reference: str,
+    peer: str,
+) -> list[str]:
+    """Per family and parameter (K, S): paired RMS(error / CRB) of reference and peer."""
+    rng = np.random.default_rng(0)
+    lines = [
+        f"{reference} against {peer}: RMS of error / Cramer-Rao bound on the sessions both "
+        "got right,\nand the ratio reference / peer with its 95 % paired bootstrap interval "
+        "(< 1: reference better)",
+        f"{'family':<26} {'n':>3}  {'K ref':>6} {'K peer':>6} {'ratio [95 % CI]':>22}  "
+        f"{'S ref':>6} {'S peer':>6} {'ratio [95 % CI]':>22}",
+    ]
+    verdicts = {"better": 0, "level": 0, "worse": 0}
+    for family in dict.fromkeys(families.values()):
+        both = [
+            i
+            for i, f in families.items()
+            if f == family and i in tallies[reference].signed and i in tallies[peer].signed
+        ]
+        if len(both) < 3:
+            continue
+        crb = np.array([bounds[i] for i in both])
+        ours = np.array([tallies[reference].signed[i] for i in both]) / crb
+        theirs = np.array([tallies[peer].signed[i] for i in both]) / crb
+        cells = []
+        for j in (0, 1):
+            r, lo, hi = paired_ratio(ours[:, j], theirs[:, j], rng)
+            verdicts["better" if hi < 1 else "worse" if lo > 1 else "level"] += 1
+            rms_ours, rms_peer = (float(np.sqrt(np.mean(e[:, j] ** 2))) for e in (ours, theirs))
+            mark = "*" if lo > 1 else " "
+            cells.append(f"{rms_ours:6.2f} {rms_peer:6.2f} {r:6.2f} [{lo:5.2f}, {hi:5.2f}]{mark}")
+        lines.append(f"{family:<26} {len(both):>3}  " + "  ".join(cells))
+    lines.append(
+        f"(K and S over all families: reference better in {verdicts['better']}, level in "
+        f"{verdicts['level']}, worse in {verdicts['worse']} (marked *))"
+    )
+    return lines
 
 
 def length_scaling(quick: bool) -> list[tuple[int, float]]:
@@ -257,6 +337,11 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     ap.add_argument(
         "--configs", default=None, help="comma-separated configuration names to run (default: all)"
     )
+    ap.add_argument("--forms", default=None, help="semicolon-separated true forms, e.g. 'x,xdot'")
+    ap.add_argument("--duration", type=float, default=10.0, help="session length in s")
+    ap.add_argument(
+        "--noise", type=float, default=1.0, help="analogue noise of both sensors, times the default"
+    )
     ap.add_argument("--no-scaling", action="store_true", help="skip the session-length study")
     args = ap.parse_args(argv)
     configs = configurations(args.quick)
@@ -265,11 +350,18 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         configs = {k: v for k, v in configs.items() if k in wanted}
     tallies = {name: Tally() for name in configs}
     crb: dict[str, list[np.ndarray]] = {}
+    scene_crb: dict[int, np.ndarray] = {}
+    families: dict[int, str] = {}
     rates = tuple(float(r) for r in args.rates.split(",")) if args.rates else None
-    all_scenes = scenes(args.quick, 1 if args.quick else args.seeds, rates)
+    forms = args.forms.split(";") if args.forms else None
+    all_scenes = scenes(
+        args.quick, 1 if args.quick else args.seeds, rates, args.duration, forms, args.noise
+    )
     for i, scene in enumerate(all_scenes, 1):
         s, model = scene.draw()
-        crb.setdefault(scene.family, []).append(cramer_rao_rel(scene, model))
+        scene_crb[i] = cramer_rao_rel(scene, model)
+        families[i] = scene.family
+        crb.setdefault(scene.family, []).append(scene_crb[i])
         for name, fn in configs.items():
             if name in SLOW_PEERS and scene.rate_hz > 1000:
                 continue  # minutes per session at 10 kHz: compared at 250 Hz and 1 kHz only
@@ -284,7 +376,8 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             ok = o.form == scene.tissue.model.name
             tally.right.append(ok)
             if ok:
-                err = np.abs(o.params / scene.tissue.p - 1)
+                tally.signed[i] = o.params / scene.tissue.p - 1
+                err = np.abs(tally.signed[i])
                 tally.errors.append(err)
                 tally.families.setdefault(scene.family, []).append(err)
         print(f"\r{i}/{len(all_scenes)} sessions", end="", file=sys.stderr, flush=True)
@@ -330,6 +423,12 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             )
         b = np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any() else np.full(3, np.nan)
         print(f"{family:<28} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
+
+    reference = "bayes gaussian (default)"
+    for peer in ("lmfit+emcee", "pysindy"):
+        if reference in summary and peer in summary and np.isfinite(list(scene_crb.values())).all():
+            print()
+            print("\n".join(peer_table(tallies, scene_crb, families, reference, peer)))
 
     if args.no_scaling:
         return {"summary": summary, "front": front}

@@ -158,7 +158,12 @@ def synthesize(model: ForcepsModel, duration_s: float) -> tuple[Session, dict[st
         force=cal.force.to_si(counts[:, 0]),
         position=cal.position.to_si(counts[:, 1]),
         name="synthetic",
-        meta={"source": "synthetic", "rate_hz": model.rate_hz},
+        meta={
+            "source": "synthetic",
+            "rate_hz": model.rate_hz,
+            # what a recording keeps from the device's reply, so fits see its ADC ends
+            "device": {"adc_bits": model.sensors.bits, "calibration": cal.as_dict()},
+        },
     )
     x, v, a, f = model.truth(np.arange(n))
     return session, {"x": x, "v": v, "a": a, "F": f, "counts": counts}
@@ -170,6 +175,7 @@ def random_session(
     rate_hz: float = 1000.0,
     seed: int = 0,
     duration_s: float = 10.0,
+    within_range: bool = True,
     **sensors: float,
 ) -> tuple[Session, ForcepsModel]:
     """A session with known truth and its own random operator, as tests and benchmarks draw.
@@ -178,14 +184,44 @@ def random_session(
     :meth:`Operator.random`), and so does the noise; ``sensors`` are
     :class:`Sensors` fields (``bits=12``, ...). The session's meta records the
     ADC step of position (``position_resolution_m``), as a recorded file does.
+
+    With ``within_range`` (the default) operators are drawn from the seed's
+    stream until the true force and closure, widened by 4 noise SDs, stay inside
+    the sensors' ranges: a clipped session has no recoverable truth to score
+    against. Clipping itself is exercised with ``within_range=False``.
+
+    Raises
+    ------
+    ValueError
+        If 100 operators in a row leave the sensor range (the tissue is too stiff
+        for the force sensor).
     """
-    model = ForcepsModel(
-        tissue=tissue,
-        rate_hz=rate_hz,
-        seed=seed,
-        operator=Operator.random(np.random.default_rng(seed)),
-        sensors=Sensors(**sensors),
-    )  # type: ignore[arg-type]
+    rng = np.random.default_rng(seed)
+    sens = Sensors(**sensors)  # type: ignore[arg-type]
+    for _ in range(100):
+        model = ForcepsModel(
+            tissue=tissue, rate_hz=rate_hz, seed=seed, operator=Operator.random(rng), sensors=sens
+        )
+        if not within_range or _inside(model, duration_s):
+            break
+    else:
+        raise ValueError(
+            f"{tissue} drives the force beyond {sens.force_range_n} N for 100 random operators"
+        )
     session, _ = synthesize(model, duration_s)
     session.meta["position_resolution_m"] = model.sensors.calibration.position.gain
     return session, model
+
+
+def _inside(model: ForcepsModel, duration_s: float) -> bool:
+    """Whether the true force and closure (+- 4 noise SDs) stay inside the sensor ranges."""
+    x, _, _, f = model.truth(np.arange(int(round(duration_s * model.rate_hz))))
+    s = model.sensors
+    cal = s.calibration
+    return all(
+        lo + 2 * ch.gain < u.min() - 4 * sd and u.max() + 4 * sd < hi - 2 * ch.gain
+        for u, sd, (lo, hi), ch in (
+            (f, s.force_noise_n, s.force_range_n, cal.force),
+            (x, s.position_noise_m, s.position_range_m, cal.position),
+        )
+    )
