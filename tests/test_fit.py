@@ -18,7 +18,7 @@ from tissuecli.identify import BayesianFit, WindowedPinv
 from tissuecli.models import DEFAULT_TISSUE, Tissue, TissueModel
 from tissuecli.params import read_tissue, tissue_from_dict
 from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Operator, random_session, synthesize
+from tissuecli.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
 from .conftest import assert_clean_error
 
@@ -228,15 +228,25 @@ def test_fit_cli_errors_are_one_line(tmp_path):
 
 def test_clipped_force_is_warned_about():
     stiff = Tissue(TissueModel.from_names("x", "xdot"), 900.0, 3.0, 0.05)  # up to ~9 N: clips at 5
-    model = ForcepsModel(tissue=stiff, seed=1)
-    s, _ = synthesize(model, 5.0)
-    s.meta["device"] = {"adc_bits": 8, "calibration": model.sensors.calibration.as_dict()}
+    s, _ = synthesize(ForcepsModel(tissue=stiff, seed=1), 5.0)  # meta carries the 8-bit ADC
     est = BayesianFit(forms="x,xdot").fit(s)
     assert any(w.startswith("force is at an end of the 8-bit ADC") for w in est.warnings_)
-    s.meta["device"] = {"adc_bits": 8, "calibration": ForcepsModel().sensors.calibration.as_dict()}
     gentle, _ = synthesize(ForcepsModel(seed=1), 5.0)
-    gentle.meta["device"] = s.meta["device"]
     assert not any("ADC" in w for w in BayesianFit(forms="x,xdot").fit(gentle).warnings_)
+
+
+def test_random_sessions_stay_inside_the_sensor_ranges():
+    stiff = Tissue(TissueModel.from_names("x^3", "xdot"), 1.6e7, 3.0, 0.05)
+    lo, hi = Sensors().force_range_n
+    drawn = [random_session(stiff, seed=seed, duration_s=5.0)[0] for seed in range(8)]
+    assert all(lo < s.force.min() and s.force.max() < hi for s in drawn)
+    # without the condition some of the same seeds clip: the condition is doing the work
+    raw = [
+        random_session(stiff, seed=seed, duration_s=5.0, within_range=False)[0] for seed in range(8)
+    ]
+    assert any(s.force.max() >= hi for s in raw)
+    with pytest.raises(ValueError, match="100 random operators"):
+        random_session(Tissue(stiff.model, 8e8, 3.0, 0.05), seed=0, duration_s=1.0)
 
 
 @pytest.mark.parametrize("rate", [5000.0, 10000.0])
