@@ -257,12 +257,36 @@ def test_high_rates_pick_a_kernel_from_the_motion_not_the_quantisation(rate):
     assert abs(est.best_.posterior.mean[1] / 3.0 - 1) < 0.02
 
 
-def test_lost_frames_fit_the_longest_gap_free_stretch():
+def test_lost_frames_leave_out_only_the_filtered_samples_beside_them():
     s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
     keep = np.ones(len(s), bool)
     keep[[1500, 1501, 4000]] = False  # three lost frames, two gaps
     gappy = Session(s.time[keep], s.force[keep], s.position[keep], meta=s.meta)
     est = BayesianFit(forms="x,xdot").fit(gappy)
-    assert any("2 gap(s)" in w for w in est.warnings_), est.warnings_
-    assert est.kinematics_.time[0] > 1.5 and est.kinematics_.time[-1] < 4.0
+    assert any("2 gap(s) (3 lost frame(s))" in w for w in est.warnings_), est.warnings_
+    kin, h = est.kinematics_, est.kinematics_.window // 2
+    # both sides of each gap are fitted, and no filter window reaches a lost sample
+    assert kin.time[0] < 0.5 and kin.time[-1] > 5.5
+    lost_t = s.time[[1500, 1501, 4000]]
+    assert np.min(np.abs(kin.time[:, None] - lost_t[None, :])) > (h - 0.5) * 1e-3
+    assert kin.time.size == len(s) - 2 * h - (2 * h + 2) - (2 * h + 1)
     assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3
+
+
+def test_clipped_samples_are_left_out_not_fitted():
+    stiff = Tissue(TissueModel.from_names("x", "xdot"), 900.0, 3.0, 0.05)  # clips at 5 N
+    s, _ = synthesize(ForcepsModel(tissue=stiff, seed=1, sensors=Sensors(bits=12)), 10.0)
+    hi = Sensors().force_range_n[1]
+    assert np.mean(s.force >= hi - 1e-9) > 0.01  # a clipped session...
+    est = BayesianFit(forms="x,xdot").fit(s)
+    assert any("left out" in w for w in est.warnings_), est.warnings_
+    h = est.kinematics_.window // 2
+    near = np.convolve(s.force >= hi - 1e-9, np.ones(2 * h + 1), mode="same") > 0
+    assert not np.any(near[est.kinematics_.keep])  # ...whose clipped stretches are not fitted
+    # so the fit stays within 5 posterior SDs of the truth, while fitting the clipped
+    # values too (an ADC the session does not describe) misses K by 50 of those SDs
+    post = est.best_.posterior
+    assert np.all(np.abs(post.mean - stiff.p) < 5 * post.sd), (post.mean, post.sd)
+    s.meta.pop("device")
+    blind = BayesianFit(forms="x,xdot").fit(s).best_.posterior
+    assert abs(blind.mean[0] - stiff.K) > 50 * post.sd[0]

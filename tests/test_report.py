@@ -205,3 +205,14 @@ def test_envelope_keeps_extremes_and_bounds_points() -> None:
     assert yy.size <= MAX_POINTS + 2
     assert yy.max() == 9.0 and yy.min() == -9.0
     assert np.all(np.diff(tt) >= 0)
+
+
+def test_report_on_a_session_with_lost_frames(tmp_path: Path) -> None:
+    s = _session()
+    keep = np.ones(len(s), bool)
+    keep[[800, 801, 2500]] = False
+    gappy = type(s)(s.time[keep], s.force[keep], s.position[keep], name=s.name, meta=s.meta)
+    text = _write(tmp_path, fit_session(gappy, method="both"))
+    _assert_self_contained(text)
+    assert "beside lost or clipped samples" in text
+    assert "2 gap(s) (3 lost frame(s))" in html.unescape(text)

@@ -4,7 +4,9 @@ Differentiators are small interchangeable classes in :data:`DIFFERENTIATORS`.
 Each returns smoothed position, velocity and acceleration and the force passed
 through the *same* filter, so that for the linear parts of the model
 ``filt(F) = K filt(x) + S filt(x)' + M filt(x)''`` holds exactly and the
-filter adds no bias. Edges, where a filter has only one side, are trimmed.
+filter adds no bias. Edges, where a filter has only one side, are trimmed, and
+so is every output whose filter window touches an input sample marked invalid
+(lost or clipped): a filter cannot see across a hole.
 """
 
 from __future__ import annotations
@@ -33,8 +35,11 @@ class Kinematics:
         s, m (unfiltered), m, m/s, m/s^2, N (filtered like x).
     kernels : tuple of ndarray
         Convolution kernels giving x, v and a (the last two include 1/dt, 1/dt^2).
-    keep : slice
-        Which input samples survive the trim.
+    keep : slice or ndarray of int
+        Which input samples the outputs sit on: a slice after the edge trim alone,
+        indices when invalid input samples removed outputs too.
+    force_raw : ndarray
+        The unfiltered force at those samples (N).
     noise_gain : tuple of float
         Output SD over input SD for white input noise: position, velocity (1/s)
         and acceleration (1/s^2).
@@ -55,15 +60,20 @@ class Kinematics:
     noise_gain: tuple[float, float, float]
     cutoff_hz: float
     method: str
+    force_raw: Array
     half: tuple[Array, Array, Array, float] | None = None
+    rows: NDArray[np.intp] | None = None  # outputs kept after the edge trim; None: all
 
     @property
     def window(self) -> int:
         return int(self.kernels[0].size)
 
+    def _rows(self, u: Array) -> Array:
+        return u if self.rows is None else u[self.rows]
+
     def smooth(self, u: Array) -> Array:
         """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
-        return oaconvolve(u, self.kernels[0], mode="valid")
+        return self._rows(oaconvolve(u, self.kernels[0], mode="valid"))
 
     def stiffness_input(self, f0: Form, x_full: Array, noise_var: float = 0.0) -> Array:
         """The stiffness column ``g * f0(x)`` from the untrimmed raw position.
@@ -94,8 +104,8 @@ class Kinematics:
         a = oaconvolve(x_full, gh2, mode="valid")
         n_v = noise_var * float(gh1 @ gh1)
         col = oaconvolve(f1(v) + 0.5 * f1.curvature(v) * (s2 * a * a - n_v), gh, mode="valid")
-        trim = (col.size - self.v.size) // 2
-        return col[trim : col.size - trim]
+        trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
+        return self._rows(col[trim : col.size - trim])
 
 
 class Differentiator(ABC):
@@ -114,8 +124,16 @@ class Differentiator(ABC):
         """Kernels ``g_h, g_h', g_h''`` with ``g_h * g_h = g`` and g_h's variance (s^2), if any."""
         return None
 
-    def __call__(self, time: Array, x: Array, force: Array) -> Kinematics:
-        """Differentiate; ``time`` must be uniformly sampled (s)."""
+    def __call__(
+        self, time: Array, x: Array, force: Array, valid: NDArray[np.bool_] | None = None
+    ) -> Kinematics:
+        """Differentiate; ``time`` must be uniformly sampled (s).
+
+        ``valid`` (n,) marks the input samples to trust; outputs whose filter
+        window holds an invalid one are left out. Invalid samples still need
+        finite stand-in values (interpolated, say): they pass through the
+        convolution, but nothing that depends on them is kept.
+        """
         dt = sample_interval(time)
         (k0, k1, k2), cutoff, method = self.kernels(x, dt)
         if 2 * k0.size > x.size:
@@ -124,10 +142,21 @@ class Differentiator(ABC):
                 "record a longer session"
             )
         h = k0.size // 2
-        keep = slice(h, x.size - h)
+        keep: slice | NDArray[np.intp] = slice(h, x.size - h)
+        rows = None
+        if valid is not None and not np.all(valid):
+            bad = oaconvolve((~valid).astype(float), np.ones(k0.size), mode="valid")
+            rows = np.flatnonzero(bad < 0.5)
+            if rows.size < k0.size:
+                raise FitError(
+                    f"only {rows.size} filtered samples have a window free of lost or clipped "
+                    f"samples ({k0.size} needed); record a cleaner session"
+                )
+            keep = rows + h
 
         def conv(u: Array, k: Array) -> Array:
-            return oaconvolve(u, k, mode="valid")
+            out = oaconvolve(u, k, mode="valid")
+            return out if rows is None else out[rows]
 
         half = self.half_kernels(x, dt)
         return Kinematics(
@@ -138,11 +167,13 @@ class Differentiator(ABC):
             v=conv(x, k1),
             a=conv(x, k2),
             force=conv(force, k0),
+            force_raw=force[keep],
             kernels=(k0, k1, k2),
             keep=keep,
             noise_gain=tuple(float(np.linalg.norm(k)) for k in (k0, k1, k2)),  # type: ignore[arg-type]
             cutoff_hz=cutoff,
             method=method,
+            rows=rows,
         )
 
 

@@ -84,23 +84,38 @@ def longest_gapless(session: Session) -> tuple[Session, list[str]]:
 
 
 def prepare(session: Session, diff: Differentiator) -> tuple[Session, Kinematics, list[str]]:
-    """Validate a session, keep its longest gap-free stretch, check that it can identify
-    anything, and differentiate it.
+    """Validate a session, put it on its sample grid, check that it can identify anything,
+    and differentiate it without looking through holes.
+
+    Lost frames become holes in the sample grid (filled by interpolation so the
+    filters run, but marked), and so do samples at either end of the ADC, when
+    the session knows its ADC: a clipped value is not a measurement. Filtered
+    samples whose window holds a hole are left out of the fit, so nothing else
+    is lost. A grid that cannot be built (repeated or reordered sample times, or
+    more lost than kept) falls back to the longest gap-free stretch.
 
     Returns
     -------
     session : Session
-        The stretch that is fitted (the whole session when it has no gaps).
+        What is fitted, on a regular grid; holes hold interpolated stand-ins.
     kinematics : Kinematics
     warnings : list of str
-        Says so when lost frames cut the session.
+        Says what lost frames and clipping cost.
     """
     session.validate()
-    session, warnings = longest_gapless(session)
     n = len(session)
     if n < MIN_SAMPLES:
         raise FitError(f"session has {n} samples; at least {MIN_SAMPLES} are needed to fit")
-    x, f = session.position, session.force
+    grid = on_grid(session)
+    warnings: list[str] = []
+    if grid is None:
+        session, warnings = longest_gapless(session)
+        valid = np.ones(len(session), bool)
+        lost = 0
+    else:
+        session, valid = grid
+        lost = int(np.count_nonzero(~valid))
+    x, f = session.position[valid], session.force[valid]
     if np.ptp(x) <= 0 or np.std(x) < 1e-9:
         raise FitError(
             "jaw position is constant: nothing to identify; the jaws must move "
@@ -108,28 +123,79 @@ def prepare(session: Session, diff: Differentiator) -> tuple[Session, Kinematics
         )
     if np.ptp(f) <= 0:
         raise FitError("force is constant: check the force sensor and its calibration")
-    return session, diff(session.time, x, f), warnings
+    present = valid.copy()
+    clipped = adc_ends(session)
+    for _, mask in clipped:
+        valid &= ~mask
+    kin = diff(session.time, session.position, session.force, valid)
+    if lost:
+        gaps = int(np.count_nonzero(np.diff(present.astype(np.int8)) == 1))
+        warnings.append(
+            f"the session has {gaps} gap(s) ({lost} lost frame(s)): the fit leaves out the "
+            "filtered samples whose window spans one"
+        )
+    for message, mask in clipped:
+        warnings.append(
+            f"{message} in {100 * np.mean(mask[present]):.1f} % of samples: clipped values are "
+            "not measurements, so the fit leaves out the filtered samples whose window holds "
+            "one; grasp more gently or widen the sensor range"
+        )
+    if lost or clipped:
+        full = len(session) - kin.window + 1
+        warnings.append(
+            f"{100 * (full - kin.time.size) / full:.1f} % of the filtered samples were left "
+            "out for lost or clipped samples in their window"
+        )
+    return session, kin, warnings
 
 
-def saturation_warnings(session: Session) -> list[str]:
-    """Warnings for samples at either end of the ADC, when the session knows its ADC."""
+def on_grid(session: Session) -> tuple[Session, NDArray[np.bool_]] | None:
+    """The session on its regular sample grid, and which grid points were recorded.
+
+    Lost samples get interpolated time, force and position, and ``False``.
+    None when the times do not fall on one grid (repeated or reordered), or
+    when more samples are missing than present.
+    """
+    t = session.time
+    dt = float(np.median(np.diff(t)))
+    k = np.rint((t - t[0]) / dt).astype(np.int64)
+    if np.all(np.diff(k) == 1):
+        return session, np.ones(len(session), bool)
+    if np.any(np.diff(k) < 1) or k[-1] + 1 > 2 * k.size:
+        return None
+    dt = float((t[-1] - t[0]) / k[-1])  # refined over the whole span
+    if np.max(np.abs(t - t[0] - k * dt)) > 0.25 * dt:
+        return None
+    grid = np.arange(k[-1] + 1)
+    valid = np.zeros(grid.size, bool)
+    valid[k] = True
+    filled = Session(
+        *(np.interp(grid, k, u) for u in (t, session.force, session.position)),
+        name=session.name,
+        meta=dict(session.meta),
+    )
+    return filled, valid
+
+
+def adc_ends(session: Session) -> list[tuple[str, NDArray[np.bool_]]]:
+    """Samples at either end of the ADC, per channel that has any, when the session
+    knows its ADC (as recordings do): ``(description, mask)``."""
     device = session.meta.get("device") or {}
+    if not isinstance(device, dict):
+        return []
     bits, cal = device.get("adc_bits"), device.get("calibration")
-    if not isinstance(device, dict) or not bits or not isinstance(cal, dict):
+    if not bits or not isinstance(cal, dict):
         return []
     out = []
     for channel, values in (("force", session.force), ("position", session.position)):
         gain, offset = float(cal[channel]["gain"]), float(cal[channel]["offset"])
         ends = offset + gain * np.array([-(2 ** (bits - 1)), 2 ** (bits - 1) - 1])
-        clipped = np.mean(
-            (np.abs(values - ends[0]) < abs(gain) / 2) | (np.abs(values - ends[1]) < abs(gain) / 2)
+        mask = (np.abs(values - ends[0]) < abs(gain) / 2) | (
+            np.abs(values - ends[1]) < abs(gain) / 2
         )
-        if clipped > 1e-3:
-            out.append(
-                f"{channel} is at an end of the {bits}-bit ADC in {100 * clipped:.1f} % of "
-                f"samples ({ends[0]:.4g} or {ends[1]:.4g}): clipped values bias every "
-                "parameter; grasp more gently or widen the sensor range"
-            )
+        if np.any(mask):
+            where = f"({ends[0]:.4g} or {ends[1]:.4g})"
+            out.append((f"{channel} is at an end of the {bits}-bit ADC {where}", mask))
     return out
 
 
@@ -254,6 +320,9 @@ class BayesianFit:
         One per form, best first.
     best_ : ModelResult
     kinematics_ : Kinematics
+    session_ : Session
+        What was fitted: the session on its sample grid, lost samples interpolated
+        (the kinematics leave out every filtered sample that depends on them).
     tau_ : float
         Integrated autocorrelation time of the best form's residuals (samples).
     n_eff_ : float
@@ -293,6 +362,7 @@ class BayesianFit:
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
         session, kin, gap_warnings = prepare(session, self._diff())
+        self.session_ = session
         x_full = session.position
         fs = 1.0 / float(np.median(np.diff(session.time)))
         self.kinematics_ = kin
@@ -304,7 +374,7 @@ class BayesianFit:
             self.sigma_x_ = max(position_noise_sd(x_full, fs), step / np.sqrt(12))
         y = kin.force
         rng = np.random.default_rng(self.seed)
-        self.warnings_: list[str] = gap_warnings + saturation_warnings(session)
+        self.warnings_: list[str] = gap_warnings
 
         # one pass per form keeps only its sufficient statistics, so memory holds one
         # design matrix at a time whatever the number of forms
@@ -321,7 +391,6 @@ class BayesianFit:
         weight = data_weight(A, y - A @ firsts[best_ls].beta, self.tau_)
         del A
         self.n_eff_ = y.size * weight
-        self._x_full = x_full
 
         results = []
         for m in models:
@@ -457,7 +526,7 @@ class BayesianFit:
     def fitted_force(self, result: ModelResult | None = None) -> Array:
         """Force predicted by a form's posterior mean on the fitted samples (N)."""
         r = result or self.best_
-        A = design(r.model, self.kinematics_, self._x_full, self.sigma_x_)
+        A = design(r.model, self.kinematics_, self.session_.position, self.sigma_x_)
         return A @ r.posterior.mean  # type: ignore[union-attr]
 
 
@@ -549,6 +618,8 @@ class WindowedPinv:
     residuals_ : ndarray, shape (m,)
         RMS residual of each window (N).
     best_window_ : int
+    session_ : Session
+        What was fitted (see :class:`BayesianFit`).
     cond_, cond_scaled_ : float
         Condition numbers of the best window's design, raw and column-scaled.
     pooled_ : ndarray, shape (3,)
@@ -572,6 +643,7 @@ class WindowedPinv:
         session, kin, self.warnings_ = prepare(
             session, differentiator(d) if isinstance(d, str) else d
         )
+        self.session_ = session
         A, y = design(model, kin, session.position), kin.force
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
         m = A.shape[0] // n

@@ -217,7 +217,6 @@ class _Series:
 
 def _series(outcome: FitOutcome) -> _Series:
     """Measured and fitted force of the best Bayesian form, or of the pseudoinverse."""
-    session = outcome.session
     if outcome.bayes is not None:
         est = outcome.bayes
         s = fitted_series(outcome)
@@ -225,22 +224,22 @@ def _series(outcome: FitOutcome) -> _Series:
         assert post is not None
         return _Series(
             time=s["time"],
-            raw=session.force[est.kinematics_.keep],
+            raw=est.kinematics_.force_raw,
             force=s["force"],
             fitted=s["fitted"],
             x=s["x"],
             model=est.best_.model,
             source="posterior mean of the best form",
             sigma=post.sigma_mean,
-            expected_sd=_expected_residual_sd(est, session.position),
+            expected_sd=_expected_residual_sd(est),
         )
     pinv = outcome.pinv
     assert pinv is not None
     kin = pinv.kinematics_
-    fitted = design(pinv.model_, kin, session.position) @ pinv.params_
+    fitted = design(pinv.model_, kin, pinv.session_.position) @ pinv.params_
     return _Series(
         time=kin.time,
-        raw=session.force[kin.keep],
+        raw=kin.force_raw,
         force=kin.force,
         fitted=fitted,
         x=kin.x,
@@ -251,7 +250,7 @@ def _series(outcome: FitOutcome) -> _Series:
     )
 
 
-def _expected_residual_sd(est: BayesianFit, x_full: Array) -> float:
+def _expected_residual_sd(est: BayesianFit) -> float:
     """Residual SD the best form expects (N): force noise plus position noise through the law.
 
     With the errors-in-variables correction the posterior noise SD is the force noise
@@ -940,7 +939,11 @@ def _diagnostics(outcome: FitOutcome) -> str:
     est, pinv = outcome.bayes, outcome.pinv
     kin = est.kinematics_ if est is not None else pinv.kinematics_  # type: ignore[union-attr]
     n = len(outcome.session)
-    trimmed = (n - kin.time.size) // 2
+    grid = len((est or pinv).session_)  # type: ignore[union-attr]
+    trimmed = (kin.window - 1) // 2
+    holes = grid - 2 * trimmed - kin.time.size  # beside lost or clipped samples
+    used = f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where the filter "
+    used += f"is one-sided; {holes:,} beside lost or clipped samples)" if holes else "is one-sided)"
     g = kin.noise_gain
     items = [
         ("Differentiator", f"<code>{_e(kin.method)}</code>"),
@@ -951,11 +954,7 @@ def _diagnostics(outcome: FitOutcome) -> str:
             f"acceleration {_sig(g[2], 3)} 1/s² "
             "<span class='small'>(output SD per unit SD of white input noise)</span>",
         ),
-        (
-            "Samples used",
-            f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where "
-            "the filter is one-sided)",
-        ),
+        ("Samples used", used),
     ]
     if est is not None:
         tau_ms = est.tau_ / max(outcome.session.rate_hz, 1e-300) * 1e3
