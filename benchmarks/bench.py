@@ -5,7 +5,7 @@ Usage::
     python benchmarks/bench.py                      # the full run (about 10 min here)
     python benchmarks/bench.py --quick              # a smoke run (seconds)
     python benchmarks/bench.py --out docs/img       # where the plots go
-    python benchmarks/bench.py --duration 60 --noise 4 --rates 1000   # other scenes
+    python benchmarks/bench.py --durations 1,60 --noise 4 --rates 1000   # other scenes
 
 It draws synthetic sessions with known truth (every form; 250 Hz to 10 kHz;
 8- to 16-bit ADCs; random operators; fixed seeds), runs each configuration:
@@ -66,11 +66,13 @@ class Scene:
     seed: int
     duration_s: float
     noise: float = 1.0  # times the default analogue noise of both sensors
+    label_duration: bool = False  # name the duration in the family (a study over durations)
 
     @property
     def family(self) -> str:
         noise = f" noise x{self.noise:g}" if self.noise != 1.0 else ""
-        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit{noise}"
+        length = f" {self.duration_s:g} s" if self.label_duration else ""
+        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit{noise}{length}"
 
     def draw(self) -> tuple[Session, ForcepsModel]:
         return random_session(
@@ -174,7 +176,7 @@ def scenes(
     quick: bool,
     seeds: int,
     rates: tuple[float, ...] | None = None,
-    duration_s: float = 10.0,
+    durations: tuple[float, ...] = (10.0,),
     forms: list[str] | None = None,
     noise: float = 1.0,
 ) -> list[Scene]:
@@ -184,7 +186,8 @@ def scenes(
     if forms:
         tissues = [t for t in tissues if t.model.name in forms]
     return [
-        Scene(t, r, b, seed, 2.0 if quick else duration_s, noise)
+        Scene(t, r, b, seed, 2.0 if quick else d, noise, len(durations) > 1)
+        for d in durations
         for t in tissues
         for r in rates
         for b in bits
@@ -338,7 +341,9 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         "--configs", default=None, help="comma-separated configuration names to run (default: all)"
     )
     ap.add_argument("--forms", default=None, help="semicolon-separated true forms, e.g. 'x,xdot'")
-    ap.add_argument("--duration", type=float, default=10.0, help="session length in s")
+    ap.add_argument(
+        "--durations", default="10", help="comma-separated session lengths in s (default 10)"
+    )
     ap.add_argument(
         "--noise", type=float, default=1.0, help="analogue noise of both sensors, times the default"
     )
@@ -355,7 +360,12 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     rates = tuple(float(r) for r in args.rates.split(",")) if args.rates else None
     forms = args.forms.split(";") if args.forms else None
     all_scenes = scenes(
-        args.quick, 1 if args.quick else args.seeds, rates, args.duration, forms, args.noise
+        args.quick,
+        1 if args.quick else args.seeds,
+        rates,
+        tuple(float(d) for d in args.durations.split(",")),
+        forms,
+        args.noise,
     )
     for i, scene in enumerate(all_scenes, 1):
         s, model = scene.draw()
@@ -423,6 +433,21 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             )
         b = np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any() else np.full(3, np.nan)
         print(f"{family:<28} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
+
+    if np.isfinite(list(scene_crb.values())).all():
+        print("\nper scene family: RMS of error / Cramer-Rao bound, K / S (1 = efficient)")
+        print(f"{'family':<28} " + " ".join(f"{n[:16]:>17}" for n in names))
+        for family in crb:
+            cells = []
+            for n in names:
+                z = [
+                    tallies[n].signed[i] / scene_crb[i]
+                    for i in tallies[n].signed
+                    if families[i] == family
+                ]
+                rms = np.sqrt(np.mean(np.square(z), axis=0)) if z else None
+                cells.append(f"{rms[0]:7.2f}/{rms[1]:<9.2f}" if rms is not None else f"{'-':>17}")
+            print(f"{family:<28} " + " ".join(cells))
 
     reference = "bayes gaussian (default)"
     for peer in ("lmfit+emcee", "pysindy"):
