@@ -115,7 +115,11 @@ def prepare(session: Session, diff: Differentiator) -> tuple[Session, Kinematics
     else:
         session, valid = grid
         lost = int(np.count_nonzero(~valid))
-    x, f = session.position[valid], session.force[valid]
+    x, f = (
+        (session.position, session.force)
+        if not lost
+        else (u[valid] for u in (session.position, session.force))
+    )
     if np.ptp(x) <= 0 or np.std(x) < 1e-9:
         raise FitError(
             "jaw position is constant: nothing to identify; the jaws must move "
