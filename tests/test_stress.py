@@ -113,6 +113,12 @@ def test_adc_glitches_do_not_pass_silently():
     assert any("beyond 8 noise SDs" in w for w in est.warnings_), est.warnings_
     clean = BayesianFit().fit(s)
     assert not any("noise SDs" in w for w in clean.warnings_)
+    # when the session knows its ADC, full-scale values are holes: left out, not fitted
+    known = BayesianFit().fit(Session(s.time, force, s.position, meta=s.meta))
+    assert any("at an end of the 8-bit ADC" in w for w in known.warnings_), known.warnings_
+    assert not any("noise SDs" in w for w in known.warnings_)
+    p, q = known.best_.posterior, clean.best_.posterior
+    assert np.all(np.abs(p.mean - q.mean) < 3 * q.sd), (p.mean, q.mean, q.sd)
 
 
 @pytest.mark.slow
