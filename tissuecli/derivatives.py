@@ -253,7 +253,7 @@ class Gaussian(Differentiator):
 
     def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
         sigma = self.width(x, dt)
-        h = int(np.ceil(5 * sigma / dt))
+        h = 2 * _half_span(sigma, dt)  # room for the two half-kernel passes of nonlinear damping
         g, g1, g2 = gaussian_kernels(sigma, dt, h)
         return (
             (g, g1, g2),
@@ -270,9 +270,18 @@ class Gaussian(Differentiator):
         exactly for a linear f1 and far better than ``f1(g' * x)`` for a nonlinear one.
         """
         sigma = self.width(x, dt)
-        h = int(np.ceil(5 * sigma / dt)) // 2  # two passes fit inside the full kernel's span
+        h = _half_span(sigma, dt)  # two passes fit inside the full kernel's span
         g, g1, g2 = gaussian_kernels(sigma / np.sqrt(2), dt, h)
         return g, g1, g2, sigma**2 / 2
+
+
+def _half_span(sigma: float, dt: float) -> int:
+    """Half-width in samples of the half kernel (SD ``sigma / sqrt(2)``), cut at 5 of its SDs.
+
+    Cutting it at 5 SDs of the *full* kernel instead (3.5 of its own) made
+    ``g_h * g_h`` differ from ``g`` enough to bias S by -0.04 % on noise-free data.
+    """
+    return int(np.ceil(5 * sigma / (np.sqrt(2) * dt)))
 
 
 def gaussian_kernels(sigma: float, dt: float, h: int) -> tuple[Array, Array, Array]:
