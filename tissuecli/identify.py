@@ -491,9 +491,15 @@ class BayesianFit:
         return self
 
     def _outlier_warnings(self, z: float = 8.0) -> list[str]:
-        """Residuals beyond ``z`` noise SDs: glitches (ADC spikes, a knock) the Gaussian
-        noise model does not explain, and which pull every parameter."""
-        r = self.kinematics_.force - self.fitted_force()
+        """Raw force samples beyond ``z`` noise SDs of the fit: glitches (ADC spikes, a knock)
+        the Gaussian noise model does not explain, and which pull every parameter.
+
+        Raw, not filtered, residuals: filtering smears a spike over the kernel,
+        and at high rates with a coarse position ADC the filtered residual carries
+        the quantisation of position (plateaus of K q / 2 at every turn of the
+        jaw), which is not a glitch but stood at 50 filtered-noise SDs.
+        """
+        r = self.kinematics_.force_raw - self.fitted_force()
         scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # robust SD
         if not scale > 0:
             return []
@@ -502,7 +508,7 @@ class BayesianFit:
             return []
         t = self.kinematics_.time[bad]
         return [
-            f"{bad.size} filtered sample(s) lie beyond {z:g} noise SDs of the fit, first at "
+            f"{bad.size} force sample(s) lie beyond {z:g} noise SDs of the fit, first at "
             f"t = {t[0]:.3f} s: a glitching sensor or a knock; the parameters absorb it, so "
             "inspect the residuals in the report and fit a clean stretch"
         ]
