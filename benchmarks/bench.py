@@ -268,6 +268,8 @@ def peer_table(
             mark = "*" if lo > 1 else " "
             cells.append(f"{rms_ours:6.2f} {rms_peer:6.2f} {r:6.2f} [{lo:5.2f}, {hi:5.2f}]{mark}")
         lines.append(f"{family:<26} {len(both):>3}  " + "  ".join(cells))
+    if len(lines) == 2:
+        return [f"{reference} against {peer}: fewer than 3 sessions per family; use --seeds 3+"]
     lines.append(
         f"(K and S over all families: reference better in {verdicts['better']}, level in "
         f"{verdicts['level']}, worse in {verdicts['worse']} (marked *))"
