@@ -290,3 +290,13 @@ def test_clipped_samples_are_left_out_not_fitted():
     s.meta.pop("device")
     blind = BayesianFit(forms="x,xdot").fit(s).best_.posterior
     assert abs(blind.mean[0] - stiff.K) > 50 * post.sd[0]
+
+
+def test_a_gap_longer_than_the_data_falls_back_to_the_longest_stretch():
+    s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
+    t = s.time.copy()
+    t[2000:] += 20.0  # the device paused for 20 s: more grid would be missing than recorded
+    est = BayesianFit(forms="x,xdot").fit(Session(t, s.force, s.position, meta=s.meta))
+    assert any("longest gap-free stretch" in w for w in est.warnings_), est.warnings_
+    assert est.kinematics_.time[0] > 20.0  # the longer part, after the pause
+    assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3
