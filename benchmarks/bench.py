@@ -245,7 +245,7 @@ def peer_table(
         f"{reference} against {peer}: RMS of error / Cramer-Rao bound on the sessions both "
         "got right,\nand the ratio reference / peer with its 95 % paired bootstrap interval "
         "(< 1: reference better)",
-        f"{'family':<32} {'n':>3}  {'K ref':>6} {'K peer':>6} {'ratio [95 % CI]':>22}  "
+        f"{'family':<36} {'n':>3}  {'K ref':>6} {'K peer':>6} {'ratio [95 % CI]':>22}  "
         f"{'S ref':>6} {'S peer':>6} {'ratio [95 % CI]':>22}",
     ]
     verdicts = {"better": 0, "level": 0, "worse": 0}
@@ -267,7 +267,7 @@ def peer_table(
             rms_ours, rms_peer = (float(np.sqrt(np.mean(e[:, j] ** 2))) for e in (ours, theirs))
             mark = "*" if lo > 1 else " "
             cells.append(f"{rms_ours:6.2f} {rms_peer:6.2f} {r:6.2f} [{lo:5.2f}, {hi:5.2f}]{mark}")
-        lines.append(f"{family:<32} {len(both):>3}  " + "  ".join(cells))
+        lines.append(f"{family:<36} {len(both):>3}  " + "  ".join(cells))
     if len(lines) == 2:
         return [f"{reference} against {peer}: fewer than 3 sessions per family; use --seeds 3+"]
     lines.append(
@@ -423,7 +423,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
 
     print("\nper scene family: median |error| of K / S (%), and the Cramer-Rao floor")
     names = list(summary)
-    print(f"{'family':<32} " + " ".join(f"{n[:16]:>17}" for n in names) + f" {'CRB':>17}")
+    print(f"{'family':<36} " + " ".join(f"{n[:16]:>17}" for n in names) + f" {'CRB':>17}")
     for family, bounds in crb.items():
         cells = []
         for n in names:
@@ -434,11 +434,11 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
                 else f"{'-':>17}"
             )
         b = np.nanmedian(bounds, axis=0) * 100 if np.isfinite(bounds).any() else np.full(3, np.nan)
-        print(f"{family:<32} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
+        print(f"{family:<36} " + " ".join(cells) + f" {b[0]:7.4f}/{b[1]:<9.3f}")
 
     if np.isfinite(list(scene_crb.values())).all():
         print("\nper scene family: RMS of error / Cramer-Rao bound, K / S (1 = efficient)")
-        print(f"{'family':<32} " + " ".join(f"{n[:16]:>17}" for n in names))
+        print(f"{'family':<36} " + " ".join(f"{n[:16]:>17}" for n in names))
         for family in crb:
             cells = []
             for n in names:
@@ -449,7 +449,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
                 ]
                 rms = np.sqrt(np.mean(np.square(z), axis=0)) if z else None
                 cells.append(f"{rms[0]:7.2f}/{rms[1]:<9.2f}" if rms is not None else f"{'-':>17}")
-            print(f"{family:<32} " + " ".join(cells))
+            print(f"{family:<36} " + " ".join(cells))
 
     reference = "bayes gaussian (default)"
     for peer in ("lmfit+emcee", "pysindy"):
