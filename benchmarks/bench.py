@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         crb.setdefault(scene.family, []).append(scene_crb[i])
         for name, fn in configs.items():
             if name in SLOW_PEERS and scene.rate_hz > 1000 and not args.configs:
-                continue  # ~40 s per session at 10 kHz: only when asked for by --configs
+                continue  # ~1 min per session at 10 kHz: only when asked for by --configs
             try:
                 o = _timed(lambda fn=fn, s=s: fn(s))
             except Exception as exc:  # a refusal counts as a miss, with its time unknown
