@@ -215,6 +215,11 @@ def cramer_rao_rel(scene: Scene, model: ForcepsModel) -> np.ndarray:
     return crb / scene.tissue.p
 
 
+def rms(a: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """Root mean square along ``axis`` (all of ``a`` by default)."""
+    return np.sqrt(np.mean(np.square(a), axis=axis))
+
+
 def paired_ratio(
     ours: np.ndarray, peer: np.ndarray, rng: np.random.Generator, draws: int = 2000
 ) -> tuple[float, float, float]:
@@ -225,9 +230,9 @@ def paired_ratio(
     resampled in pairs, which keeps the correlation the shared noise puts
     between the two estimators.
     """
-    ratio = float(np.sqrt(np.mean(ours**2) / np.mean(peer**2)))
+    ratio = float(rms(ours) / rms(peer))
     idx = rng.integers(0, ours.size, (draws, ours.size))
-    boot = np.sqrt(np.mean(ours[idx] ** 2, axis=1) / np.mean(peer[idx] ** 2, axis=1))
+    boot = rms(ours[idx], axis=1) / rms(peer[idx], axis=1)
     lo, hi = np.quantile(boot, [0.025, 0.975])
     return ratio, float(lo), float(hi)
 
@@ -264,7 +269,7 @@ def peer_table(
         for j in (0, 1):
             r, lo, hi = paired_ratio(ours[:, j], theirs[:, j], rng)
             verdicts["better" if hi < 1 else "worse" if lo > 1 else "level"] += 1
-            rms_ours, rms_peer = (float(np.sqrt(np.mean(e[:, j] ** 2))) for e in (ours, theirs))
+            rms_ours, rms_peer = float(rms(ours[:, j])), float(rms(theirs[:, j]))
             mark = "*" if lo > 1 else " "
             cells.append(f"{rms_ours:6.2f} {rms_peer:6.2f} {r:6.2f} [{lo:5.2f}, {hi:5.2f}]{mark}")
         lines.append(f"{family:<36} {len(both):>3}  " + "  ".join(cells))
@@ -333,18 +338,26 @@ def plots(
     return paths
 
 
+def floats(text: str) -> tuple[float, ...]:
+    """``"250,1000"`` -> ``(250.0, 1000.0)``; argparse reports a ValueError as a usage error."""
+    return tuple(float(v) for v in text.split(","))
+
+
 def main(argv: list[str] | None = None) -> dict[str, object]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a smoke run in seconds")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("docs/img"))
-    ap.add_argument("--rates", default=None, help="comma-separated rates in Hz")
+    ap.add_argument("--rates", type=floats, default=None, help="comma-separated rates in Hz")
     ap.add_argument(
         "--configs", default=None, help="comma-separated configuration names to run (default: all)"
     )
     ap.add_argument("--forms", default=None, help="semicolon-separated true forms, e.g. 'x,xdot'")
     ap.add_argument(
-        "--durations", default="10", help="comma-separated session lengths in s (default 10)"
+        "--durations",
+        type=floats,
+        default=(10.0,),
+        help="comma-separated session lengths in s (default 10)",
     )
     ap.add_argument(
         "--noise", type=float, default=1.0, help="analogue noise of both sensors, times the default"
@@ -359,13 +372,13 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     crb: dict[str, list[np.ndarray]] = {}
     scene_crb: dict[int, np.ndarray] = {}
     families: dict[int, str] = {}
-    rates = tuple(float(r) for r in args.rates.split(",")) if args.rates else None
+    rates = args.rates
     forms = args.forms.split(";") if args.forms else None
     all_scenes = scenes(
         args.quick,
         1 if args.quick else args.seeds,
         rates,
-        tuple(float(d) for d in args.durations.split(",")),
+        args.durations,
         forms,
         args.noise,
     )
@@ -447,8 +460,8 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
                     for i in tallies[n].signed
                     if families[i] == family
                 ]
-                rms = np.sqrt(np.mean(np.square(z), axis=0)) if z else None
-                cells.append(f"{rms[0]:7.2f}/{rms[1]:<9.2f}" if rms is not None else f"{'-':>17}")
+                r = rms(np.array(z), axis=0) if z else None
+                cells.append(f"{r[0]:7.2f}/{r[1]:<9.2f}" if r is not None else f"{'-':>17}")
             print(f"{family:<36} " + " ".join(cells))
 
     reference = "bayes gaussian (default)"
