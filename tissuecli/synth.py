@@ -206,7 +206,8 @@ def random_session(
             break
     else:
         raise ValueError(
-            f"{tissue} drives the force beyond {sens.force_range_n} N for 100 random operators"
+            f"{tissue} leaves the sensor ranges (force {sens.force_range_n} N, closure "
+            f"{sens.position_range_m} m) for 100 random operators"
         )
     session, _ = synthesize(model, duration_s)
     session.meta["position_resolution_m"] = model.sensors.calibration.position.gain
