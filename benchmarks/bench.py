@@ -23,7 +23,7 @@ family with the peers and the Cramer-Rao bound (with a paired test of the
 default against each peer: RMS error in units of each session's bound, and a
 bootstrap interval on the ratio), and measures how run time grows with
 session length. Plots are written to ``--out``. Every scene stays inside the
-sensor ranges (:func:`tissuecli.synth.random_session`): a clipped session has no
+sensor ranges (:func:`tissuecli.sim.synth.random_session`): a clipped session has no
 truth to score against.
 """
 
@@ -40,11 +40,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from tissuecli.bayes import run_emcee  # noqa: E402
+from tissuecli.core.session import Session  # noqa: E402
+from tissuecli.core.tissue import Tissue, TissueModel, all_models  # noqa: E402
 from tissuecli.identify import BayesianFit, WindowedPinv  # noqa: E402
-from tissuecli.models import Tissue, TissueModel, all_models  # noqa: E402
-from tissuecli.session import Session  # noqa: E402
-from tissuecli.synth import ForcepsModel, Sensors, random_session, synthesize  # noqa: E402
+from tissuecli.identify.sampling import run_emcee  # noqa: E402
+from tissuecli.sim.synth import ForcepsModel, Sensors, random_session, synthesize  # noqa: E402
 
 TISSUES = [
     Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),

@@ -17,10 +17,10 @@ import time
 
 import numpy as np
 
-from tissuecli.derivatives import Gaussian
+from tissuecli.core.tissue import Tissue, TissueModel
 from tissuecli.identify import BayesianFit
-from tissuecli.models import Tissue, TissueModel
-from tissuecli.synth import random_session
+from tissuecli.identify.derivatives import Gaussian
+from tissuecli.sim.synth import random_session
 
 TISSUES = [
     Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),

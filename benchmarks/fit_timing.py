@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tissuecli.fit import fit_session
-from tissuecli.report import write_report
-from tissuecli.synth import ForcepsModel, synthesize
+from tissuecli.app.fit import write_report
+from tissuecli.identify import fit_session
+from tissuecli.sim.synth import ForcepsModel, synthesize
 
 
 def timed(fn, repeat: int = 5) -> float:
@@ -35,7 +35,6 @@ def main() -> None:
         model = ForcepsModel(seed=1, rate_hz=rate)
         s, _ = synthesize(model, duration)
         s.name = "bench"
-        s.meta["position_resolution_m"] = model.sensors.calibration.position.gain
         exact = timed(lambda s=s: fit_session(s))
         pinv = timed(lambda s=s: fit_session(s, method="pinv", forms="x,xdot"))
         outcome = fit_session(s)

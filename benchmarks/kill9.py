@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from _writer_child import expected_rows  # noqa: E402
 
-from tissuecli.storage import read_session  # noqa: E402
+from tissuecli.formats.sessions import read_session  # noqa: E402
 
 
 def trial(path: Path, args: argparse.Namespace, rng: random.Random) -> str:

@@ -15,7 +15,7 @@ import resource
 import time
 
 from tissuecli.identify import BayesianFit
-from tissuecli.synth import ForcepsModel, synthesize
+from tissuecli.sim.synth import ForcepsModel, synthesize
 
 
 def peak_mb() -> float:

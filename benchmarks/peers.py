@@ -83,10 +83,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 
-from tissuecli.identify import BayesianFit, longest_gapless
-from tissuecli.models import FORMS, Tissue, TissueModel, all_models
-from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Sensors, synthesize
+from tissuecli.core.forms import FORMS
+from tissuecli.core.session import Session
+from tissuecli.core.tissue import Tissue, TissueModel, all_models
+from tissuecli.identify import BayesianFit
+from tissuecli.identify.prepare import longest_gapless
+from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
 if TYPE_CHECKING:
     import lmfit
@@ -287,7 +289,7 @@ def lmfit_emcee_fit(
     fits, starts = {}, {}
     for model in all_models():
         params = lmfit.Parameters()
-        for name, column in zip("KSM", model.design(x, v, a).T, strict=True):
+        for name, column in zip("KSM", model.regressors(x, v, a).T, strict=True):
             scale = float(np.sqrt(np.mean(column * column)))
             params.add(name, value=rms_f / (3.0 * scale) if scale > 0 else 1.0, min=0.0)
         starts[model.name] = {name: params[name].value for name in "KSM"}
@@ -362,7 +364,7 @@ def cramer_rao(truth_tissue: Tissue, model: ForcepsModel, duration_s: float) -> 
     """
     n = int(round(duration_s * model.rate_hz))
     x, v, a, _ = model.truth(np.arange(n))
-    A = truth_tissue.model.design(x, v, a)
+    A = truth_tissue.model.regressors(x, v, a)
     step = model.sensors.calibration.force.gain
     sigma2 = model.sensors.force_noise_n**2 + step**2 / 12.0
     d = np.linalg.norm(A, axis=0)  # unit-norm columns: x^3 in SI is 1e6 smaller than x
@@ -400,7 +402,6 @@ def main() -> None:
         model = ForcepsModel(seed=args.seed, sensors=Sensors(bits=bits))
         truth = model.tissue
         session, _ = synthesize(model, args.duration)
-        session.meta["position_resolution_m"] = model.sensors.calibration.position.gain
         crb = cramer_rao(truth, model, args.duration)
         print(header)
         results = [

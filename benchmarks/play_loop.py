@@ -14,10 +14,10 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from tissuecli.display import PAPER_DISPLAY
-from tissuecli.models import Tissue, TissueModel
-from tissuecli.play import play
-from tissuecli.simulate import SimulatorProcess
+from tissuecli.app.play import play
+from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.render import PAPER_DISPLAY
+from tissuecli.sim.process import SimulatorProcess
 
 
 def main() -> None:

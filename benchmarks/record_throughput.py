@@ -18,8 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from tissuecli import storage
-from tissuecli.simulate import SimulatorProcess
+from tissuecli import formats
+from tissuecli.sim.process import SimulatorProcess
 
 
 def run(rate: float, duration: float, root: Path) -> dict[str, float]:
@@ -51,7 +51,7 @@ def run(rate: float, duration: float, root: Path) -> dict[str, float]:
         err = proc.stderr.read() if proc.stderr else ""
     if status != 0:
         raise SystemExit(f"record failed at {rate} Hz: {err}")
-    row = storage.list_sessions(out)[0]
+    row = formats.list_sessions(out)[0]
     return {
         "rate_hz": rate,
         "expected": round(rate * duration),
@@ -65,7 +65,7 @@ def run(rate: float, duration: float, root: Path) -> dict[str, float]:
 
 def decode_rate(frames: int = 100_000) -> float:
     """Frames per second the host's decoder handles, on one core."""
-    from tissuecli.protocol import FrameDecoder, Sample, encode
+    from tissuecli.hw.protocol import FrameDecoder, Sample, encode
 
     stream = b"".join(encode(Sample(k, k * 1000, -3, 120)) for k in range(frames))
     t0 = time.perf_counter()

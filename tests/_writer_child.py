@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 # run as a script from tests/: make the package importable without installing it
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tissuecli.storage import session_writer  # noqa: E402
+from tissuecli.formats.sessions import session_writer  # noqa: E402
 
 CALIBRATION = {"force": {"gain": 0.01, "offset": -0.5}, "position": {"gain": 1e-6, "offset": 0.0}}
 

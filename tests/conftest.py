@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tissuecli.simulate import SimulatorProcess
+from tissuecli.sim.process import SimulatorProcess
 
 
 @pytest.fixture

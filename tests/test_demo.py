@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from tissuecli import storage
+from tissuecli import formats
 
 from .conftest import tissuecli
 
@@ -20,8 +20,8 @@ def test_demo_runs_every_step_and_keeps_its_files(tmp_path):
         "7. played",
     ):
         assert step in r.stdout, r.stdout
-    assert storage.session_names(tmp_path / "grasp.h5") == ["demo-1"]
+    assert formats.session_names(tmp_path / "grasp.h5") == ["demo-1"]
     doc = json.loads((tmp_path / "tissue.json").read_text())
     assert doc["model"] == {"f0": "x", "f1": "xdot"}
     assert (tmp_path / "report.html").stat().st_size > 10_000
-    assert storage.group_names(tmp_path / "play.h5", "plays")
+    assert formats.group_names(tmp_path / "play.h5", "plays")

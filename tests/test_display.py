@@ -9,15 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tissuecli.display import (
-    NONFINITE,
+from tissuecli.core.errors import InputError
+from tissuecli.core.flags import NONFINITE, SATURATED, UNRENDERABLE
+from tissuecli.core.forms import FORMS
+from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.render import (
     PAPER_DISPLAY,
-    SATURATED,
-    UNRENDERABLE,
     Controller,
     DisplayProfile,
     Gains,
-    OperatorForce,
     RenderLaw,
     check,
     choose_gains,
@@ -27,8 +27,7 @@ from tissuecli.display import (
     simulate_offline,
     tracking_bound,
 )
-from tissuecli.errors import InputError
-from tissuecli.models import FORMS, Tissue, TissueModel
+from tissuecli.sim.finger import OperatorForce
 
 LINEAR = TissueModel.from_names("x", "xdot")
 INSIDE = Tissue(LINEAR, K=600.0, S=3.0, M=0.05)
@@ -283,7 +282,7 @@ def _rms(e: np.ndarray) -> float:
 
 
 def test_offline_tracking_is_within_the_error_equation_bound():
-    out = simulate_offline(INSIDE, duration_s=4.0)
+    out = simulate_offline(INSIDE, OperatorForce(), duration_s=4.0)
     g, _ = choose_gains(INSIDE, PAPER_DISPLAY, 1000.0, 5.67e-3)
     bound = tracking_bound(
         g.M, PAPER_DISPLAY.Mp, np.abs(out["ap"]).max(), INSIDE.K + g.Cp, PAPER_DISPLAY.resolution
@@ -311,7 +310,7 @@ def _tissue_response(tissue: Tissue, force: OperatorForce, seconds: float) -> np
 
 def test_matched_mass_tracks_to_the_encoder_resolution():
     matched = Tissue(LINEAR, 600.0, 3.0, PAPER_DISPLAY.Mp)
-    out = simulate_offline(matched, duration_s=4.0)
+    out = simulate_offline(matched, OperatorForce(), duration_s=4.0)
     assert _rms(out["e"]) < PAPER_DISPLAY.resolution
     # end to end: the piston moves as the tissue itself would under the same finger
     truth = _tissue_response(matched, OperatorForce(), 4.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from tissuecli import storage
+from tissuecli import formats
 from tissuecli.cli import cli
 
 from .conftest import assert_clean_error
@@ -45,7 +45,7 @@ def test_import_in_mm_gf_equals_import_in_si(tmp_path):
         "gf,ms,mm",
     )
     assert r.exit_code == 0, r.output
-    a, b = storage.read_session(h5, "si"), storage.read_session(h5, "mm")
+    a, b = formats.read_session(h5, "si"), formats.read_session(h5, "mm")
     for name in ("time", "force", "position"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12)
 

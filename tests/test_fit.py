@@ -9,16 +9,17 @@ import pytest
 from click.testing import CliRunner
 from scipy import integrate
 
-from tissuecli import storage
-from tissuecli.bayes import ExactPosterior, Prior, Stats, run_emcee, stepping_stone
+from tissuecli import formats
 from tissuecli.cli import cli
-from tissuecli.errors import FitError
-from tissuecli.fit import fit_session
-from tissuecli.identify import BayesianFit, WindowedPinv
-from tissuecli.models import DEFAULT_TISSUE, Tissue, TissueModel
-from tissuecli.params import read_tissue, tissue_from_dict
-from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
+from tissuecli.core.errors import FitError
+from tissuecli.core.session import Session
+from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+from tissuecli.formats.params import document, read_tissue, tissue_from_dict
+from tissuecli.identify import BayesianFit, WindowedPinv, fit_session
+from tissuecli.identify.posterior import ExactPosterior, Prior
+from tissuecli.identify.posterior import SufficientStats as Stats
+from tissuecli.identify.sampling import run_emcee, stepping_stone
+from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
 from .conftest import assert_clean_error
 
@@ -146,8 +147,8 @@ def test_units_of_the_input_do_not_change_the_answer(tmp_path):
         == 0
     )
     assert r.invoke(cli, ["import", str(si), "--out", str(h5), "--session", "si"]).exit_code == 0
-    a = fit_session(storage.read_session(h5, "mm")).document["parameters"]
-    b = fit_session(storage.read_session(h5, "si")).document["parameters"]
+    a = document(fit_session(formats.read_session(h5, "mm")))["parameters"]
+    b = document(fit_session(formats.read_session(h5, "si")))["parameters"]
     for name in ("K", "S", "M"):
         assert a[name]["mean"] == pytest.approx(b[name]["mean"], rel=1e-9)
 
@@ -192,11 +193,12 @@ def test_pinv_best_window_and_pooled_solution():
 
 def test_fit_export_round_trips_into_the_simulator(forceps, tmp_path):
     """fit(record(simulate(p))) against p, through files and a real pty."""
-    from tissuecli.record import record
+    from tissuecli.app.record import record
 
     truth = Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 4.0, 0.05)
     params = tmp_path / "truth.json"
-    from tissuecli.params import tissue_to_dict, write_json
+    from tissuecli.formats.jsonfile import write_json
+    from tissuecli.formats.params import tissue_to_dict
 
     write_json(params, tissue_to_dict(truth))
     sim = forceps("--params", str(params), "--adc-bits", "12", "--seed", "2")
@@ -261,7 +263,7 @@ def test_lost_frames_leave_out_only_the_filtered_samples_beside_them():
     s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
     keep = np.ones(len(s), bool)
     keep[[1500, 1501, 4000]] = False  # three lost frames, two gaps
-    gappy = Session(s.time[keep], s.force[keep], s.position[keep], meta=s.meta)
+    gappy = Session(s.time[keep], s.force[keep], s.position[keep], meta=s.meta, adc=s.adc)
     est = BayesianFit(forms="x,xdot").fit(gappy)
     assert any("2 gap(s) (3 lost frame(s))" in w for w in est.warnings_), est.warnings_
     kin, h = est.kinematics_, est.kinematics_.window // 2
@@ -287,7 +289,7 @@ def test_clipped_samples_are_left_out_not_fitted():
     # values too (an ADC the session does not describe) misses K by 50 of those SDs
     post = est.best_.posterior
     assert np.all(np.abs(post.mean - stiff.p) < 5 * post.sd), (post.mean, post.sd)
-    s.meta.pop("device")
+    s.adc = None
     blind = BayesianFit(forms="x,xdot").fit(s).best_.posterior
     assert abs(blind.mean[0] - stiff.K) > 50 * post.sd[0]
 
@@ -296,7 +298,7 @@ def test_a_gap_longer_than_the_data_falls_back_to_the_longest_stretch():
     s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
     t = s.time.copy()
     t[2000:] += 20.0  # the device paused for 20 s: more grid would be missing than recorded
-    est = BayesianFit(forms="x,xdot").fit(Session(t, s.force, s.position, meta=s.meta))
+    est = BayesianFit(forms="x,xdot").fit(Session(t, s.force, s.position, meta=s.meta, adc=s.adc))
     assert any("longest gap-free stretch" in w for w in est.warnings_), est.warnings_
     assert est.kinematics_.time[0] > 20.0  # the longer part, after the pause
     assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from benchmarks.peers import PeerResult, cramer_rao, lmfit_emcee_fit, pysindy_fit
+from tissuecli.core.session import Session
+from tissuecli.core.tissue import DEFAULT_TISSUE
 from tissuecli.identify import BayesianFit
-from tissuecli.models import DEFAULT_TISSUE
-from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Sensors, synthesize
+from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
 #: 16-bit ADC and no analogue noise: only a fine quantisation remains.
 CLEAN = Sensors(bits=16, force_noise_n=0.0, position_noise_m=0.0)
@@ -42,7 +42,6 @@ def test_cramer_rao_is_not_beaten_by_bayesian_fit() -> None:
     for seed in range(10):
         model = ForcepsModel(tissue=truth, seed=seed, sensors=Sensors(bits=12))
         session, _ = synthesize(model, 10.0)
-        session.meta["position_resolution_m"] = model.sensors.calibration.position.gain
         fit = BayesianFit().fit(session)
         (result,) = [r for r in fit.results_ if r.name == truth.model.name]
         assert result.posterior is not None

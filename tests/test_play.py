@@ -16,15 +16,16 @@ import click
 import numpy as np
 import pytest
 
-from tissuecli import storage
-from tissuecli.cli import _fail_cleanly
-from tissuecli.device import Link
-from tissuecli.display import PAPER_DISPLAY
-from tissuecli.errors import DeviceError, DeviceLost, RenderError, TissueError
-from tissuecli.models import Tissue, TissueModel
-from tissuecli.play import DisplayLink, play
-from tissuecli.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
-from tissuecli.simulate import StopFlag
+from tissuecli import formats
+from tissuecli.app.play import play
+from tissuecli.cli import fail_cleanly as _fail_cleanly
+from tissuecli.core.errors import DeviceError, DeviceLost, RenderError, TissueError
+from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.hw.link import Link
+from tissuecli.hw.link import Link as DisplayLink
+from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
+from tissuecli.hw.realtime import StopFlag
+from tissuecli.render import PAPER_DISPLAY
 
 LINEAR = TissueModel.from_names("x", "xdot")
 INSIDE = Tissue(LINEAR, K=600.0, S=3.0, M=0.05)
@@ -34,7 +35,7 @@ RUN_S = 2.5  # one whole press of the simulated operator
 
 DISPLAY = """
 import json, sys
-from tissuecli.play import run_simulated_display
+from tissuecli.sim.display import run_simulated_display
 counters = run_simulated_display(sys.argv[1], rate_hz=float(sys.argv[2]), seed=int(sys.argv[3]),
                                  on_ready=lambda p: print(p.path, flush=True))
 print(json.dumps(counters), flush=True)
@@ -42,8 +43,8 @@ print(json.dumps(counters), flush=True)
 
 HOST = """
 import sys
-from tissuecli.models import Tissue, TissueModel
-from tissuecli.play import play
+from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.app.play import play
 tissue = Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, 0.05)
 play(tissue, sys.argv[1], 30.0, on_status=lambda s: print("playing", flush=True),
      status_interval_s=0.1)
@@ -115,7 +116,7 @@ def test_tissue_inside_the_band_tracks_within_the_bound_and_is_logged(display, t
     assert s["nonfinite_frames"] == 0
     assert s["check"]["renderable"] and s["log"] == {"path": str(log), "group": "plays/liver"}
 
-    cols, attrs = storage.read_group(log, "plays/liver")
+    cols, attrs = formats.read_group(log, "plays/liver")
     assert attrs["complete"] and attrs["stop_reason"] == "duration reached"
     assert len(cols["time"]) == s["frames"]
     assert {"time", "xp", "xm", "e", "V", "force_observed", "flags"} <= set(cols)
@@ -146,7 +147,7 @@ def test_stop_flag_ends_with_zero_volts_received_by_the_display(display, tmp_pat
     log = tmp_path / "p.h5"
     s = play(INSIDE, str(d.link), 30.0, log=log, stop=stop, name="stopped")
     assert s["stop_reason"] == "interrupted by signal"
-    cols, _ = storage.read_group(log, "plays/stopped")
+    cols, _ = formats.read_group(log, "plays/stopped")
     assert cols["V"][-50:].max() > 0.1  # the solenoid was pulling when the flag came
     counters = d.stop()
     assert counters["last_command_volts"] == 0.0
@@ -263,8 +264,9 @@ def test_check_command_verdicts_and_exit_codes(tmp_path):
     from click.testing import CliRunner
 
     from tissuecli.cli import cli
-    from tissuecli.models import TissueModel
-    from tissuecli.params import tissue_to_dict, write_json
+    from tissuecli.core.tissue import TissueModel
+    from tissuecli.formats.jsonfile import write_json
+    from tissuecli.formats.params import tissue_to_dict
 
     soft, stiff = tmp_path / "soft.json", tmp_path / "stiff.json"
     model = TissueModel.from_names("x", "xdot")

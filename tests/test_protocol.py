@@ -13,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from tissuecli.calibration import Channel
-from tissuecli.protocol import (
+from tissuecli.core.calibration import Channel
+from tissuecli.hw.protocol import (
     COMMANDS,
     FLAG_LIMIT,
     FLAG_WATCHDOG,

@@ -10,10 +10,10 @@ import h5py
 import numpy as np
 import pytest
 
-from tissuecli import storage
-from tissuecli.errors import DeviceError, SessionExists
-from tissuecli.record import record
-from tissuecli.synth import CLOCK_HZ, ForcepsModel, Sensors
+from tissuecli import formats
+from tissuecli.app.record import record
+from tissuecli.core.errors import DeviceError, SessionExists
+from tissuecli.sim.synth import CLOCK_HZ, ForcepsModel, Sensors
 
 from .conftest import assert_clean_error, popen, tissuecli
 
@@ -22,7 +22,7 @@ def _wait_for_rows(path: Path, rows: int, timeout: float = 10.0) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
-            if sum(r["samples"] for r in storage.list_sessions(path)) >= rows:
+            if sum(r["samples"] for r in formats.list_sessions(path)) >= rows:
                 return
         except Exception:  # the writer may be between flushes
             pass
@@ -35,7 +35,7 @@ def test_clean_line_records_every_frame_with_the_right_physics(forceps, tmp_path
     out = tmp_path / "g.h5"
     res = record(str(sim.link), out, "s1", duration_s=2.0, tissue="liver")
     assert (res.samples, res.lost_frames, res.bad_frames) == (2000, 0, 0)
-    s = storage.read_session(out, raw=True)
+    s = formats.read_session(out, raw=True)
     assert len(s) == 2000 and s.meta["tissue"] == "liver" and s.meta["complete"]
     np.testing.assert_allclose(np.diff(s.time), 1e-3, rtol=1e-3)
     # the stored values are the simulator's physics, read through its 8-bit ADC
@@ -54,7 +54,7 @@ def test_corrupt_and_dropped_frames_are_counted_and_recording_resumes(forceps, t
     sim = forceps("--corrupt", "0.03", "--drop", "0.02", "--seed", "5")
     out = tmp_path / "g.h5"
     res = record(str(sim.link), out, "faulty", duration_s=3.0)
-    s = storage.read_session(out, raw=True)
+    s = formats.read_session(out, raw=True)
     seq = s.meta["raw"]["raw/sequence"].astype(np.int64)
     span = int(seq[-1] - seq[0] + 1)
     # every frame is either stored or counted lost, and the bad ones were seen
@@ -109,7 +109,7 @@ def test_signal_stops_cleanly_and_loses_nothing(forceps, tmp_path, sig):
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
-    s = storage.read_session(out, "live", raw=True)
+    s = formats.read_session(out, "live", raw=True)
     assert s.meta["complete"] and "signal" in s.meta["stop_reason"]
     assert s.meta["frames_lost"] == 0 and s.meta["frames_good"] == len(s)
     seq = s.meta["raw"]["raw/sequence"].astype(np.int64)
@@ -121,12 +121,12 @@ def test_kill_9_leaves_a_readable_file_with_everything_flushed(forceps, tmp_path
     out = tmp_path / "g.h5"
     proc = popen("record", "--port", str(sim.link), "--out", str(out), "--session", "crash")
     _wait_for_rows(out, 1500)
-    flushed = storage.list_sessions(out)[0]["samples"]
+    flushed = formats.list_sessions(out)[0]["samples"]
     proc.kill()
     proc.communicate(timeout=10)
     with h5py.File(out, "r"):
         pass
-    s = storage.read_session(out, "crash", raw=True)
+    s = formats.read_session(out, "crash", raw=True)
     assert len(s) >= flushed >= 1500
     seq = s.meta["raw"]["raw/sequence"].astype(np.int64)
     assert np.all(np.diff(seq) == 1)
@@ -142,7 +142,7 @@ def test_device_vanishing_mid_session_saves_data_and_exits_nonzero(forceps, tmp_
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 1 and "Traceback" not in err
     assert "lost" in err and "saved" in err
-    s = storage.read_session(out, "gone")
+    s = formats.read_session(out, "gone")
     assert len(s) >= 800 and s.meta["stop_reason"].startswith("device lost")
 
 
@@ -155,7 +155,7 @@ def test_sixty_seconds_lose_no_frame(forceps, tmp_path, rate):
 
 
 def test_a_display_is_not_recorded(tmp_path):
-    from tissuecli.simulate import SimulatorProcess
+    from tissuecli.sim.process import SimulatorProcess
 
     with SimulatorProcess("display", tmp_path / "display") as disp:
         result = tissuecli(

@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tissuecli.fit import FitOutcome, fit_session
-from tissuecli.models import Tissue, TissueModel, all_models
-from tissuecli.report import MAX_POINTS, _envelope, write_report
-from tissuecli.synth import ForcepsModel, synthesize
+from tissuecli import __version__
+from tissuecli.app.fit import write_report
+from tissuecli.core.tissue import Tissue, TissueModel, all_models
+from tissuecli.identify import FitOutcome, fit_session
+from tissuecli.report.figures import MAX_POINTS
+from tissuecli.report.figures import envelope as _envelope
+from tissuecli.sim.synth import ForcepsModel, synthesize
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 IMAGE = re.compile(r'<img\s[^>]*src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
@@ -145,7 +148,7 @@ def test_report_has_diagnostics_and_provenance(both: tuple[FitOutcome, str]) -> 
     assert "Effective samples" in section and "autocorrelation" in section
     assert "How to read this report" in text
     footer = text[text.index("<footer>") :]
-    assert outcome.document["software"] in footer
+    assert f"tissuecli {__version__}" in footer
 
 
 def test_pinv_only_report(tmp_path: Path) -> None:
@@ -170,7 +173,7 @@ def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
 def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
     massless = Tissue(TissueModel.from_names("x", "xdot"), K=350.0, S=3.0, M=0.0)
     outcome = fit_session(_session(seed=5, duration_s=4.0, tissue=massless))
-    warnings = outcome.document["warnings"]
+    warnings = outcome.warnings
     assert warnings, "a massless tissue should leave M unidentified"
     text = _write(tmp_path, outcome)
     box = re.search(r'<div class="box warn">(.*?)</div>', text, re.S)
@@ -211,7 +214,9 @@ def test_report_on_a_session_with_lost_frames(tmp_path: Path) -> None:
     s = _session()
     keep = np.ones(len(s), bool)
     keep[[800, 801, 2500]] = False
-    gappy = type(s)(s.time[keep], s.force[keep], s.position[keep], name=s.name, meta=s.meta)
+    gappy = type(s)(
+        s.time[keep], s.force[keep], s.position[keep], name=s.name, meta=s.meta, adc=s.adc
+    )
     text = _write(tmp_path, fit_session(gappy, method="both"))
     _assert_self_contained(text)
     assert "beside lost or clipped samples" in text

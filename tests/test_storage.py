@@ -21,21 +21,20 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tissuecli.errors import InputError, SessionExists, StorageError
-from tissuecli.session import Session
-from tissuecli.storage import (
-    Column,
-    SeriesWriter,
-    _from_attr,
-    _to_attr,
+from tissuecli.core.errors import InputError, SessionExists, StorageError
+from tissuecli.core.session import Session
+from tissuecli.formats.hdf5 import Column, read_group
+from tissuecli.formats.hdf5 import from_attr as _from_attr
+from tissuecli.formats.hdf5 import to_attr as _to_attr
+from tissuecli.formats.sessions import (
     check_new_session,
     list_sessions,
-    read_group,
     read_session,
     session_names,
     session_writer,
     write_session,
 )
+from tissuecli.formats.writer import SeriesWriter
 
 CHILD = Path(__file__).with_name("_writer_child.py")
 sys.path.insert(0, str(CHILD.parent))

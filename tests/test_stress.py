@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tissuecli.errors import FitError, InputError
+from tissuecli.core.errors import FitError, InputError
+from tissuecli.core.session import Session
+from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
 from tissuecli.identify import BayesianFit
-from tissuecli.models import DEFAULT_TISSUE, Tissue, TissueModel
-from tissuecli.session import Session
-from tissuecli.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
+from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +114,7 @@ def test_adc_glitches_do_not_pass_silently():
     clean = BayesianFit().fit(s)
     assert not any("noise SDs" in w for w in clean.warnings_)
     # when the session knows its ADC, full-scale values are holes: left out, not fitted
-    known = BayesianFit().fit(Session(s.time, force, s.position, meta=s.meta))
+    known = BayesianFit().fit(Session(s.time, force, s.position, adc=s.adc))
     assert any("at an end of the 8-bit ADC" in w for w in known.warnings_), known.warnings_
     assert not any("noise SDs" in w for w in known.warnings_)
     p, q = known.best_.posterior, clean.best_.posterior
@@ -129,7 +129,7 @@ def test_ten_million_samples_fit_in_bounded_memory():
 
     code = (
         "import resource, numpy as np\n"
-        "from tissuecli.synth import ForcepsModel, synthesize\n"
+        "from tissuecli.sim.synth import ForcepsModel, synthesize\n"
         "from tissuecli.identify import BayesianFit\n"
         "s, _ = synthesize(ForcepsModel(seed=1), 1e4)\n"
         "e = BayesianFit().fit(s)\n"

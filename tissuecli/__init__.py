@@ -1,14 +1,127 @@
 """tissuecli: record, identify and render tissue from a sensorised laparoscopic forceps.
 
-Layers (imports flow downwards only)::
+The library behind the ``tissuecli`` command. The main names are importable from here
+(loaded on first use, so ``import tissuecli`` stays cheap)::
 
-    cli                                   the only click importer
-    demo, record, fit, play, transfer, simulate   services (simulate: device firmware)
-    report, storage, device, csvio, params   edges: HTML, HDF5 (only h5py importer),
-                                          serial (only pyserial importer), CSV, JSON
-    identify, bayes, derivatives, display, synth, clock, protocol,
-    calibration, models, session, units, errors   numerics and types (no files)
+    from tissuecli import fit_session, read_session
+    outcome = fit_session(read_session("grasp.h5", "liver-1"))
+    print(outcome.bayes.best_.name, outcome.bayes.best_.posterior.mean)
+
+docs/api.md shows recording, fitting and playing from Python; docs/architecture.md
+the layers (cli -> app -> report | formats | sim -> hw -> identify | render -> core).
 """
 
-__version__ = "0.1.0"
-SCHEMA_VERSION = 1
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from ._version import __version__
+
+#: public name -> module that defines it
+_EXPORTS = {
+    # core
+    "Session": "tissuecli.core.session",
+    "Tissue": "tissuecli.core.tissue",
+    "TissueModel": "tissuecli.core.tissue",
+    "DEFAULT_TISSUE": "tissuecli.core.tissue",
+    "Calibration": "tissuecli.core.calibration",
+    "TissueError": "tissuecli.core.errors",
+    # identify
+    "BayesianFit": "tissuecli.identify.bayes",
+    "WindowedPinv": "tissuecli.identify.pinv",
+    "FitOutcome": "tissuecli.identify.outcome",
+    "fit_session": "tissuecli.identify.outcome",
+    # render
+    "DisplayProfile": "tissuecli.render.profile",
+    "PAPER_DISPLAY": "tissuecli.render.profile",
+    "check": "tissuecli.render.check",
+    "simulate_offline": "tissuecli.render.offline",
+    # formats
+    "read_session": "tissuecli.formats.sessions",
+    "write_session": "tissuecli.formats.sessions",
+    "list_sessions": "tissuecli.formats.sessions",
+    "read_csv": "tissuecli.formats.csvfile",
+    "read_tissue": "tissuecli.formats.params",
+    "write_params": "tissuecli.formats.params",
+    # hw and sim
+    "StopFlag": "tissuecli.hw.realtime",
+    "SimulatorProcess": "tissuecli.sim.process",
+    "ForcepsModel": "tissuecli.sim.synth",
+    "synthesize": "tissuecli.sim.synth",
+    "random_session": "tissuecli.sim.synth",
+    # services
+    "record": "tissuecli.app.record",
+    "fit_file": "tissuecli.app.fit",
+    "play": "tissuecli.app.play",
+    "render_report": "tissuecli.report",
+}
+
+__all__ = [
+    "__version__",
+    "Session",
+    "Tissue",
+    "TissueModel",
+    "DEFAULT_TISSUE",
+    "Calibration",
+    "TissueError",
+    "BayesianFit",
+    "WindowedPinv",
+    "FitOutcome",
+    "fit_session",
+    "DisplayProfile",
+    "PAPER_DISPLAY",
+    "check",
+    "simulate_offline",
+    "read_session",
+    "write_session",
+    "list_sessions",
+    "read_csv",
+    "read_tissue",
+    "write_params",
+    "StopFlag",
+    "SimulatorProcess",
+    "ForcepsModel",
+    "synthesize",
+    "random_session",
+    "record",
+    "fit_file",
+    "play",
+    "render_report",
+]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'tissuecli' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
+
+if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
+    from .app.fit import fit_file
+    from .app.play import play
+    from .app.record import record
+    from .core.calibration import Calibration
+    from .core.errors import TissueError
+    from .core.session import Session
+    from .core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+    from .formats.csvfile import read_csv
+    from .formats.params import read_tissue, write_params
+    from .formats.sessions import list_sessions, read_session, write_session
+    from .hw.realtime import StopFlag
+    from .identify.bayes import BayesianFit
+    from .identify.outcome import FitOutcome, fit_session
+    from .identify.pinv import WindowedPinv
+    from .render.check import check
+    from .render.offline import simulate_offline
+    from .render.profile import PAPER_DISPLAY, DisplayProfile
+    from .report import render_report
+    from .sim.process import SimulatorProcess
+    from .sim.synth import ForcepsModel, random_session, synthesize

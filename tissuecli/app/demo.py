@@ -1,0 +1,99 @@
+"""The whole pipeline on simulated devices, in one call."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+
+from ..core.tissue import DEFAULT_TISSUE, PARAMETERS
+from ..formats.params import read_tissue
+from ..formats.sessions import list_sessions, session_names
+from ..render.check import check
+from ..render.profile import PAPER_DISPLAY
+from ..sim.process import SimulatorProcess
+from .fit import fit_file
+from .play import play, summary_lines
+from .record import record
+from .transfer import export_csv
+
+
+def run_demo(
+    duration_s: float = 5.0,
+    workdir: str | os.PathLike[str] | None = None,
+    say: Callable[[str], None] = print,
+) -> dict[str, str]:
+    """Simulate a forceps, record, list, export and fit the session, then play the fitted
+    tissue on a simulated display; return the files made.
+
+    Parameters
+    ----------
+    duration_s : float
+        Seconds to record.
+    workdir : path, optional
+        Where to keep the files; a temporary directory (removed afterwards) by default.
+    say : callable
+        Receives one line of narration per step.
+    """
+    with ExitStack() as stack:
+        if workdir is None:
+            root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="tissuecli-demo-")))
+        else:
+            root = Path(workdir)
+            root.mkdir(parents=True, exist_ok=True)
+        h5, csv = root / "grasp.h5", root / "demo.csv"
+        t = DEFAULT_TISSUE
+        say(
+            f"1. simulated forceps: {t.model.name} tissue K={t.K:g} {t.model.units['K']}, "
+            f"S={t.S:g} {t.model.units['S']}, M={t.M:g} kg, 1 kHz, 8-bit ADC"
+        )
+        with SimulatorProcess("forceps", root / "forceps", ["--seed", "1"]) as sim:
+            say(f"   listening on {sim.link}")
+            name = f"demo-{len(session_names(h5)) + 1}" if h5.exists() else "demo-1"
+            res = record(str(sim.link), h5, name, duration_s=duration_s, tissue="simulated liver")
+        say(
+            f"2. recorded {res.samples} samples ({res.duration_s:.2f} s at {res.rate_hz:.1f} Hz), "
+            f"{res.lost_frames} lost, {res.bad_frames} bad frames -> {h5} session {name!r}"
+        )
+        for row in list_sessions(h5):
+            say(
+                f"3. {row['name']}: {row['samples']} samples, {row['duration_s']:.3f} s, "
+                f"{row['rate_hz']:.1f} Hz"
+            )
+        export_csv(h5, name, csv)
+        say(f"4. exported to {csv}")
+        params, report = root / "tissue.json", root / "report.html"
+        outcome = fit_file(h5, name, out=params, report=report)
+        best = outcome.bayes.best_  # type: ignore[union-attr]
+        post = best.posterior
+        say(f"5. fitted all forms: {best.name} chosen with probability {best.probability:.3f}")
+        for j, p in enumerate(PARAMETERS):
+            truth = getattr(t, p)
+            say(
+                f"   {p} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {best.model.units[p]}"
+                f"  (true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %)"
+            )
+        for w in outcome.bayes.warnings_:  # type: ignore[union-attr]
+            say(f"   warning: {w}")
+        say(f"   parameters -> {params}, report -> {report}")
+        tissue = read_tissue(params)
+        verdict = check(tissue, PAPER_DISPLAY, 1000.0)
+        say(f"6. display check: {verdict.verdict}")
+        log = root / "play.h5"
+        with SimulatorProcess("display", root / "display") as disp:
+            summary = play(tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log)
+        say("7. played the fitted tissue on the simulated display:")
+        for line in summary_lines(summary):
+            say(f"   {line}")
+        if workdir is None:
+            say("   (temporary files removed; pass --dir DIR to keep them)")
+        return {
+            "h5": str(h5),
+            "csv": str(csv),
+            "session": name,
+            "params": str(params),
+            "report": str(report),
+            "play_log": str(log),
+        }

@@ -1,0 +1,87 @@
+"""The ``fit`` service: read a session, identify the tissue, write the parameter file and
+the report."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from ..core.tissue import PARAMETERS
+from ..formats.atomic import write_text_atomic
+from ..formats.params import write_params
+from ..formats.sessions import read_session
+from ..identify.outcome import FitOutcome, fit_session
+
+
+def fit_file(
+    path: str | os.PathLike[str],
+    session: str | None = None,
+    *,
+    out: str | os.PathLike[str] | None = None,
+    report: str | os.PathLike[str] | None = None,
+    **options: Any,
+) -> FitOutcome:
+    """Fit a stored session; write the parameter file and the HTML report if asked.
+
+    Parameters
+    ----------
+    path : path
+        HDF5 file.
+    session : str, optional
+        Session name (may be omitted when the file holds one).
+    out, report : path, optional
+        Parameter file (JSON) and HTML report to write.
+    **options
+        Passed to :func:`tissuecli.identify.fit_session` (method, forms, sampler, ...).
+    """
+    outcome = fit_session(read_session(path, session), **options)
+    if out is not None:
+        write_params(out, outcome)
+    if report is not None:
+        write_report(report, outcome)
+    return outcome
+
+
+def write_report(path: str | os.PathLike[str], outcome: FitOutcome) -> None:
+    """Write the HTML report of a fit to ``path`` (atomically)."""
+    from ..report import render_report  # matplotlib only when a report is asked for
+
+    write_text_atomic(path, render_report(outcome))
+
+
+def summary_lines(outcome: FitOutcome) -> list[str]:
+    """A short terminal summary."""
+    lines = []
+    s = outcome.session
+    lines.append(
+        f"session {s.name!r}: {len(s)} samples, {s.duration_s:.2f} s at {s.rate_hz:.0f} Hz"
+    )
+    est = outcome.bayes
+    if est is not None:
+        lines.append(f"{'form':<12} {'ln Z':>12} {'P':>7}  method")
+        for r in est.results_:
+            lines.append(f"{r.name:<12} {r.ln_evidence:12.2f} {r.probability:7.3f}  {r.status}")
+        best = est.best_
+        post = best.posterior
+        assert post is not None
+        lines.append(
+            f"best: {best.name}  (noise {post.sigma_mean * 1e3:.2f} mN, "
+            f"{est.n_eff_:.0f} effective samples)"
+        )
+        for j, name in enumerate(PARAMETERS):
+            lo, hi = post.ci95[j]
+            lines.append(
+                f"  {name} = {post.mean[j]:.6g} ± {post.sd[j]:.2g} {best.model.units[name]}"
+                f"  (95 % [{lo:.6g}, {hi:.6g}])"
+            )
+    if outcome.pinv is not None:
+        p = outcome.pinv
+        vals = ", ".join(
+            f"{n}={v:.6g} {p.model_.units[n]}" for n, v in zip(PARAMETERS, p.params_, strict=True)
+        )
+        lines.append(
+            f"pinv ({p.model_.name}, best of {p.windows_.shape[0]} windows of "
+            f"{p.window_samples_} samples): {vals}; cond {p.cond_:.3g}, scaled {p.cond_scaled_:.3g}"
+        )
+    lines.extend(f"warning: {w}" for w in outcome.warnings)
+    return lines

@@ -1,0 +1,495 @@
+"""The ``play`` service: render a tissue on the solenoid display in real time.
+
+Identify the display, check that it can render the tissue, then close the loop:
+every Encoder frame is run through the :class:`~tissuecli.render.controller.Controller`
+and answered at once with a SetVoltage. The display's frames set the rhythm; the host
+keeps absolute deadlines (:class:`~tissuecli.hw.realtime.Deadlines`, half a period
+after each expected frame) to notice missing frames, to keep the display's watchdog
+fed and to measure its own period. Whatever ends the loop (duration, stop flag, a lost
+device, any exception), the last thing sent is ``SetVoltage(0)`` followed by STOP.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from ..core.errors import DeviceError, DeviceLost, InputError, RenderError
+from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG, NONFINITE, SATURATED, UNRENDERABLE
+from ..core.session import check_name
+from ..core.tissue import Tissue
+from ..formats.jsonfile import write_json
+from ..formats.params import read_profile, read_tissue
+from ..formats.playlog import PlayLog
+from ..hw.link import DEFAULT_BAUD, Link, open_device
+from ..hw.protocol import Encoder, SetVoltage
+from ..hw.realtime import Deadlines, StopFlag, realtime, wait_readable
+from ..hw.stream import Stream
+from ..render.check import GRASP_FORCE_N, CheckResult, check
+from ..render.controller import Controller, Step, tracking_bound
+from ..render.profile import PAPER_DISPLAY, DisplayProfile, profile_from_dict
+
+#: A missing Encoder frame is bridged by repeating the last voltage this many periods,
+#: then the host sends 0 V until frames return.
+HOLD_PERIODS = 3
+
+
+def check_file(
+    params: str | os.PathLike[str],
+    *,
+    profile: str | os.PathLike[str] | None = None,
+    rate_hz: float = 1000.0,
+    summary: str | os.PathLike[str] | None = None,
+) -> CheckResult:
+    """``play --check``: can the display (``profile``, the paper's by default) render the
+    tissue of a parameter file? Writes the verdict as JSON to ``summary`` if given."""
+    tissue = read_tissue(params)
+    result = check(tissue, read_profile(profile) if profile else PAPER_DISPLAY, rate_hz)
+    if summary is not None:
+        write_json(summary, {"check": result.as_dict()})
+    return result
+
+
+def play_file(
+    params: str | os.PathLike[str],
+    url: str,
+    duration_s: float | None = None,
+    *,
+    profile: str | os.PathLike[str] | None = None,
+    summary: str | os.PathLike[str] | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """``play``: render the tissue of a parameter file (see :func:`play` for ``options``);
+    writes the summary as JSON to ``summary`` if given."""
+    tissue = read_tissue(params)
+    result = play(
+        tissue, url, duration_s, profile=read_profile(profile) if profile else None, **options
+    )
+    if summary is not None:
+        write_json(summary, result)
+    return result
+
+
+def play(
+    tissue: Tissue,
+    url: str,
+    duration_s: float | None = None,
+    *,
+    rate_hz: float = 1000.0,
+    log: str | os.PathLike[str] | None = None,
+    name: str | None = None,
+    stop: StopFlag | None = None,
+    profile: DisplayProfile | None = None,
+    force: float = GRASP_FORCE_N,
+    baudrate: int = DEFAULT_BAUD,
+    idle_timeout_s: float = 0.1,
+    on_status: Callable[[dict[str, Any]], None] | None = None,
+    status_interval_s: float = 1.0,
+) -> dict[str, Any]:
+    """Render ``tissue`` on the display at ``url`` for ``duration_s`` seconds.
+
+    Parameters
+    ----------
+    tissue : Tissue
+        The law to render.
+    url : str
+        The display's port (device path, simulator link or pyserial URL).
+    duration_s : float or None
+        Seconds to play; None plays until ``stop`` is set.
+    rate_hz : float
+        Control-loop rate, Hz; must be the display's.
+    log : path, optional
+        HDF5 file to log every frame to, as group ``plays/<name>``.
+    name : str, optional
+        Log group name (default ``play-<UTC time>``; a suffix is added if taken).
+    stop : StopFlag, optional
+        Polled every period; SIGINT/SIGTERM handlers set it for a clean stop.
+    profile : DisplayProfile, optional
+        The display's constants; by default those it reports, else the paper's.
+    force : float
+        Force up to which the tissue must be renderable, N (see
+        :func:`~tissuecli.render.check.check`).
+    baudrate : int
+        Line rate, bit/s.
+    idle_timeout_s : float
+        A display silent this long is taken as lost, s.
+    on_status : callable, optional
+        Called every ``status_interval_s`` with the running figures.
+
+    Returns
+    -------
+    dict
+        The summary: ``tracking_rms_m``, ``tracking_max_m``, ``tracking_bound_m``,
+        ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
+        ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
+        ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``commands_sent``,
+        ``actuator_work_j``, ``check`` and more.
+
+    Raises
+    ------
+    RenderError
+        If :func:`~tissuecli.render.check.check` refuses the tissue (nothing is moved).
+    DeviceLost
+        If the display vanishes; 0 V is sent (as far as the line allows) first.
+    """
+    tissue.validate()
+    if duration_s is not None and not duration_s > 0:
+        raise InputError("--duration must be a positive number of seconds")
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise InputError(f"--rate {rate_hz} must be a positive number of Hz")
+    if name is not None:
+        check_name(name, "play")
+    link, info, profile = _open_display(url, baudrate, rate_hz, profile)
+    log_file: PlayLog | None = None
+    try:
+        verdict = check(tissue, profile, rate_hz, force)
+        if not verdict.renderable:
+            raise RenderError(
+                f"the display cannot render this {tissue.model.name} tissue "
+                f"(K={tissue.K:g} {tissue.model.units['K']}): " + "; ".join(verdict.reasons)
+            )
+        if log is not None:
+            stamp = datetime.now(timezone.utc)
+            meta = {
+                "start_utc": stamp.isoformat(timespec="milliseconds"),
+                "source": f"serial:{url}",
+                "device": info,
+                "rate_hz": rate_hz,
+                "tissue": {**_describe(tissue), "units": tissue.model.units},
+                "profile": profile.as_dict(),
+                "gains": asdict(verdict.gains),
+                "check": verdict.as_dict(),
+            }
+            log_file = PlayLog(log, name or "play-" + stamp.strftime("%Y%m%dT%H%M%S"), meta)
+        player = _Player(
+            link,
+            Controller(tissue, profile, rate_hz, verdict.gains),
+            profile,
+            rate_hz,
+            float(info.get("clock_hz", 1e6)),
+            log_file,
+        )
+        stream = Stream(
+            link,
+            Encoder,
+            stop=stop if stop is not None else StopFlag(),
+            idle_timeout_s=idle_timeout_s,
+            status_interval_s=status_interval_s,
+            before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
+        )
+        summary = player.run(stream, duration_s, on_status)
+    except BaseException as exc:
+        if log_file is not None:
+            reason = (
+                f"device lost: {exc}"
+                if isinstance(exc, DeviceLost)
+                else f"error: {type(exc).__name__}: {exc}"
+            )
+            try:
+                log_file.close(complete=False, stop_reason=reason)
+            except Exception:  # the first error is the one to report
+                pass
+        if isinstance(exc, DeviceLost):
+            raise DeviceLost(
+                f"{exc}; 0 V was sent as the loop ended, in case the line still carries it"
+            ) from None
+        raise
+    finally:
+        link.close()
+    summary["check"] = verdict.as_dict()
+    summary["tissue"] = _describe(tissue)
+    summary = _jsonable(summary)
+    if log_file is not None:
+        summary["log"] = {"path": str(log), "group": log_file.group}
+        log_file.close(complete=True, **{k: v for k, v in summary.items() if k != "log"})
+    return summary
+
+
+def _describe(tissue: Tissue) -> dict[str, Any]:
+    return {"model": tissue.model.name, "K": tissue.K, "S": tissue.S, "M": tissue.M}
+
+
+def _open_display(
+    url: str, baudrate: int, rate_hz: float, profile: DisplayProfile | None
+) -> tuple[Link, dict[str, Any], DisplayProfile]:
+    """Open and identify a display; its link, Info and the profile to use."""
+    link, info = open_device(url, "display", baudrate=baudrate, timeout=0.02)
+    assert info is not None  # open_device refuses a silent display
+    try:
+        device_rate = info.get("rate_hz")
+        if isinstance(device_rate, (int, float)) and abs(device_rate - rate_hz) > 1e-6 * rate_hz:
+            raise DeviceError(
+                f"the display at {url} runs its loop at {device_rate:g} Hz; "
+                f"pass --rate {device_rate:g}"
+            )
+        if profile is None:
+            reported = info.get("profile")
+            profile = (
+                profile_from_dict(reported, source=f"profile reported by {url}")
+                if isinstance(reported, Mapping)
+                else PAPER_DISPLAY
+            )
+        return link, info, profile
+    except BaseException:
+        link.close()
+        raise
+
+
+class _Player:
+    """The control loop's state: one answer per Encoder frame, deadlines, figures, log."""
+
+    def __init__(
+        self,
+        link: Link,
+        ctrl: Controller,
+        profile: DisplayProfile,
+        rate_hz: float,
+        clock_hz: float,
+        log: PlayLog | None,
+    ) -> None:
+        self.link, self.ctrl, self.profile, self.log = link, ctrl, profile, log
+        self.period = 1.0 / rate_hz
+        self.clock_hz = clock_hz
+        self.figures = PlayFigures()
+        self.volts = 0.0
+        self.sent = 0
+        self.missed = self.misses_in_row = 0
+        self.last_clock: int | None = None
+        self.elapsed = 0.0  # display clock since the first frame, s
+
+    def send(self, value: float) -> None:
+        self.link.send(SetVoltage(self.sent & 0xFFFFFFFF, value))
+        self.sent += 1
+
+    def run(
+        self,
+        stream: Stream,
+        duration_s: float | None,
+        on_status: Callable[[dict[str, Any]], None] | None,
+    ) -> dict[str, Any]:
+        """Loop until the duration, the stop flag or a lost display; always ends at 0 V."""
+        period = self.period
+        fd = self.link.fileno()
+        self.link.nonblocking()
+        with realtime(), stream:
+            clock: Deadlines | None = None
+            deadline = stream.t_start + 1.0  # the first frame may take a moment
+            while stream.running():
+                got, now = self._receive(stream, deadline, fd)
+                if got:
+                    self.send(self.volts)
+                    self.figures.send(now)
+                    self.misses_in_row = 0
+                    if clock is None:
+                        # host deadlines half a period after each expected frame
+                        clock = Deadlines(period, t0=now + 0.5 * period)
+                    elif got == 1:
+                        # track the display's clock: nudge deadlines towards arrival + T/2
+                        err = now - (deadline - 0.5 * period)
+                        clock.t0 += 0.01 * max(-0.5 * period, min(0.5 * period, err))
+                else:
+                    stream.check_idle(now)
+                    if clock is not None:
+                        self.missed += 1
+                        self.misses_in_row += 1
+                        # bridge a lost frame with the last voltage, briefly
+                        self.send(self.volts if self.misses_in_row <= HOLD_PERIODS else 0.0)
+                if duration_s is not None and self.elapsed >= duration_s:
+                    break
+                if on_status is not None and stream.status_due(now):
+                    on_status(self.summary(stream))
+                deadline = clock.next() if clock is not None else deadline
+        summary = self.summary(stream)
+        summary["stop_reason"] = stream.reason
+        summary["commands_sent"] = self.sent
+        return summary
+
+    def _receive(self, stream: Stream, deadline: float, fd: int | None) -> tuple[int, float]:
+        """Answer-ready: run every Encoder frame that arrives before ``deadline`` through
+        the controller; the number of frames and the time."""
+        got = 0
+        while True:
+            for msg in stream.poll():
+                assert isinstance(msg, Encoder)
+                got += 1
+                if self.last_clock is None:
+                    dt = self.period
+                else:
+                    dt = ((msg.clock - self.last_clock) & 0xFFFFFFFF) / self.clock_hz
+                    self.elapsed += dt
+                self.last_clock = msg.clock
+                x = msg.position * self.profile.resolution
+                step = self.ctrl.update(x, msg.volts, dt)
+                self.volts = step.volts
+                flags = self.figures.account(step, msg, x, self.profile.alpha)
+                if self.log is not None:
+                    self.log.add(
+                        self.elapsed,
+                        step.xp,
+                        step.xm,
+                        step.volts,
+                        msg.volts,
+                        step.force,
+                        flags,
+                        msg.position,
+                    )
+            now = time.monotonic()
+            if got or now >= deadline:
+                return got, now
+            if fd is None:
+                time.sleep(min(1e-4, max(0.0, deadline - now)))
+            else:
+                wait_readable(fd, deadline)
+
+    def summary(self, stream: Stream) -> dict[str, Any]:
+        figures = self.figures.summary(self.ctrl, self.profile)
+        return {
+            "duration_s": self.elapsed,
+            "frames": figures.pop("frames"),
+            "frames_lost": stream.seqs.lost,
+            "frames_bad": self.link.decoder.bad_frames,
+            "missed_periods": self.missed,
+            **figures,
+        }
+
+
+class PlayFigures:
+    """Running figures of a play, in bounded memory: tracking, flags, energy and the
+    loop's period."""
+
+    HIST_BIN_S = 1e-5  # 10 us bins of the loop period, up to 10 ms
+
+    def __init__(self) -> None:
+        self.frames = self.saturated = self.unrenderable = self.nonfinite = 0
+        self.watchdog = self.limit = self.sends = 0
+        self.sum_e2 = self.max_e = self.max_a = self.work = 0.0
+        self.x_lo, self.x_hi = math.inf, -math.inf
+        self.hist = [0] * 1001
+        self.max_period = 0.0
+        self.first_send: float | None = None
+        self.last_send = 0.0
+        self.prev_x: float | None = None
+        self.prev_volts = 0.0
+
+    def send(self, now: float) -> None:
+        if self.first_send is not None:
+            dt = now - self.last_send
+            self.hist[min(int(dt / self.HIST_BIN_S), 1000)] += 1
+            self.max_period = max(self.max_period, dt)
+        else:
+            self.first_send = now
+        self.last_send = now
+        self.sends += 1
+
+    def percentile(self, q: float) -> float:
+        """Loop period percentile, s (upper edge of its 10 us bin; NaN before two sends)."""
+        total = sum(self.hist)
+        if total == 0:
+            return math.nan
+        need, acc = q / 100.0 * total, 0
+        for i, n in enumerate(self.hist):
+            acc += n
+            if acc >= need:
+                return (i + 1) * self.HIST_BIN_S if i < 1000 else self.max_period
+        return self.max_period
+
+    def loop_rate(self) -> float:
+        span = self.last_send - (self.first_send or 0.0)
+        return (self.sends - 1) / span if self.sends > 1 and span > 0 else 0.0
+
+    def account(self, step: Step, msg: Encoder, x: float, alpha: float) -> int:
+        """Fold one frame in (``x``: the encoder reading, m); return the frame's flags."""
+        self.frames += 1
+        e = step.xp - step.xm
+        if e == e:
+            self.sum_e2 += e * e
+            self.max_e = max(self.max_e, abs(e))
+        if step.ap == step.ap:
+            self.max_a = max(self.max_a, abs(step.ap))
+        if self.prev_x is not None:
+            # work done on the piston by the solenoid over the last period (> 0: created)
+            self.work -= alpha * self.prev_volts**2 * (x - self.prev_x)
+        self.prev_x, self.prev_volts = x, msg.volts
+        self.x_lo, self.x_hi = min(self.x_lo, step.xp), max(self.x_hi, step.xp)
+        flags = msg.flags | step.flags
+        self.saturated += bool(flags & SATURATED)
+        self.unrenderable += bool(flags & UNRENDERABLE)
+        self.nonfinite += bool(flags & NONFINITE)
+        self.watchdog += bool(flags & FLAG_WATCHDOG)
+        self.limit += bool(flags & FLAG_LIMIT)
+        return flags
+
+    def summary(self, ctrl: Controller, profile: DisplayProfile) -> dict[str, Any]:
+        """The figures as a dict (see :func:`play`)."""
+        n = max(self.frames, 1)
+        if self.x_hi >= self.x_lo:
+            depths = np.linspace(self.x_lo, self.x_hi, 51)
+            k_min = min(ctrl.local_stiffness(float(x)) for x in depths)
+        else:
+            k_min = ctrl.local_stiffness(0.0)
+        return {
+            "frames": self.frames,
+            "tracking_rms_m": math.sqrt(self.sum_e2 / n),
+            "tracking_max_m": self.max_e,
+            "tracking_bound_m": tracking_bound(
+                ctrl.gains.M, profile.Mp, self.max_a, k_min, profile.resolution
+            ),
+            "max_accel_m_s2": self.max_a,
+            "saturated_fraction": self.saturated / n,
+            "unrenderable_fraction": self.unrenderable / n,
+            "nonfinite_frames": self.nonfinite,
+            "watchdog_frames": self.watchdog,
+            "limit_frames": self.limit,
+            "actuator_work_j": self.work,
+            "loop_rate_hz": self.loop_rate(),
+            "period_p99_ms": self.percentile(99) * 1e3,
+            "period_p50_ms": self.percentile(50) * 1e3,
+            "period_max_ms": self.max_period * 1e3,
+            "gains": asdict(ctrl.gains),
+        }
+
+
+def _jsonable(value: Any) -> Any:
+    """NaN and infinities (a figure with no data) become None, so the summary is JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def summary_lines(summary: Mapping[str, Any]) -> list[str]:
+    """The summary of :func:`play` as a few lines for people."""
+
+    def num(key: str, scale: float = 1.0, fmt: str = ".1f") -> str:
+        value = summary.get(key)
+        return "n/a" if value is None else format(value * scale, fmt)
+
+    lines = [
+        f"played {num('duration_s', fmt='.2f')} s: {summary.get('frames', 0)} frames at "
+        f"{num('loop_rate_hz')} Hz (period p99 {num('period_p99_ms', fmt='.2f')} ms, max "
+        f"{num('period_max_ms', fmt='.2f')} ms), {summary.get('frames_lost', 0)} lost, "
+        f"{summary.get('frames_bad', 0)} bad, {summary.get('missed_periods', 0)} periods "
+        "without a frame",
+        f"tracking error rms {num('tracking_rms_m', 1e6, '.2f')} um, max "
+        f"{num('tracking_max_m', 1e6)} um, bound {num('tracking_bound_m', 1e6)} um "
+        "(|M - Mp| max|xp''| / (k + Cp) + encoder resolution)",
+        f"saturated {num('saturated_fraction', 100, '.2f')} %, unrenderable "
+        f"{num('unrenderable_fraction', 100, '.2f')} % of frames; watchdog frames "
+        f"{summary.get('watchdog_frames', 0)}; solenoid work "
+        f"{num('actuator_work_j', 1e3, '.3f')} mJ (> 0: energy created)",
+        f"stopped: {summary.get('stop_reason', '')}",
+    ]
+    log = summary.get("log")
+    if log:
+        lines.append(f"log: {log['path']}, group {log['group']}")
+    return lines

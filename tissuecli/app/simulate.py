@@ -1,0 +1,113 @@
+"""The ``simulate`` services: run a simulated forceps or display in this process, behind
+a pseudo-terminal, until Ctrl-C, SIGTERM or a set duration."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+from ..core.tissue import DEFAULT_TISSUE, Tissue
+from ..formats.params import read_profile, read_tissue
+from ..hw.realtime import StopFlag
+from ..sim.display import run_simulated_display
+from ..sim.forceps import Faults, run_forceps
+from ..sim.port import VirtualPort
+from ..sim.synth import ForcepsModel, Sensors
+
+StrPath = str | os.PathLike[str]
+
+
+def simulate_forceps(
+    link: StrPath | None = None,
+    *,
+    params: StrPath | None = None,
+    rate_hz: float = 1000.0,
+    adc_bits: int = 8,
+    force_noise_n: float = 0.005,
+    position_noise_m: float = 5e-6,
+    corrupt: float = 0.0,
+    drop: float = 0.0,
+    drift_ppm: float = 0.0,
+    seed: int = 0,
+    duration_s: float | None = None,
+    on_ready: Callable[[VirtualPort, Tissue], None] | None = None,
+) -> dict[str, int]:
+    """Run the simulated forceps until SIGINT/SIGTERM (or ``duration_s``).
+
+    Parameters
+    ----------
+    link : path, optional
+        Make a symlink to the pty here.
+    params : path, optional
+        Tissue parameter file; a liver-like default otherwise.
+    rate_hz : float
+        Sample rate, Hz.
+    adc_bits : int
+        ADC resolution.
+    force_noise_n, position_noise_m : float
+        Sensor noise SDs before quantisation, N and m.
+    corrupt, drop : float
+        Fault injection: probabilities per frame.
+    drift_ppm : float
+        The device clock runs this many ppm fast.
+    seed : int
+        Seed of noise and operator.
+    duration_s : float, optional
+        Exit after this many seconds.
+    on_ready : callable, optional
+        Called with the port and the tissue once the port exists.
+
+    Returns
+    -------
+    dict
+        The firmware's counters (``sent`` frames, ...).
+    """
+    tissue = read_tissue(params) if params else DEFAULT_TISSUE
+    model = ForcepsModel(
+        tissue=tissue,
+        rate_hz=rate_hz,
+        drift_ppm=drift_ppm,
+        seed=seed,
+        sensors=Sensors(
+            bits=adc_bits, force_noise_n=force_noise_n, position_noise_m=position_noise_m
+        ),
+    )
+    faults = Faults(corrupt=corrupt, drop=drop)
+    stop = StopFlag().install()
+    port = VirtualPort(link)
+    try:
+        return run_forceps(
+            model,
+            port,
+            faults=faults,
+            stop=stop,
+            duration_s=duration_s,
+            on_ready=None if on_ready is None else lambda p: on_ready(p, tissue),
+        )
+    finally:
+        port.close()
+
+
+def simulate_display(
+    link: StrPath | None = None,
+    *,
+    profile: StrPath | None = None,
+    rate_hz: float = 1000.0,
+    seed: int = 0,
+    duration_s: float | None = None,
+    on_ready: Callable[[VirtualPort], None] | None = None,
+    say: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the simulated display until SIGINT/SIGTERM (or ``duration_s``); see
+    :func:`tissuecli.sim.display.run_simulated_display`. ``profile`` is a display
+    profile file (the paper's prototype otherwise)."""
+    return run_simulated_display(
+        link,
+        profile=read_profile(profile) if profile else None,
+        rate_hz=rate_hz,
+        seed=seed,
+        duration_s=duration_s,
+        on_ready=on_ready,
+        say=say,
+    )

@@ -1,0 +1,34 @@
+"""``tissuecli demo``: the whole pipeline on simulated devices."""
+
+from __future__ import annotations
+
+import click
+
+from .base import cli
+
+
+@cli.command()
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=1),
+    default=5.0,
+    show_default=True,
+    help="Seconds to record from the simulated forceps.",
+)
+@click.option(
+    "--dir",
+    "workdir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Keep the files here instead of a temporary directory.",
+)
+def demo(duration: float, workdir: str | None) -> None:
+    """Everything on simulated devices: simulate, record, list, export, fit, report, play.
+
+    \b
+    Example:
+        tissuecli demo --dir demo-files
+    """
+    from ..app.demo import run_demo
+
+    run_demo(duration_s=duration, workdir=workdir, say=click.echo)

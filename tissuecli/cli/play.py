@@ -1,0 +1,102 @@
+"""``tissuecli play``: render an identified tissue on the solenoid display."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from ..core.errors import InputError, RenderError
+from .base import cli, end_live_line, live_line
+from .options import duration_option, file_argument, profile_option, rate_option
+
+
+def _status_line(s: dict[str, Any]) -> None:
+    live_line(
+        f"playing: {s['duration_s']:7.1f} s  error rms {s['tracking_rms_m'] * 1e6:6.1f} um  "
+        f"saturated {s['saturated_fraction']:6.1%}  unrenderable "
+        f"{s['unrenderable_fraction']:6.1%}  {s['loop_rate_hz']:7.1f} Hz  "
+        f"lost {s['frames_lost']}"
+    )
+
+
+@cli.command()
+@file_argument("params_file")
+@click.option(
+    "--port",
+    default=None,
+    help="Display path (e.g. /dev/ttyUSB1, /tmp/display) or pyserial URL; not needed with --check.",
+)
+@duration_option("Seconds to play; default until Ctrl-C or SIGTERM.")
+@rate_option("Control-loop rate in Hz; must be the display's.")
+@click.option(
+    "--log",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="HDF5 file to log every frame to, as group plays/<name> (never overwritten).",
+)
+@click.option(
+    "--summary",
+    "summary_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the summary (or with --check the verdict) as JSON here.",
+)
+@click.option(
+    "--check",
+    "check_only",
+    is_flag=True,
+    help="Only report the renderable band and the verdict; open no port, move nothing.",
+)
+@profile_option("Display profile JSON (SI); default: what the display reports, else the paper's.")
+def play(
+    params_file: str,
+    port: str | None,
+    duration: float | None,
+    rate: float,
+    log: str | None,
+    summary_file: str | None,
+    check_only: bool,
+    profile_file: str | None,
+) -> None:
+    """Render an identified tissue on the solenoid haptic display.
+
+    The tissue is checked first: a display that would saturate below a firm grasp
+    (3.4 N), a tissue softer than the display's spring, or an unstable loop are
+    refused with the reason. Ctrl-C, SIGTERM, a lost display or any error leave
+    the solenoid at 0 V.
+
+    \b
+    Examples:
+        tissuecli simulate display --link /tmp/display &
+        tissuecli play liver.json --port /tmp/display --duration 20 --log plays.h5
+        tissuecli play liver.json --check        # the band and the verdict only
+    """
+    from ..app.play import check_file, play_file, summary_lines
+    from ..hw.realtime import StopFlag
+
+    if check_only:
+        result = check_file(params_file, profile=profile_file, rate_hz=rate, summary=summary_file)
+        for line in result.lines():
+            click.echo(line)
+        if not result.renderable:
+            raise RenderError("the display cannot render this tissue: " + "; ".join(result.reasons))
+        return
+    if port is None:
+        raise InputError("give the display's port with --port (or use --check)")
+    try:
+        summary = play_file(
+            params_file,
+            port,
+            duration,
+            profile=profile_file,
+            summary=summary_file,
+            rate_hz=rate,
+            log=log,
+            stop=StopFlag().install(),
+            on_status=_status_line,
+        )
+    finally:
+        end_live_line()
+    for line in summary_lines(summary):
+        click.echo(line)

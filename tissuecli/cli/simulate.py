@@ -1,0 +1,165 @@
+"""``tissuecli simulate forceps|display``: simulated devices behind real serial ports."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import click
+
+from .base import cli
+from .options import duration_option, link_option, profile_option, rate_option, seed_option
+
+
+@cli.group()
+def simulate() -> None:
+    """Run a simulated device behind a real pseudo-terminal serial port."""
+
+
+def _announce(port: Any, detail: str) -> None:
+    """Print the port (for scripts, on stdout) and what runs behind it (stderr)."""
+    click.echo(port.path if port.link is None else f"{port.link} -> {port.name}")
+    click.echo(detail, err=True)
+    sys.stdout.flush()
+
+
+@simulate.command("forceps")
+@link_option("forceps")
+@rate_option("Sample rate in Hz.")
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Tissue parameter file (as written by `fit --out`); a liver-like default otherwise.",
+)
+@click.option(
+    "--adc-bits",
+    type=click.IntRange(8, 16),
+    default=8,
+    show_default=True,
+    help="ADC resolution; the paper's microcontroller has 8 bits.",
+)
+@click.option(
+    "--force-noise",
+    type=click.FloatRange(min=0),
+    default=0.005,
+    show_default=True,
+    help="Force sensor noise SD in N, before quantisation.",
+)
+@click.option(
+    "--position-noise",
+    type=click.FloatRange(min=0),
+    default=5e-6,
+    show_default=True,
+    help="Jaw position sensor noise SD in m, before quantisation.",
+)
+@click.option(
+    "--corrupt",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Fault injection: probability that a frame is corrupted on the line.",
+)
+@click.option(
+    "--drop",
+    type=click.FloatRange(0, 1),
+    default=0.0,
+    show_default=True,
+    help="Fault injection: probability that a frame is never sent.",
+)
+@click.option(
+    "--drift-ppm",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="Fault injection: the device clock runs this many ppm fast.",
+)
+@seed_option("Seed of noise and operator.")
+@duration_option("Exit after this many seconds (default: run until Ctrl-C or SIGTERM).")
+def simulate_forceps(
+    link: str | None,
+    rate: float,
+    params_file: str | None,
+    adc_bits: int,
+    force_noise: float,
+    position_noise: float,
+    corrupt: float,
+    drop: float,
+    drift_ppm: float,
+    seed: int,
+    duration: float | None,
+) -> None:
+    """A simulated forceps: an operator squeezing tissue, sensors, an ADC, the wire protocol.
+
+    It prints its port, then streams to whoever opens it and sends START.
+    Stop it with Ctrl-C or SIGTERM.
+
+    \b
+    Example:
+        tissuecli simulate forceps --link /tmp/forceps --rate 1000 &
+    """
+    from ..app.simulate import simulate_forceps as run
+
+    def ready(port: Any, tissue: Any) -> None:
+        _announce(
+            port,
+            f"simulated forceps streaming {tissue.model.name} tissue at {rate:g} Hz, "
+            f"{adc_bits}-bit ADC; Ctrl-C to stop",
+        )
+
+    counters = run(
+        link,
+        params=params_file,
+        rate_hz=rate,
+        adc_bits=adc_bits,
+        force_noise_n=force_noise,
+        position_noise_m=position_noise,
+        corrupt=corrupt,
+        drop=drop,
+        drift_ppm=drift_ppm,
+        seed=seed,
+        duration_s=duration,
+        on_ready=ready,
+    )
+    click.echo(f"stopped: {counters['sent']} frames sent", err=True)
+
+
+@simulate.command("display")
+@link_option("display")
+@profile_option("Display profile JSON (SI); the paper's prototype otherwise.")
+@rate_option("Control-loop rate in Hz.")
+@seed_option("Seed of the operator's presses.")
+@duration_option("Exit after this many seconds (default: run until Ctrl-C or SIGTERM).")
+def simulate_display(
+    link: str | None, profile_file: str | None, rate: float, seed: int, duration: float | None
+) -> None:
+    """A simulated solenoid display: piston, spring, solenoid, encoder and a pressing finger.
+
+    It prints its port, then sends an Encoder frame every period to whoever opens
+    it and sends START, and applies the SetVoltage frames it receives. With no
+    SetVoltage for 5 periods it switches the solenoid off (watchdog). The finger
+    presses 1-2.5 N a few times per 10 s. Stop it with Ctrl-C or SIGTERM.
+
+    \b
+    Example:
+        tissuecli simulate display --link /tmp/display &
+    """
+    from ..app.simulate import simulate_display as run
+
+    counters = run(
+        link,
+        profile=profile_file,
+        rate_hz=rate,
+        seed=seed,
+        duration_s=duration,
+        on_ready=lambda port: _announce(
+            port, f"simulated display at {rate:g} Hz, operator seed {seed}; Ctrl-C to stop"
+        ),
+        say=lambda line: click.echo(line, err=True),
+    )
+    click.echo(
+        f"stopped: {counters['sent']} frames sent, {counters['commands']} SetVoltage received, "
+        f"{counters['watchdog_trips']} watchdog trips",
+        err=True,
+    )

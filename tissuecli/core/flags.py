@@ -1,0 +1,11 @@
+"""Bits of the per-frame ``flags`` of the rendering loop, in one table.
+
+The display sets the low bits in its Encoder frames (docs/protocol.md); the host's
+controller sets the high bits; play logs store both ORed together.
+"""
+
+FLAG_WATCHDOG = 0x01  # display: V zeroed because SetVoltage frames stopped arriving
+FLAG_LIMIT = 0x02  # display: the piston is pressed against an end stop
+SATURATED = 0x10  # controller: the law asked for more than v_max; V = v_max
+UNRENDERABLE = 0x20  # controller: the law asked the solenoid to push; V = 0
+NONFINITE = 0x40  # controller: an input or the law was NaN or infinite; V = 0

@@ -1,0 +1,46 @@
+"""Everything that touches a file: HDF5 sessions and play logs (h5py is imported only
+here), parameter, calibration and display profile files, CSV, atomic writes.
+docs/formats.md describes every layout.
+
+- :mod:`~tissuecli.formats.hdf5`: attributes, opening, fsync, reading a group;
+- :mod:`~tissuecli.formats.writer`: the crash-safe append-only writer;
+- :mod:`~tissuecli.formats.sessions`: sessions (write, stream, read, list);
+- :mod:`~tissuecli.formats.playlog`: play logs;
+- :mod:`~tissuecli.formats.params`: parameter files (their only owner), calibration
+  and display profile files;
+- :mod:`~tissuecli.formats.csvfile`: CSV sessions;
+- :mod:`~tissuecli.formats.jsonfile`, :mod:`~tissuecli.formats.atomic`: JSON and atomic writes.
+"""
+
+from .csvfile import read_csv, write_csv
+from .hdf5 import Column, group_names, read_group
+from .params import read_calibration, read_profile, read_tissue, tissue_to_dict, write_params
+from .sessions import (
+    check_new_session,
+    list_sessions,
+    read_session,
+    session_names,
+    session_writer,
+    write_session,
+)
+from .writer import SeriesWriter
+
+__all__ = [
+    "Column",
+    "SeriesWriter",
+    "check_new_session",
+    "group_names",
+    "list_sessions",
+    "read_calibration",
+    "read_csv",
+    "read_group",
+    "read_profile",
+    "read_session",
+    "read_tissue",
+    "session_names",
+    "session_writer",
+    "tissue_to_dict",
+    "write_csv",
+    "write_params",
+    "write_session",
+]

@@ -1,0 +1,214 @@
+"""Serial links to devices: the only module that imports pyserial.
+
+:class:`Link` opens a port (a device path or any pyserial URL such as ``loop://``
+or ``socket://host:port``), sends framed messages and returns decoded ones.
+:func:`open_device` is the one handshake every host program uses: stop a stream a
+crashed host left running, drain the line, identify the device and check that it
+speaks this protocol and is the kind of device expected.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import serial
+
+from ..core.errors import DeviceError, DeviceLost
+from .protocol import COMMANDS, PROTOCOL_VERSION, Command, FrameDecoder, Info, Message, encode
+
+DEFAULT_BAUD = 921600  # ptys ignore it; real 1 kHz forceps need >= 460800 (docs/protocol.md)
+
+#: What each kind of device is for, said when another kind answers.
+ROLES = {
+    "forceps": "record reads the forceps (a display is driven by `tissuecli play`)",
+    "display": "play drives the display (a forceps is read by `tissuecli record`)",
+}
+
+
+class Link:
+    """A host's connection to one framed device.
+
+    Parameters
+    ----------
+    url : str
+        Device path (``/dev/ttyUSB0``, a simulator's ``--link``) or pyserial URL.
+    baudrate : int
+        Line rate in bit/s (ignored by ptys).
+    timeout : float
+        Longest a single :meth:`poll` blocks waiting for the first byte, in s.
+    kind : str
+        The device expected there (``forceps`` or ``display``), for error hints.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        baudrate: int = DEFAULT_BAUD,
+        timeout: float = 0.05,
+        kind: str = "forceps",
+    ) -> None:
+        self.url = url
+        try:
+            self._port = serial.serial_for_url(
+                url, baudrate=baudrate, timeout=timeout, write_timeout=1.0, exclusive=True
+            )
+        except (serial.SerialException, ValueError, OSError) as exc:
+            hint = ""
+            if not Path(url).exists() and "://" not in url:
+                hint = (
+                    "; is the device plugged in? For a simulated one run "
+                    f"`tissuecli simulate {kind} --link {url}` first"
+                )
+            raise DeviceError(f"cannot open {url}: {_reason(exc)}{hint}") from None
+        self.decoder = FrameDecoder()
+
+    def send(self, message: Message) -> None:
+        """Write one framed message."""
+        try:
+            self._port.write(encode(message))
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceLost(f"lost {self.url} while writing: {_reason(exc)}") from None
+
+    def command(self, name: str) -> None:
+        """Send a command by name (``identify``, ``start``, ``stop``)."""
+        self.send(Command(COMMANDS[name]))
+
+    def poll(self) -> list[Message]:
+        """Read what has arrived (waiting up to ``timeout`` for the first byte) and decode it."""
+        try:
+            # read(in_waiting or 1) returns everything buffered in one call;
+            # read_until would go byte by byte (30x slower)
+            data = self._port.read(self._port.in_waiting or 1)
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceLost(f"lost {self.url}: {_reason(exc)}") from None
+        return self.decoder.feed(data) if data else []
+
+    def discard_input(self) -> None:
+        """Drop whatever the device sent before now."""
+        try:
+            self._port.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceLost(f"lost {self.url}: {_reason(exc)}") from None
+        self.decoder = FrameDecoder()
+
+    def identify(self, timeout_s: float = 2.0) -> dict[str, Any] | None:
+        """Ask the device who it is; its Info dict, or ``None`` if it does not answer."""
+        deadline = time.monotonic() + timeout_s
+        self.command("identify")
+        next_ask = time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            for msg in self.poll():
+                if isinstance(msg, Info):
+                    return msg.data
+            if time.monotonic() > next_ask:  # a request lost in line noise is asked again
+                self.command("identify")
+                next_ask += 0.5
+        return None
+
+    def fileno(self) -> int | None:
+        """The port's file descriptor, to wait on with ``select``; None for URLs without
+        one (``loop://``)."""
+        try:
+            return int(self._port.fileno())
+        except (AttributeError, OSError, ValueError, TypeError):
+            return None
+
+    def nonblocking(self) -> None:
+        """Make :meth:`poll` return at once: a loop that keeps its own deadlines waits instead."""
+        self._port.timeout = 0
+
+    def close(self) -> None:
+        try:
+            self._port.close()
+        except (serial.SerialException, OSError):
+            pass
+
+    def __enter__(self) -> Link:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_device(
+    url: str,
+    kind: str,
+    *,
+    baudrate: int = DEFAULT_BAUD,
+    timeout: float = 0.05,
+    require_info: bool = True,
+    no_info_hint: str = "",
+) -> tuple[Link, dict[str, Any] | None]:
+    """Open ``url``, stop and drain it, identify it and check what it is.
+
+    Parameters
+    ----------
+    url : str
+        Device path or pyserial URL.
+    kind : {"forceps", "display"}
+        The device expected.
+    baudrate, timeout
+        See :class:`Link`.
+    require_info : bool
+        Refuse a device that does not answer IDENTIFY; otherwise return ``None``
+        for its Info (a forceps that streams without identifying, given a calibration).
+    no_info_hint : str
+        Added to the refusal of a silent device (how else to proceed).
+
+    Returns
+    -------
+    link : Link
+        Open, with the device stopped and its input drained.
+    info : dict or None
+        What the device answered to IDENTIFY.
+
+    Raises
+    ------
+    DeviceError
+        If the port cannot be opened, the device is silent (and ``require_info``),
+        speaks another protocol version or is another kind of device.
+    """
+    link = Link(url, baudrate=baudrate, timeout=timeout, kind=kind)
+    try:
+        link.command("stop")  # a device left streaming by a crashed host
+        time.sleep(0.05)
+        link.discard_input()
+        info = link.identify()
+        if info is None:
+            if require_info:
+                raise DeviceError(
+                    f"{url} did not answer IDENTIFY within 2 s; is it a {kind} and is it "
+                    f"powered? For a simulated one run `tissuecli simulate {kind} --link {url}`"
+                    + no_info_hint
+                )
+            return link, None
+        check_identity(info, url, kind)
+        return link, info
+    except BaseException:
+        link.close()
+        raise
+
+
+def check_identity(info: dict[str, Any], url: str, kind: str) -> None:
+    """Refuse a device of another protocol version or another kind than ``kind``."""
+    version = info.get("protocol")
+    if version != PROTOCOL_VERSION:
+        raise DeviceError(
+            f"{url} speaks protocol version {version}; this tissuecli speaks "
+            f"{PROTOCOL_VERSION}. Update tissuecli or the {kind} firmware"
+        )
+    device = info.get("device", kind)
+    if device != kind:
+        raise DeviceError(f"{url} is a {device!r}, not a {kind}; {ROLES.get(kind, '')}")
+
+
+def _reason(exc: BaseException) -> str:
+    """The useful part of a pyserial/OS error message ("no such file or directory")."""
+    text = str(exc)
+    if "] " in text:  # "could not open port X: [Errno 2] No such file or directory: 'X'"
+        return text.rsplit("] ", 1)[1].split(":", 1)[0].lower()
+    if isinstance(exc, OSError) and exc.strerror:
+        return str(exc.strerror).lower()
+    return text

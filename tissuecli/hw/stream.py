@@ -1,0 +1,134 @@
+"""The skeleton every acquisition loop shares: START, poll, sequence tracking, a silent
+device taken as lost, status cadence, a clean stop and a final STOP.
+
+:func:`tissuecli.app.record.record` (forceps samples to a file) and
+:func:`tissuecli.app.play.play` (display frames through the control loop) differ only
+in what they do with each batch of frames and how long they wait between polls.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from types import TracebackType
+
+from ..core.errors import DeviceLost
+from .link import Link
+from .protocol import Message, SequenceTracker
+from .realtime import StopFlag
+
+
+class Stream:
+    """One device streaming frames of one type, from START to STOP.
+
+    Entering sends START; leaving always tries ``before_stop`` (the play loop's
+    0 V) and then STOP, ignoring a line that is already gone. Between the two the
+    owner loops::
+
+        with Stream(link, Sample, stop=stop, idle_timeout_s=2.0) as stream:
+            while stream.running():
+                frames = stream.poll()
+                now = time.monotonic()
+                if not frames:
+                    stream.check_idle(now)
+                ...
+                if stream.status_due(now):
+                    ...
+
+    Parameters
+    ----------
+    link : Link
+        An open, identified device.
+    frame_type : type of Message
+        The frames the loop is about (Sample, Encoder); others are ignored.
+    stop : StopFlag
+        Set by SIGINT/SIGTERM: :meth:`running` then returns False.
+    idle_timeout_s : float
+        A device that sends no frame for this long is taken as lost, s.
+    status_interval_s : float
+        Cadence of :meth:`status_due`, s.
+    before_stop : callable, optional
+        Run before the final STOP (e.g. switch the solenoid off).
+
+    Attributes
+    ----------
+    seqs : SequenceTracker
+        Frames lost and sequence restarts so far.
+    reason : str
+        Why the stream ended: ``"duration reached"`` unless the stop flag or a
+        lost device ended it (or the owner says otherwise).
+    t_start : float
+        Monotonic time of START, s.
+    """
+
+    def __init__(
+        self,
+        link: Link,
+        frame_type: type[Message],
+        *,
+        stop: StopFlag,
+        idle_timeout_s: float,
+        status_interval_s: float = math.inf,
+        before_stop: Callable[[], None] | None = None,
+    ) -> None:
+        self.link = link
+        self.frame_type = frame_type
+        self.stop = stop
+        self.idle_timeout_s = idle_timeout_s
+        self.status_interval_s = status_interval_s
+        self.before_stop = before_stop
+        self.seqs = SequenceTracker()
+        self.reason = "duration reached"
+        self.t_start = self.last_frame = self.next_status = math.nan
+
+    def __enter__(self) -> Stream:
+        self.link.command("start")
+        self.t_start = self.last_frame = time.monotonic()
+        self.next_status = self.t_start + self.status_interval_s
+        return self
+
+    def running(self) -> bool:
+        """False once the stop flag is set (the reason is then recorded)."""
+        if self.stop:
+            self.reason = "interrupted by signal"
+            return False
+        return True
+
+    def poll(self) -> list[Message]:
+        """The frames of the stream's type that have arrived, sequence numbers tracked."""
+        frames = [m for m in self.link.poll() if isinstance(m, self.frame_type)]
+        if frames:
+            for m in frames:
+                self.seqs.update(m.seq)  # type: ignore[attr-defined]
+            self.last_frame = time.monotonic()
+        return frames
+
+    def check_idle(self, now: float) -> None:
+        """Raise :class:`DeviceLost` if no frame arrived for ``idle_timeout_s``."""
+        if now - self.last_frame > self.idle_timeout_s:
+            timeout = self.idle_timeout_s
+            span = f"{timeout * 1e3:g} ms" if timeout < 1 else f"{timeout:g} s"
+            raise DeviceLost(f"no {self.frame_type.__name__} frame from {self.link.url} for {span}")
+
+    def status_due(self, now: float) -> bool:
+        """True once every ``status_interval_s``."""
+        if now >= self.next_status:
+            self.next_status = now + self.status_interval_s
+            return True
+        return False
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if isinstance(exc, DeviceLost):
+            self.reason = f"device lost: {exc}"
+        try:
+            if self.before_stop is not None:
+                self.before_stop()
+            self.link.command("stop")
+        except DeviceLost:
+            pass

@@ -1,0 +1,424 @@
+"""Bayesian identification of ``K f0(x) + S f1(xdot) + M xddot = F`` over every form:
+exact posteriors and evidences where they exist, emcee where the positivity bounds
+cut the posterior, posterior probabilities of the forms, and diagnostics.
+
+The estimator has the scikit-learn shape (keyword hyperparameters, ``fit(session)``
+returning self, fitted attributes ending in ``_``, :meth:`BayesianFit.predict`).
+It works on arrays; reading and writing files is the caller's business.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import FitError
+from ..core.forms import FORCE_SCALE
+from ..core.session import Session
+from ..core.tissue import PARAMETERS, TissueModel, all_models
+from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
+from .design import design, eiv_correction, lstsq_scaled, position_noise_sd
+from .noise import data_weight, residual_tau
+from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
+from .prepare import prepare
+from .sampling import run_emcee, stepping_stone
+
+Array = NDArray[np.float64]
+
+#: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
+DECISIVE = float(np.log(100.0))
+
+
+#: posterior mass beyond the positivity bounds above which the posterior is sampled
+CUT_THRESHOLD = 1e-3
+
+
+def parse_forms(spec: str | Sequence[str] | None) -> list[TissueModel]:
+    """``"all"``/None, ``"x,xdot"`` or ``["x,xdot", "x^3,xdot"]`` into models."""
+    if spec is None or spec == "all":
+        return all_models()
+    specs = [spec] if isinstance(spec, str) else list(spec)
+    models = []
+    for item in specs:
+        parts = [p.strip() for p in item.split(",")]
+        if len(parts) != 2:
+            raise FitError(f"--forms {item!r}: give f0,f1 such as x,xdot or x^3,xdot^2, or all")
+        models.append(TissueModel.from_names(*parts))
+    return models
+
+
+@dataclass
+class ModelResult:
+    """The fit of one model form."""
+
+    model: TissueModel
+    ln_evidence: float = float("nan")
+    probability: float = float("nan")
+    posterior: Posterior | None = None
+    ln_evidence_sampler: float | None = None
+    status: str = "exact"  # exact | emcee | skipped
+    reason: str = ""
+    cond: float = float("nan")
+    cond_scaled: float = float("nan")
+    residual_rms: float = float("nan")
+    flags: list[str] = field(default_factory=list)
+    gram: Array = field(default_factory=lambda: np.zeros((3, 3)), repr=False)  # A^T A
+    correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
+    stats: SufficientStats | None = field(default=None, repr=False)
+    prior: Prior | None = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+
+class BayesianFit:
+    """Bayesian identification over model forms with model choice.
+
+    Parameters
+    ----------
+    forms : str or list of str
+        ``"all"`` or forms such as ``"x,xdot"``.
+    sampler : {"auto", "emcee"}
+        ``auto`` samples only where the exact posterior does not apply (the
+        positivity bound cuts it); ``emcee`` samples every form not skipped,
+        and also estimates its evidence by stepping-stone as a check.
+    differentiator : str or Differentiator
+    eiv : bool
+        Correct the errors-in-variables bias from position noise.
+    force_scale : float
+        N. Sets the priors: each term of the law is expected to stay within a
+        few times this force at jaw-scale closure, speed and acceleration.
+    decisive : float
+        ln Bayes factor behind the best beyond which a form is not sampled.
+    seed : int
+    progress : callable, optional
+        ``progress(form, steps, tau)`` while sampling.
+
+    Attributes
+    ----------
+    results_ : list of ModelResult
+        One per form, best first.
+    best_ : ModelResult
+    kinematics_ : Kinematics
+    session_ : Session
+        What was fitted: the session on its sample grid, lost samples interpolated
+        (the kinematics leave out every filtered sample that depends on them).
+    tau_ : float
+        Integrated autocorrelation time of the best form's residuals (samples).
+    n_eff_ : float
+        Effective independent samples, n / tau.
+    sigma_x_ : float
+        Position noise SD estimated from its spectrum (m).
+    expected_residual_sd_ : float
+        Residual SD the best form expects (N): force noise plus position noise
+        carried through the law.
+    warnings_ : list of str
+    """
+
+    def __init__(
+        self,
+        forms: str | Sequence[str] = "all",
+        *,
+        sampler: str = "auto",
+        differentiator: str | Differentiator = "gaussian",
+        eiv: bool = True,
+        decisive: float = DECISIVE,
+        force_scale: float = FORCE_SCALE,
+        seed: int = 0,
+        progress: Callable[[str, int, float], None] | None = None,
+    ) -> None:
+        self.forms = forms
+        self.force_scale = force_scale
+        self.sampler = sampler
+        self.differentiator = differentiator
+        self.eiv = eiv
+        self.decisive = decisive
+        self.seed = seed
+        self.progress = progress
+
+    def _diff(self) -> Differentiator:
+        d = self.differentiator
+        return differentiator(d) if isinstance(d, str) else (d or Gaussian())
+
+    def fit(self, session: Session) -> BayesianFit:
+        """Fit every form to ``session``; returns self with the fitted attributes set.
+
+        Raises
+        ------
+        FitError
+            If the session cannot identify anything (too short, constant, far outside
+            the priors); no fitted attribute is set then.
+        """
+        if self.sampler not in ("auto", "emcee"):
+            raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
+        models = parse_forms(self.forms)
+        session, kin, warnings = prepare(session, self._diff())
+        sigma_x = self._position_noise(session) if self.eiv else 0.0
+        y = kin.force
+        rng = np.random.default_rng(self.seed)
+
+        # one pass per form keeps only its sufficient statistics, so memory holds one
+        # design matrix at a time whatever the number of forms
+        firsts = {m.name: _first_pass(m, kin, session.position, y, sigma_x) for m in models}
+        # residual correlation from the best-fitting form: smoothing makes neighbouring
+        # residuals alike, and treating them as independent would overstate certainty
+        best_ls = next(m for m in models if m.name == min(firsts, key=lambda k: firsts[k].rss))
+        self._check_prior_conflict(best_ls, firsts[best_ls.name].beta)
+        tau = firsts[best_ls.name].tau
+        A = design(best_ls, kin, session.position, sigma_x)
+        weight = data_weight(A, y - A @ firsts[best_ls.name].beta, tau)
+        del A
+
+        results = [self._exact(m, firsts[m.name], weight, y.size, sigma_x, rng) for m in models]
+        self._sample(results, rng)
+        ln_z = np.array([r.ln_evidence for r in results])
+        prob = np.exp(ln_z - ln_z.max())
+        prob /= prob.sum()
+        for r, p in zip(results, prob, strict=True):
+            r.probability = float(p)
+            r.flags.extend(_identifiability(r))
+        results.sort(key=lambda r: -r.ln_evidence)
+        best = results[0]
+        warnings.extend(f"{best.name}: {f}" for f in best.flags)
+        fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
+        warnings.extend(_outlier_warnings(kin, fitted))
+
+        self.session_ = session
+        self.kinematics_ = kin
+        self.sigma_x_ = sigma_x
+        self.tau_ = tau
+        self.n_eff_ = y.size * weight
+        self.results_ = results
+        self.best_ = best
+        self.expected_residual_sd_ = _expected_residual_sd(best, sigma_x, y.size)
+        self.warnings_ = warnings
+        return self
+
+    def _position_noise(self, session: Session) -> float:
+        """Position noise SD (m) from the spectrum's flat top, floored by the ADC step.
+
+        Quantisation with little dither is not white and hides from the flat top, so
+        the ADC step sets a floor: step / sqrt(12).
+        """
+        fs = 1.0 / float(np.median(np.diff(session.time)))
+        step = session.adc.step("position") if session.adc is not None else 0.0
+        return max(position_noise_sd(session.position, fs), step / np.sqrt(12))
+
+    def _exact(
+        self,
+        model: TissueModel,
+        fp: _FirstPass,
+        weight: float,
+        n: int,
+        sigma_x: float,
+        rng: np.random.Generator,
+    ) -> ModelResult:
+        """The closed-form posterior and evidence of one form."""
+        corr = fp.correction
+        uncorrected = corr is not None and np.any(np.linalg.eigvalsh(fp.gram - corr) <= 0)
+        if uncorrected:
+            corr = None  # noise dominates a column: the correction would be meaningless
+        G = fp.gram - corr if corr is not None else fp.gram
+        st = SufficientStats(weight * G, weight * fp.b, weight * fp.yy, weight * n)
+        prior = Prior(scales=model.prior_scales(self.force_scale))
+        post = ExactPosterior(st, prior).summary(rng)
+        flags = []
+        if uncorrected:
+            flags.append(
+                "position noise dominates a column: left uncorrected, so M (and "
+                "perhaps S) are biased towards zero"
+            )
+        if corr is not None:
+            # the correction rests on an estimated noise level: say when it matters
+            shift = post.mean - fp.beta
+            for j in np.flatnonzero(np.abs(shift) > post.sd):
+                flags.append(
+                    f"{PARAMETERS[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
+                    f"position-noise correction (noise {sigma_x * 1e6:.3g} um); its "
+                    "interval does not include that correction's own uncertainty"
+                )
+        return ModelResult(
+            model=model,
+            ln_evidence=post.ln_evidence,
+            posterior=post,
+            cond=fp.cond,
+            cond_scaled=fp.cond_scaled,
+            residual_rms=float(np.sqrt(fp.rss / n)),
+            gram=fp.gram,
+            correction=corr,
+            stats=st,
+            prior=prior,
+            flags=flags,
+        )
+
+    def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
+        """Run emcee where the closed form does not apply (or on request), skipping forms
+        decisively behind; say for each form how its posterior was found."""
+        top = max(r.ln_evidence for r in results)
+        for res in results:
+            assert res.posterior is not None
+            behind = top - res.ln_evidence
+            needs = res.posterior.outside > CUT_THRESHOLD or self.sampler == "emcee"
+            if not needs:
+                if self.sampler == "auto":
+                    res.reason = (
+                        "exact posterior (closed form); positivity bound cuts "
+                        f"{res.posterior.outside:.1e} of it"
+                    )
+                continue
+            if behind > self.decisive and len(results) > 1:
+                res.status = "skipped"
+                res.reason = (
+                    f"not sampled: ln Bayes factor {behind:.1f} behind the best "
+                    f"(> {self.decisive:.1f}, decisive)"
+                )
+                continue
+            cut = res.posterior.outside
+            res.posterior = run_emcee(res.stats, res.prior, rng, progress=self._progress_for(res))  # type: ignore[arg-type]
+            res.status = "emcee"
+            res.reason = (
+                f"sampled: the positivity bound cuts {100 * cut:.2g} % of the closed-form posterior"
+                if self.sampler == "auto"
+                else "sampled on request (--sampler emcee)"
+            )
+            if self.sampler == "emcee":
+                res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)  # type: ignore[arg-type]
+            if not res.posterior.diagnostics.get("converged", True):
+                res.flags.append("chain shorter than 50 autocorrelation times")
+
+    def _progress_for(self, res: ModelResult) -> Callable[[int, float], None] | None:
+        if self.progress is None:
+            return None
+        progress, name = self.progress, res.name
+        return lambda steps, tau: progress(name, steps, tau)
+
+    def _check_prior_conflict(self, model: TissueModel, beta: Array) -> None:
+        """Refuse data whose best fit lies far outside the priors: a units mistake, or a
+        material the priors were not written for, would otherwise give prior-driven answers."""
+        scales = model.prior_scales(self.force_scale)
+        ratio = np.abs(beta) / scales
+        j = int(np.argmax(ratio))
+        if not np.all(np.isfinite(beta)):
+            raise FitError(
+                "the least-squares fit is not finite; check the session for extreme values"
+            )
+        if ratio[j] > 10:
+            name = PARAMETERS[j]
+            raise FitError(
+                f"the data put {name} at {beta[j]:.3g} {model.units[name]}, {ratio[j]:.0f} times "
+                f"its prior scale ({scales[j]:.3g}) for forces of about {self.force_scale:g} N "
+                "at jaw-scale motion; check that position is in m and force in N, or set "
+                "--force-scale to the forces this material produces"
+            )
+
+    def predict(self, result: ModelResult | None = None) -> Array:
+        """Filtered force (N) the posterior mean of a form (the best by default) predicts at
+        the fitted samples, ``kinematics_.time``; shape (m,)."""
+        r = result or self.best_
+        A = design(r.model, self.kinematics_, self.session_.position, self.sigma_x_)
+        return A @ r.posterior.mean  # type: ignore[union-attr]
+
+
+def _outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str]:
+    """Raw force samples beyond ``z`` noise SDs of the fit: glitches (ADC spikes, a knock)
+    the Gaussian noise model does not explain, and which pull every parameter.
+
+    Raw, not filtered, residuals: filtering smears a spike over the kernel, and at
+    high rates with a coarse position ADC the filtered residual carries the
+    quantisation of position (plateaus of K q / 2 at every turn of the jaw), which is
+    not a glitch but stood at 50 filtered-noise SDs.
+    """
+    r = kin.force_raw - fitted
+    scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # robust SD
+    if not scale > 0:
+        return []
+    bad = np.flatnonzero(np.abs(r) > z * scale)
+    if bad.size == 0:
+        return []
+    t = kin.time[bad]
+    return [
+        f"{bad.size} force sample(s) lie beyond {z:g} noise SDs of the fit, first at "
+        f"t = {t[0]:.3f} s: a glitching sensor or a knock; the parameters absorb it, so "
+        "inspect the residuals in the report and fit a clean stretch"
+    ]
+
+
+def _expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
+    """Residual SD the best form expects (N): force noise plus position noise through the law.
+
+    With the errors-in-variables correction the posterior noise SD is the force noise
+    alone; noise on position reaches the residuals through the design columns too, adding
+    ``beta^T C beta / n`` to their variance (C: the correction subtracted from A^T A).
+    """
+    post = best.posterior
+    assert post is not None
+    sigma = float(post.sigma_mean)
+    if sigma_x <= 0 or best.correction is None:
+        return sigma  # no correction, or the fit left this form uncorrected
+    extra = float(post.mean @ best.correction @ post.mean) / max(n, 1)
+    return float(np.sqrt(sigma**2 + max(extra, 0.0)))
+
+
+@dataclass
+class _FirstPass:
+    """What the fit keeps of one form's design matrix: its sufficient statistics."""
+
+    gram: Array
+    b: Array
+    yy: float
+    beta: Array
+    rss: float
+    tau: float
+    cond: float
+    cond_scaled: float
+    correction: Array | None
+
+
+def _first_pass(
+    model: TissueModel, kin: Kinematics, x_full: Array, y: Array, sigma_x: float
+) -> _FirstPass:
+    A = design(model, kin, x_full, sigma_x)
+    beta = lstsq_scaled(A, y)
+    r = y - A @ beta
+    norms = np.linalg.norm(A, axis=0)
+    return _FirstPass(
+        gram=A.T @ A,
+        b=A.T @ y,
+        yy=float(y @ y),
+        beta=beta,
+        rss=float(r @ r),
+        tau=residual_tau(r),
+        cond=float(np.linalg.cond(A)),
+        cond_scaled=float(np.linalg.cond(A / np.where(norms > 0, norms, 1.0))),
+        correction=eiv_correction(model, kin, x_full, sigma_x) if sigma_x > 0 else None,
+    )
+
+
+def _identifiability(r: ModelResult) -> list[str]:
+    """Flags for parameters the data do not pin down."""
+    flags = []
+    post = r.posterior
+    assert post is not None
+    scales = r.prior.scales if r.prior is not None else r.model.prior_scales()
+    for j, name in enumerate(PARAMETERS):
+        lo, hi = post.ci95[j]
+        if (
+            post.sd[j] > 0.3 * scales[j]
+            or lo <= 0.02 * max(hi, 1e-300)
+            or post.sd[j] > 0.5 * abs(post.mean[j])
+        ):
+            what = "too little acceleration content" if name == "M" else "too little excitation"
+            flags.append(
+                f"{name} not identified ({what}): 95 % interval "
+                f"[{lo:.3g}, {hi:.3g}] {r.model.units[name]}"
+            )
+        elif post.sd[j] > 0.25 * abs(post.mean[j]):
+            flags.append(
+                f"{name} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                "of its value"
+            )
+    return flags

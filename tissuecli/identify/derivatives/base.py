@@ -1,0 +1,238 @@
+"""What every differentiator shares: the :class:`Kinematics` it returns, the
+:class:`Differentiator` base (trimming, holes, noise gains, the force filter), the
+registry, and the position spectrum's signal band.
+
+Each differentiator returns smoothed position, velocity and acceleration and the
+force passed through the *same* filter, so that for the linear parts of the model
+``filt(F) = K filt(x) + S filt(x)' + M filt(x)''`` holds exactly and the filter adds
+no bias. Edges, where a filter has only one side, are trimmed, and so is every
+output whose filter window touches an input sample marked invalid (lost or
+clipped): a filter cannot see across a hole.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...core.errors import FitError
+from ...core.forms import Form
+from ..spectrum import convolve_valid, power_spectrum
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Output of a differentiator, all arrays of shape (m,) after trimming.
+
+    Attributes
+    ----------
+    time, x_raw, x, v, a, force : ndarray
+        s, m (unfiltered), m, m/s, m/s^2, N (filtered like x).
+    kernels : tuple of ndarray
+        Convolution kernels giving x, v and a (the last two include 1/dt, 1/dt^2).
+    keep : slice or ndarray of int
+        Which input samples the outputs sit on: a slice after the edge trim alone,
+        indices when invalid input samples removed outputs too.
+    force_raw : ndarray
+        The unfiltered force at those samples (N).
+    noise_gain : tuple of float
+        Output SD over input SD for white input noise: position, velocity (1/s)
+        and acceleration (1/s^2).
+    cutoff_hz : float
+        The filter's -3 dB frequency (nan if it does not smooth).
+    method : str
+        What was used, for reports.
+    """
+
+    time: Array
+    x_raw: Array
+    x: Array
+    v: Array
+    a: Array
+    force: Array
+    kernels: tuple[Array, Array, Array]
+    keep: slice
+    noise_gain: tuple[float, float, float]
+    cutoff_hz: float
+    method: str
+    force_raw: Array
+    half: tuple[Array, Array, Array, float] | None = None
+    rows: NDArray[np.intp] | None = None  # outputs kept after the edge trim; None: all
+
+    @property
+    def window(self) -> int:
+        return int(self.kernels[0].size)
+
+    def _rows(self, u: Array) -> Array:
+        return u if self.rows is None else u[self.rows]
+
+    def smooth(self, u: Array) -> Array:
+        """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
+        return self._rows(convolve_valid(u, self.kernels[0]))
+
+    def stiffness_input(self, f0: Form, x_full: Array, noise_var: float = 0.0) -> Array:
+        """The stiffness column ``g * f0(x)`` from the untrimmed raw position.
+
+        Position noise of variance ``noise_var`` (m^2) inside a curved f0 adds
+        ``f0'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
+        taken off, so the column matches ``g * F`` to second order.
+        """
+        u = f0(x_full)
+        if noise_var > 0:
+            u = u - 0.5 * f0.curvature(x_full) * noise_var
+        return self.smooth(u)
+
+    def damping_input(self, f1: Form, x_full: Array, noise_var: float = 0.0) -> Array:
+        """The damping column ``~ g * f1(v)`` from the untrimmed position.
+
+        With half kernels ``g_h * [f1(v_h) + f1''(v_h) (s^2 a_h^2 - n_v) / 2]``, where
+        ``v_h = g_h' * x``, ``a_h = g_h'' * x``, ``s`` is g_h's SD and ``n_v`` the
+        variance position noise of ``noise_var`` (m^2) gives v_h: the smoothing
+        term is the second-order effect of smoothing inside the nonlinearity
+        (``g_h * f1(v) = f1(g_h * v) + f1'' Var / 2``) and the noise term removes
+        the same effect of noise. Exact for a linear f1. Without half kernels: ``f1(v)``.
+        """
+        if self.half is None:
+            return f1(self.v)
+        gh, gh1, gh2, s2 = self.half
+        v = convolve_valid(x_full, gh1)
+        a = convolve_valid(x_full, gh2)
+        n_v = noise_var * float(gh1 @ gh1)
+        col = convolve_valid(f1(v) + 0.5 * f1.curvature(v) * (s2 * a * a - n_v), gh)
+        trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
+        return self._rows(col[trim : col.size - trim])
+
+
+class Differentiator(ABC):
+    """Estimates x, xdot, xddot and filters F alike, by three convolution kernels.
+
+    Subclasses give the kernels; trimming, noise gains and the force filter are shared.
+    """
+
+    name: ClassVar[str]
+
+    @abstractmethod
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        """Kernels for x, v, a (odd length, for ``np.convolve``), cutoff in Hz, description."""
+
+    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+        """Kernels ``g_h, g_h', g_h''`` with ``g_h * g_h = g`` and g_h's variance (s^2), if any."""
+        return None
+
+    def __call__(
+        self, time: Array, x: Array, force: Array, valid: NDArray[np.bool_] | None = None
+    ) -> Kinematics:
+        """Differentiate; ``time`` must be uniformly sampled (s).
+
+        ``valid`` (n,) marks the input samples to trust; outputs whose filter
+        window holds an invalid one are left out. Invalid samples still need
+        finite stand-in values (interpolated, say): they pass through the
+        convolution, but nothing that depends on them is kept.
+        """
+        dt = sample_interval(time)
+        (k0, k1, k2), cutoff, method = self.kernels(x, dt)
+        if 2 * k0.size > x.size:
+            raise FitError(
+                f"{x.size} samples are too few for a {k0.size}-sample derivative filter; "
+                "record a longer session"
+            )
+        h = k0.size // 2
+        keep: slice | NDArray[np.intp] = slice(h, x.size - h)
+        rows = None
+        if valid is not None and not np.all(valid):
+            bad = convolve_valid((~valid).astype(float), np.ones(k0.size))
+            rows = np.flatnonzero(bad < 0.5)
+            if rows.size < k0.size:
+                raise FitError(
+                    f"only {rows.size} filtered samples have a window free of lost or clipped "
+                    f"samples ({k0.size} needed); record a cleaner session"
+                )
+            keep = rows + h
+
+        def conv(u: Array, k: Array) -> Array:
+            out = convolve_valid(u, k)
+            return out if rows is None else out[rows]
+
+        half = self.half_kernels(x, dt)
+        return Kinematics(
+            half=half,
+            time=time[keep],
+            x_raw=x[keep],
+            x=conv(x, k0),
+            v=conv(x, k1),
+            a=conv(x, k2),
+            force=conv(force, k0),
+            force_raw=force[keep],
+            kernels=(k0, k1, k2),
+            keep=keep,
+            noise_gain=tuple(float(np.linalg.norm(k)) for k in (k0, k1, k2)),  # type: ignore[arg-type]
+            cutoff_hz=cutoff,
+            method=method,
+            rows=rows,
+        )
+
+
+def sample_interval(time: Array) -> float:
+    """The sample interval in s, refusing data too irregular for a fixed-step filter."""
+    steps = np.diff(time)
+    dt = float(np.median(steps))
+    if not dt > 0:
+        raise FitError("time does not increase; cannot differentiate")
+    if np.max(np.abs(steps - dt)) > 0.25 * dt:
+        worst = int(np.argmax(np.abs(steps - dt)))
+        raise FitError(
+            f"samples are not evenly spaced (step of {steps[worst] * 1e3:.3g} ms near "
+            f"t = {time[worst]:.3f} s against {dt * 1e3:.3g} ms): lost frames or a gap; "
+            "fit a gap-free part of the session"
+        )
+    return dt
+
+
+def signal_band_hz(x: Array, fs: float, snr_db: float = 20.0) -> float:
+    """Highest frequency at which the position spectrum stands ``snr_db`` above its noise floor.
+
+    The floor is the median of the Welch spectrum between ``min(100 Hz, fs/4)`` and
+    ``min(1 kHz, fs/2)``: a hand moves the jaws below about 30 Hz, and higher up
+    coarse quantisation leaves a spectrum that falls far below the noise the
+    derivatives will see (at 10 kHz, 8 bits, the top half of the band put the
+    floor 2x too low and the band edge at 122 Hz instead of 7 Hz).
+
+    Segments are at most 4 s long and at most a quarter of the record, so that
+    Welch averages at least 7 of them: with 2 segments (6.6 s at 10 kHz), chance
+    peaks of the quantisation noise, which at 8 bits stands 10-12 dB above the
+    floor at 10-200 Hz, crossed the 20 dB line in 3 sessions of 20 and put the
+    cutoff at 19-65 Hz instead of about 12 Hz, costing M up to 400 Cramer-Rao bounds.
+    """
+    longest = 2 ** np.floor(np.log2(max(x.size / 4, 1)))
+    nperseg = int(min(x.size, max(256, min(2 ** np.ceil(np.log2(4 * fs)), longest))))
+    f, p = power_spectrum(x - np.mean(x), fs, nperseg)
+    sel = (f >= min(100.0, fs / 4)) & (f <= min(1000.0, fs / 2))
+    floor = np.median(p[sel]) if np.any(sel) else np.min(p)
+    above = np.flatnonzero((p > floor * 10 ** (snr_db / 10)) & (f > 0))
+    if above.size == 0:
+        return float(f[1]) if f.size > 1 else fs / 4
+    return float(f[above[-1]])
+
+
+DIFFERENTIATORS: dict[str, type[Differentiator]] = {}
+
+
+def register(cls: type[Differentiator]) -> type[Differentiator]:
+    DIFFERENTIATORS[cls.name] = cls
+    return cls
+
+
+def differentiator(name: str, **kwargs: object) -> Differentiator:
+    """Look a differentiator up by name."""
+    try:
+        return DIFFERENTIATORS[name](**kwargs)  # type: ignore[arg-type]
+    except KeyError:
+        raise FitError(
+            f"unknown differentiator {name!r}; choose one of: {', '.join(DIFFERENTIATORS)}"
+        ) from None

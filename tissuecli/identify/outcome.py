@@ -1,0 +1,99 @@
+"""One identification of one session: the Bayesian fit, the paper's pseudoinverse, or
+both, as :func:`fit_session` runs them and :class:`FitOutcome` holds them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ..core.errors import FitError
+from ..core.forms import FORCE_SCALE
+from ..core.session import Session
+from .bayes import BayesianFit
+from .pinv import WindowedPinv
+
+METHODS = ("bayes", "pinv", "both")
+
+
+@dataclass
+class FitOutcome:
+    """What :func:`fit_session` produced.
+
+    Attributes
+    ----------
+    session : Session
+        The session as given.
+    bayes : BayesianFit or None
+        The fitted Bayesian estimator (methods ``bayes`` and ``both``).
+    pinv : WindowedPinv or None
+        The fitted pseudoinverse (methods ``pinv`` and ``both``).
+    """
+
+    session: Session
+    bayes: BayesianFit | None
+    pinv: WindowedPinv | None
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the user should know: the Bayesian fit's warnings, else the pseudoinverse's."""
+        if self.bayes is not None:
+            return list(self.bayes.warnings_)
+        return list(self.pinv.warnings_) if self.pinv is not None else []
+
+
+def fit_session(
+    session: Session,
+    *,
+    method: str = "bayes",
+    forms: str = "all",
+    sampler: str = "auto",
+    differentiator: str = "gaussian",
+    window_s: float = 1.0,
+    force_scale: float = FORCE_SCALE,
+    seed: int = 0,
+    progress: Callable[[str, int, float], None] | None = None,
+) -> FitOutcome:
+    """Identify the tissue in a session.
+
+    Parameters
+    ----------
+    session : Session
+        Time (s), force (N) and closure (m).
+    method : {"bayes", "pinv", "both"}
+        Bayesian fit over the forms, the paper's windowed pseudoinverse, or both.
+    forms : str
+        ``"all"`` or one form such as ``"x,xdot"`` (pinv needs one; with ``all`` it
+        takes the Bayesian choice, or x,xdot alone).
+    sampler : {"auto", "emcee"}
+        See :class:`BayesianFit`.
+    differentiator : str
+        A name in :data:`~tissuecli.identify.derivatives.DIFFERENTIATORS`.
+    window_s : float
+        Pseudoinverse window, s.
+    force_scale : float
+        Prior scale, N (see :class:`BayesianFit`).
+    seed : int
+        Seed of the sampler and of the plotted posterior draws.
+    progress : callable, optional
+        ``progress(form, steps, tau)`` while sampling.
+    """
+    if method not in METHODS:
+        raise FitError(f"unknown method {method!r}; choose bayes, pinv or both")
+    est = pinv = None
+    if method in ("bayes", "both"):
+        est = BayesianFit(
+            forms,
+            sampler=sampler,
+            differentiator=differentiator,
+            force_scale=force_scale,
+            seed=seed,
+            progress=progress,
+        ).fit(session)
+    if method in ("pinv", "both"):
+        pinv_forms = (
+            forms if forms != "all" else (est.best_.model.name if est is not None else "x,xdot")
+        )
+        pinv = WindowedPinv(pinv_forms, window_s=window_s, differentiator=differentiator).fit(
+            session
+        )
+    return FitOutcome(session, est, pinv)

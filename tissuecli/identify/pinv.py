@@ -1,0 +1,108 @@
+"""The paper's identification: a pseudoinverse on each of m windows of n+1 samples,
+keeping the window of smallest residual (paper, section 4)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import FitError
+from ..core.session import Session
+from ..core.tissue import all_models
+from .bayes import parse_forms
+from .derivatives import Differentiator, differentiator
+from .design import design, lstsq_scaled
+from .prepare import prepare
+
+Array = NDArray[np.float64]
+
+
+class WindowedPinv:
+    """The paper's identification: pseudoinverse on m windows of n+1 samples.
+
+    Parameters
+    ----------
+    forms : str
+        One form, e.g. ``"x,xdot"``.
+    window_s : float
+        Window length in s (n+1 = window_s * rate).
+    differentiator : str or Differentiator
+
+    Attributes
+    ----------
+    params_ : ndarray, shape (3,)
+        (K, S, M) of the window with the smallest residual, SI.
+    windows_ : ndarray, shape (m, 3)
+        Parameters of every window.
+    residuals_ : ndarray, shape (m,)
+        RMS residual of each window (N).
+    best_window_ : int
+    session_ : Session
+        What was fitted (see :class:`BayesianFit`).
+    cond_, cond_scaled_ : float
+        Condition numbers of the best window's design, raw and column-scaled.
+    pooled_ : ndarray, shape (3,)
+        All windows in one least-squares problem, for comparison.
+    """
+
+    def __init__(
+        self,
+        forms: str = "x,xdot",
+        *,
+        window_s: float = 1.0,
+        differentiator: str | Differentiator = "gaussian",
+    ) -> None:
+        self.forms = forms
+        self.window_s = window_s
+        self.differentiator = differentiator
+
+    def fit(self, session: Session) -> WindowedPinv:
+        """Fit the form to each window of ``session``; returns self."""
+        (model,) = parse_forms(self.forms) if self.forms != "all" else (all_models()[0],)
+        d = self.differentiator
+        session, kin, warnings = prepare(session, differentiator(d) if isinstance(d, str) else d)
+        A, y = design(model, kin, session.position), kin.force
+        n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
+        m = A.shape[0] // n
+        if m < 1:
+            raise FitError(
+                f"session shorter than one {self.window_s:g} s window; "
+                "use a shorter --window or a longer session"
+            )
+        params, resid = np.empty((m, 3)), np.empty(m)
+        for i in range(m):
+            Ai, yi = A[i * n : (i + 1) * n], y[i * n : (i + 1) * n]
+            params[i] = lstsq_scaled(Ai, yi)
+            resid[i] = np.sqrt(np.mean((yi - Ai @ params[i]) ** 2))
+        best = int(np.argmin(resid))
+        Ab = A[best * n : (best + 1) * n]
+        self.session_ = session
+        self.warnings_ = warnings
+        self.model_ = model
+        self.kinematics_ = kin
+        self.windows_, self.residuals_ = params, resid
+        self.best_window_ = best
+        self.params_ = params[best]
+        self.cond_ = float(np.linalg.cond(Ab))
+        self.cond_scaled_ = float(np.linalg.cond(Ab / np.linalg.norm(Ab, axis=0)))
+        self.pooled_ = lstsq_scaled(A[: m * n], y[: m * n])
+        self.window_samples_ = n
+        return self
+
+    def predict(self) -> Array:
+        """Filtered force (N) the best window's parameters predict at the fitted samples,
+        ``kinematics_.time``; shape (m,)."""
+        return design(self.model_, self.kinematics_, self.session_.position) @ self.params_
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "model": self.model_.name,
+            "window_samples": self.window_samples_,
+            "windows": int(self.windows_.shape[0]),
+            "best_window": self.best_window_,
+            "best_residual_rms_N": float(self.residuals_[self.best_window_]),
+            "cond": self.cond_,
+            "cond_scaled": self.cond_scaled_,
+        }

@@ -1,0 +1,327 @@
+"""Can the display render this tissue? The renderable band, the force limit, the gains,
+the sampled loop's stability and Colgate's passivity margin, and a verdict with reasons."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import InputError
+from ..core.tissue import Tissue
+from .gains import choose_gains, loop_is_stable
+from .law import Gains, local_slopes, static_force
+from .profile import PAPER_DISPLAY, DisplayProfile
+
+Array = NDArray[np.float64]
+
+#: Largest grasp force measured on porcine liver (field notes, section 2): a display that
+#: saturates below it lets the tissue give way under a firm squeeze.
+GRASP_FORCE_N = 3.4
+#: Rule for tissues softer than the display's spring near rest (e.g. x^3): refused when
+#: that happens over more than this fraction of the working depth.
+MAX_SOFT_FRACTION = 0.5
+
+
+def finite_or_none(value: float) -> float | None:
+    """``value``, or None for an infinity or NaN (JSON has neither)."""
+    return value if math.isfinite(value) else None
+
+
+def working_depth(tissue: Tissue, profile: DisplayProfile, force: float = GRASP_FORCE_N) -> float:
+    """Depth at which the tissue's static force reaches ``force``, m (``inf`` if never
+    within twice the stroke)."""
+    return _solve(lambda x: static_force(tissue, x) - force, 0.0, 2 * profile.stroke)
+
+
+def _solve(fn: Callable[[float], float], lo: float, hi: float) -> float:
+    """Smallest root of an increasing-then-positive ``fn`` on [lo, hi] by scan and bisection;
+    ``inf`` if ``fn(hi) < 0``."""
+    grid = np.linspace(lo, hi, 401)
+    vals = np.array([fn(float(z)) for z in grid])
+    above = np.nonzero(vals >= 0)[0]
+    if above.size == 0:
+        return math.inf
+    j = int(above[0])
+    if j == 0:
+        return float(grid[0])
+    a, b = float(grid[j - 1]), float(grid[j])
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        a, b = (mid, b) if fn(mid) < 0 else (a, mid)
+    return b
+
+
+@dataclass
+class CheckResult:
+    """Whether and how well a display can render a tissue.
+
+    Attributes
+    ----------
+    renderable : bool
+        The verdict: False means ``play`` refuses the tissue.
+    verdict : str
+        ``"renderable"``, ``"renderable with caveats"`` or ``"not renderable"``.
+    reasons : list of str
+        Why it is refused (empty if renderable).
+    caveats : list of str
+        What will not be exact even so.
+    depth : ndarray
+        Piston depths of the band, m.
+    k_min, k_max : ndarray
+        Softest and stiffest secant stiffness ``F / x`` the display can show at each
+        depth, N/m: ``Kp`` (solenoid off) and ``Kp + alpha v_max^2 / x``.
+    k_tissue : ndarray
+        The tissue's secant stiffness ``K f0(x) / x`` at each depth, N/m.
+    force_limit : float
+        Largest static tissue force rendered before the solenoid saturates, N.
+    saturation_depth : float
+        Depth at which it saturates, m (``inf`` if never within the stroke).
+    working_depth : float
+        Depth at which the tissue's force reaches ``force``, m.
+    force : float
+        Force the tissue must be rendered up to, N.
+    gains : Gains
+        Gains :func:`choose_gains` picks for this tissue.
+    passivity_required : float
+        Colgate's ``K_d T / 2 + |B_d|`` with the digitally rendered stiffness
+        ``K_d = max k - Kp + Cp`` and damping ``B_d = max s + Cv - b``, N s/m.
+    passivity_margin : float
+        ``b - passivity_required``, N s/m: negative means passivity against any
+        passive grip is not guaranteed (the bound is conservative).
+    spectral_radius : float
+        Largest pole magnitude of the linearised sampled loop (one period of
+        delay, filter, model); >= 1 means the loop itself oscillates.
+    rate_hz : float
+        Loop rate of the analysis, Hz.
+    """
+
+    renderable: bool
+    verdict: str
+    reasons: list[str]
+    caveats: list[str]
+    depth: Array
+    k_min: Array
+    k_max: Array
+    k_tissue: Array
+    force_limit: float
+    saturation_depth: float
+    working_depth: float
+    force: float
+    gains: Gains
+    passivity_required: float
+    passivity_margin: float
+    spectral_radius: float
+    rate_hz: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (the band arrays left out)."""
+        return {
+            "renderable": self.renderable,
+            "verdict": self.verdict,
+            "reasons": list(self.reasons),
+            "caveats": list(self.caveats),
+            "force_limit_n": finite_or_none(self.force_limit),
+            "saturation_depth_m": finite_or_none(self.saturation_depth),
+            "working_depth_m": finite_or_none(self.working_depth),
+            "force_n": self.force,
+            "gains": asdict(self.gains),
+            "passivity_required_ns_per_m": self.passivity_required,
+            "passivity_margin_ns_per_m": self.passivity_margin,
+            "spectral_radius": self.spectral_radius,
+            "rate_hz": self.rate_hz,
+        }
+
+    def lines(self) -> list[str]:
+        """A short human report."""
+        mm = 1e3
+        out = [f"{self.verdict} at {self.rate_hz:g} Hz"]
+        sat = (
+            f"saturates at {self.saturation_depth * mm:.2f} mm ({self.force_limit:.2f} N)"
+            if math.isfinite(self.saturation_depth)
+            else "never saturates within the stroke"
+        )
+        out.append(f"  working depth {self.working_depth * mm:.2f} mm at {self.force:g} N; {sat}")
+        i = np.searchsorted(self.depth, [1e-3, 5e-3, 10e-3])
+        band = ", ".join(
+            f"{self.depth[j] * mm:.0f} mm: {self.k_min[j]:.0f}..{self.k_max[j]:.0f} N/m"
+            for j in i
+            if j < self.depth.size
+        )
+        out.append(f"  renderable secant stiffness {band}")
+        g = self.gains
+        out.append(
+            f"  gains Cp {g.Cp:.1f} N/m, Cv {g.Cv:.2f} N s/m ({g.bandwidth_hz:.0f} Hz), "
+            f"model mass {g.M * 1e3:.1f} g; loop spectral radius {self.spectral_radius:.4f}"
+        )
+        out.append(
+            f"  passivity (Colgate): needs b > {self.passivity_required:.2f} N s/m, "
+            f"margin {self.passivity_margin:+.2f} N s/m"
+        )
+        out += [f"  refused: {r}" for r in self.reasons]
+        out += [f"  caveat: {c}" for c in self.caveats]
+        return out
+
+
+def check(
+    tissue: Tissue,
+    profile: DisplayProfile = PAPER_DISPLAY,
+    rate_hz: float = 1000.0,
+    force: float = GRASP_FORCE_N,
+) -> CheckResult:
+    """Can this display render this tissue at this loop rate, up to ``force``?
+
+    Refused (``renderable`` False) when:
+
+    * the solenoid saturates before the tissue's force reaches ``force`` (the
+      band's upper edge ``Kp + alpha v_max^2 / x``): the tissue would give way;
+    * the tissue is softer than the display's spring (below ``Kp``, the band's
+      lower edge, the solenoid would have to push) over more than
+      ``MAX_SOFT_FRACTION`` of its working depth;
+    * the working depth exceeds the stroke;
+    * the linearised sampled loop is unstable (spectral radius >= 1).
+
+    Caveats (rendered, but not exactly): a part of the depth where the tissue is
+    softer than the spring; a model mass raised to the floor; Colgate's passivity
+    condition ``b > K T / 2 + |B|`` not met.
+
+    Parameters
+    ----------
+    tissue : Tissue
+        The identified law.
+    profile : DisplayProfile
+        The display.
+    rate_hz : float
+        Control-loop rate, Hz.
+    force : float
+        Force up to which the tissue must be rendered, N (default: the largest
+        grasp force measured on liver, 3.4 N).
+    """
+    tissue.validate()
+    profile.validate()
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise InputError(f"loop rate {rate_hz} Hz must be a positive number")
+    reasons: list[str] = []
+    caveats: list[str] = []
+    depth, k_min, k_max, k_tissue = _band(tissue, profile)
+    x_work, x_sat, f_limit = _limits(tissue, profile, force, reasons)
+    x_eval = min(x_work, x_sat, profile.stroke)
+    _softness(tissue, profile, x_eval, reasons, caveats)
+    gains, radius = choose_gains(tissue, profile, rate_hz, x_eval)
+    if gains.M > tissue.M:
+        caveats.append(
+            f"model mass raised from {tissue.M * 1e3:.1f} g to {gains.M * 1e3:.1f} g "
+            f"({gains.M / profile.Mp:.0%} of the piston's) to keep the {rate_hz:g} Hz loop "
+            "stable: the tissue's inertia is felt heavier"
+        )
+    required = _passivity_required(tissue, profile, gains, x_eval, 1.0 / rate_hz)
+    margin = profile.b - required
+    if margin <= 0:
+        caveats.append(
+            f"passivity not guaranteed (Colgate: b = {profile.b:g} N s/m <= K T/2 + |B| = "
+            f"{required:.2f} N s/m); a stiff grip could feel a buzz"
+        )
+    if not loop_is_stable(radius, tissue, gains.M, rate_hz):
+        reasons.append(
+            f"the sampled loop at {rate_hz:g} Hz is unstable (spectral radius {radius:.4f}); "
+            "raise the loop rate"
+        )
+    verdict = (
+        "not renderable" if reasons else "renderable with caveats" if caveats else "renderable"
+    )
+    return CheckResult(
+        renderable=not reasons,
+        verdict=verdict,
+        reasons=reasons,
+        caveats=caveats,
+        depth=depth,
+        k_min=k_min,
+        k_max=k_max,
+        k_tissue=k_tissue,
+        force_limit=f_limit,
+        saturation_depth=x_sat,
+        working_depth=x_work,
+        force=force,
+        gains=gains,
+        passivity_required=required,
+        passivity_margin=margin,
+        spectral_radius=radius,
+        rate_hz=rate_hz,
+    )
+
+
+def _band(tissue: Tissue, profile: DisplayProfile) -> tuple[Array, Array, Array, Array]:
+    """Depths (m) and, at each, the softest and stiffest secant stiffness the display can
+    show and the tissue's own (N/m)."""
+    depth = np.linspace(profile.stroke / 300, profile.stroke, 300)
+    with np.errstate(all="ignore"):
+        k_tissue = tissue.K * tissue.model.f0(depth) / depth
+    return depth, np.full_like(depth, profile.Kp), profile.Kp + profile.max_pull / depth, k_tissue
+
+
+def _limits(
+    tissue: Tissue, profile: DisplayProfile, force: float, reasons: list[str]
+) -> tuple[float, float, float]:
+    """Working depth at ``force``, saturation depth (m) and the force at saturation (N);
+    refusals for a tissue deeper than the stroke or stiffer than the solenoid can hold."""
+    x_work = working_depth(tissue, profile, force)
+    x_sat = _solve(
+        lambda x: static_force(tissue, x) - profile.Kp * x - profile.max_pull,
+        0.0,
+        profile.stroke,
+    )
+    f_limit = static_force(tissue, x_sat) if math.isfinite(x_sat) else math.inf
+    mm = 1e3
+    if not math.isfinite(x_work) or x_work > profile.stroke:
+        reasons.append(
+            f"at {force:g} N the tissue is deeper than the {profile.stroke * mm:g} mm stroke"
+        )
+    if f_limit < force:
+        x_at = min(x_work, profile.stroke)
+        reasons.append(
+            f"too stiff: the solenoid saturates at {x_sat * mm:.2f} mm, where the tissue "
+            f"pushes {f_limit:.2f} N, below the {force:g} N to render; at {x_at * mm:.2f} mm "
+            f"the display renders at most Kp + alpha Vmax^2/x = "
+            f"{profile.Kp + profile.max_pull / x_at:.0f} N/m, the tissue needs "
+            f"{force / x_at:.0f} N/m"
+        )
+    return x_work, x_sat, f_limit
+
+
+def _softness(
+    tissue: Tissue,
+    profile: DisplayProfile,
+    x_eval: float,
+    reasons: list[str],
+    caveats: list[str],
+) -> None:
+    """Where the tissue is softer than the display's spring, the solenoid would have to push."""
+    grid = np.linspace(0.0, x_eval, 201)[1:]
+    with np.errstate(all="ignore"):
+        soft = tissue.K * tissue.model.f0(grid) < profile.Kp * grid
+    soft_fraction = float(np.mean(soft)) if grid.size else 1.0
+    if soft_fraction > MAX_SOFT_FRACTION:
+        reasons.append(
+            f"the tissue is softer than the display's spring (Kp = {profile.Kp:.0f} N/m) over "
+            f"{soft_fraction:.0%} of its working depth; the solenoid can only pull"
+        )
+    elif soft_fraction > 0:
+        caveats.append(
+            f"softer than the display's spring over {soft_fraction:.0%} of the working depth "
+            "(near rest): felt as the spring there"
+        )
+
+
+def _passivity_required(
+    tissue: Tissue, profile: DisplayProfile, gains: Gains, depth: float, period: float
+) -> float:
+    """Colgate's ``K_d T / 2 + |B_d|`` (N s/m) with the digitally rendered stiffness
+    ``K_d = max k - Kp + Cp`` and damping ``B_d = max s + Cv - b``."""
+    sl = local_slopes(tissue, depth)
+    k_d = sl["k_hi"] - profile.Kp + gains.Cp
+    b_d = sl["s_hi"] + gains.Cv - profile.b
+    return abs(k_d) * period / 2 + abs(b_d)

@@ -1,0 +1,184 @@
+"""A self-contained HTML report of a fit: parameters, model choice, plots and diagnostics.
+
+One file, readable offline: styles are inline, figures are embedded as base64 PNG,
+and there is no script. :func:`render_report` returns the document as a string;
+writing it is the caller's business (``tissuecli.app.fit``). matplotlib is imported
+only here, so a fit without a report never loads it.
+
+Everything is in SI units; columns headed "convenient units" repeat values in N/mm,
+N s/mm and g for reading against the literature.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..identify.outcome import FitOutcome
+from .figures import (
+    MAX_DRAWS,
+    corner_figure,
+    figure_html,
+    loop_figure,
+    residual_figure,
+    series,
+    time_figure,
+    windows_figure,
+)
+from .numbers import esc
+from .sections import (
+    CSS,
+    comparison,
+    diagnostics,
+    header,
+    how_to_read,
+    matching,
+    parameters_bayes,
+    parameters_pinv,
+    pinv_info,
+    pinv_table,
+    provenance,
+    warnings_box,
+)
+
+__all__ = ["render_report"]
+
+
+def render_report(outcome: FitOutcome) -> str:
+    """The report as one HTML document (str).
+
+    Parameters
+    ----------
+    outcome : FitOutcome
+        What :func:`tissuecli.fit.fit_session` returned: a Bayesian fit, a
+        windowed pseudoinverse, or both.
+
+    Returns
+    -------
+    str
+        A complete, self-contained HTML document.
+    """
+    s = series(outcome)
+    est, pinv = outcome.bayes, outcome.pinv
+    sections = [
+        ("parameters", "Parameters"),
+        ("comparison", "Model comparison"),
+        ("plots", "Plots"),
+        ("diagnostics", "Diagnostics"),
+        ("reading", "How to read this report"),
+    ]
+    nav = " · ".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in sections)
+    parts = [header(outcome, s), f'<p class="small">Contents: {nav}</p>']
+
+    parts.append("<h2 id='parameters'>Parameters</h2>")
+    parts.append(parameters_bayes(est, s) if est is not None else parameters_pinv(pinv))  # type: ignore[arg-type]
+    parts.append(warnings_box(outcome))
+
+    parts.append("<h2 id='comparison'>Model comparison</h2>")
+    if est is not None:
+        parts.append(comparison(est))
+    else:
+        assert pinv is not None
+        parts.append(
+            f"<p>Only the form {esc(pinv.model_.name)} was fitted, by the windowed "
+            "pseudoinverse, so there is no comparison between forms.</p>"
+        )
+        parts.append(pinv_info(pinv))
+
+    parts.append("<h2 id='plots'>Plots</h2>")
+    figs = [
+        (
+            time_figure(s),
+            "plot-time",
+            "Force over time",
+            "measured and fitted grasp force against time",
+            "The dashed fitted force should lie on the measured (filtered) force throughout; "
+            "the grey trace is the raw signal before smoothing.",
+        ),
+        (
+            loop_figure(s),
+            "plot-loop",
+            "Force against jaw closure",
+            "grasp force against jaw closure, measured and fitted",
+            "The loop opens because damping adds force while closing and removes it while "
+            "opening; the fitted loop should trace the measured one, including its curvature.",
+        ),
+        (
+            residual_figure(s),
+            "plot-residuals",
+            "Residuals",
+            "residual force over time and its histogram",
+            "Residuals should look like noise: no drift or pattern repeating with the squeezes, "
+            "and a histogram matching the solid Gaussian"
+            + (
+                " of the SD the fit expects (force noise σ plus position noise carried through the "
+                "law; σ alone is dashed)."
+                if s.sigma is not None
+                and s.expected_sd is not None
+                and abs(s.expected_sd / s.sigma - 1) > 0.01
+                else " of the posterior noise SD."
+                if s.sigma is not None
+                else " of the residual RMS."
+            ),
+        ),
+    ]
+    if est is not None:
+        post = est.best_.posterior
+        assert post is not None
+        draws = post.samples
+        if draws.shape[0] > MAX_DRAWS:
+            keep = np.random.default_rng(0).choice(draws.shape[0], MAX_DRAWS, replace=False)
+            draws = draws[np.sort(keep)]
+        if draws.shape[0] >= 20:
+            figs.append(
+                (
+                    corner_figure(draws, est.best_.model, post.mean, post.ci95),
+                    "plot-corner",
+                    f"Posterior of K, S, M ({est.best_.name})",
+                    "corner plot of the posterior draws of K, S and M",
+                    f"{draws.shape[0]:,} posterior draws in SI units; solid lines: means, "
+                    "dashed: 95 % intervals. Look for compact clouds away from zero; ρ is "
+                    "the correlation between two parameters (near ±1: the data separate "
+                    "them poorly).",
+                )
+            )
+        else:
+            parts.append(
+                "<p>Too few posterior draws inside the positivity bounds for a corner plot.</p>"
+            )
+    if pinv is not None:
+        match = matching(pinv, est)
+        figs.append(
+            (
+                windows_figure(pinv, match),
+                "plot-windows",
+                "Windowed pseudoinverse, per window",
+                "pseudoinverse estimates of K, S, M and residual RMS for each window",
+                "Each point is one window's estimate; the star is the window the paper's "
+                "method keeps (smallest residual)"
+                + (
+                    "; the shaded band is the Bayesian posterior mean ± 2 SD of the same "
+                    "form. Points far outside the band show how much one window can mislead."
+                    if match is not None
+                    else "."
+                ),
+            )
+        )
+    for k, (fig, anchor, title, alt, caption) in enumerate(figs):
+        parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
+        if anchor == "plot-windows" and est is not None:
+            parts.append(pinv_table(pinv, est))  # type: ignore[arg-type]
+
+    parts.append("<h2 id='diagnostics'>Diagnostics</h2>")
+    parts.append(diagnostics(outcome))
+    parts.append("<h2 id='reading'>How to read this report</h2>")
+    parts.append(how_to_read(outcome))
+    parts.append(provenance())
+
+    title = f"Tissue identification: {outcome.session.name or 'session'}"
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{esc(title)}</title><style>{CSS}</style></head><body>"
+        + "\n".join(parts)
+        + "</body></html>\n"
+    )

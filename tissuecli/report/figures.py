@@ -1,0 +1,395 @@
+"""The report's figures: drawn on :class:`matplotlib.figure.Figure` objects with the Agg
+renderer (no global pyplot state), reduced to at most :data:`MAX_POINTS` points per
+series (a min/max envelope keeps peaks), embedded as base64 PNG."""
+
+from __future__ import annotations
+
+import base64
+import io
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator, ScalarFormatter
+from numpy.typing import NDArray
+
+from ..core.tissue import PARAMETERS, TissueModel
+from ..identify.bayes import ModelResult
+from ..identify.outcome import FitOutcome
+from ..identify.pinv import WindowedPinv
+from .numbers import esc, unit_tex
+
+Array = NDArray[np.float64]
+
+
+#: Most points drawn per series; longer series are reduced to a min/max envelope.
+MAX_POINTS = 5000
+
+
+#: Most posterior draws in the corner plot.
+MAX_DRAWS = 4000
+
+
+#: Resolution of the embedded figures (dots per inch).
+DPI = 110
+
+
+COLOURS = {
+    "measured": "#1f5fa8",
+    "fitted": "#d9601a",
+    "raw": "#b8b8b8",
+    "band": "#9fc4e8",
+    "pick": "#c0182b",
+    "open": "#c0182b",
+}
+
+
+@dataclass
+class Series:
+    """The samples a report plots, from the Bayesian fit or else the pseudoinverse."""
+
+    time: Array
+    raw: Array
+    force: Array
+    fitted: Array
+    x: Array
+    model: TissueModel
+    source: str
+    sigma: float | None
+    expected_sd: float | None
+
+    @property
+    def residual(self) -> Array:
+        return self.force - self.fitted
+
+
+def series(outcome: FitOutcome) -> Series:
+    """Measured and fitted force of the best Bayesian form, or of the pseudoinverse,
+    as the estimator predicts it."""
+    est, pinv = outcome.bayes, outcome.pinv
+    if est is not None:
+        post = est.best_.posterior
+        assert post is not None
+        kin = est.kinematics_
+        return Series(
+            time=kin.time,
+            raw=kin.force_raw,
+            force=kin.force,
+            fitted=est.predict(),
+            x=kin.x,
+            model=est.best_.model,
+            source="posterior mean of the best form",
+            sigma=post.sigma_mean,
+            expected_sd=est.expected_residual_sd_,
+        )
+    assert pinv is not None
+    kin = pinv.kinematics_
+    return Series(
+        time=kin.time,
+        raw=kin.force_raw,
+        force=kin.force,
+        fitted=pinv.predict(),
+        x=kin.x,
+        model=pinv.model_,
+        source="pseudoinverse, best window",
+        sigma=None,
+        expected_sd=None,
+    )
+
+
+def envelope(t: Array, y: Array, max_points: int = MAX_POINTS) -> tuple[Array, Array]:
+    """At most ``max_points`` points of a series: the min and max of each bucket, in order."""
+    n = y.size
+    if n <= max_points:
+        return t, y
+    b = int(math.ceil(n / (max_points // 2)))
+    m = n // b
+    block = y[: m * b].reshape(m, b)
+    base = np.arange(m) * b
+    idx = np.sort(np.column_stack([block.argmin(axis=1), block.argmax(axis=1)]), axis=1)
+    idx = (idx + base[:, None]).ravel()
+    if m * b < n:
+        tail = np.arange(m * b, n)
+        ends = sorted({int(np.argmin(y[tail])), int(np.argmax(y[tail]))})
+        idx = np.concatenate([idx, tail[ends]])
+    return t[idx], y[idx]
+
+
+def stride(n: int, max_points: int = MAX_POINTS) -> Array:
+    """Evenly spaced indices, at most ``max_points`` of them (for smooth paths)."""
+    return np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(int))
+
+
+def png(fig: Figure) -> str:
+    """Base64 PNG of a figure."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def figure_html(fig: Figure, anchor: str, title: str, alt: str, caption: str) -> str:
+    """A figure as an embedded image with a caption (what to look at)."""
+    w, h = fig.get_size_inches()
+    data = png(fig)
+    return (
+        f'<figure id="{esc(anchor)}"><h3>{esc(title)}</h3>'
+        f'<img src="data:image/png;base64,{data}" alt="{esc(alt)}" '
+        f'width="{int(w * 96)}" height="{int(h * 96)}">'
+        f"<figcaption>{esc(caption)}</figcaption></figure>"
+    )
+
+
+def new_figure(w: float, h: float) -> Figure:
+    """A figure of ``w`` x ``h`` inches with constrained layout (no pyplot)."""
+    return Figure(figsize=(w, h), layout="constrained")
+
+
+def time_figure(s: Series) -> Figure:
+    fig = new_figure(9.5, 4.6)
+    ax, bx = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
+    ax.plot(*envelope(s.time, s.raw), color=COLOURS["raw"], lw=0.7, label="raw (unfiltered)")
+    ax.plot(
+        *envelope(s.time, s.force), color=COLOURS["measured"], lw=1.3, label="measured (filtered)"
+    )
+    ax.plot(
+        *envelope(s.time, s.fitted),
+        color=COLOURS["fitted"],
+        lw=1.1,
+        ls="--",
+        label=f"fitted ({s.source})",
+    )
+    ax.set_ylabel("grasp force F (N)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8, ncols=3, framealpha=0.9)
+    lo, hi = float(np.min(s.raw)), float(np.max(s.raw))
+    ax.set_ylim(lo - 0.05 * (hi - lo), hi + 0.22 * (hi - lo))  # room for the legend
+    bx.plot(*envelope(s.time, s.x * 1e3), color="#444444", lw=1.0)
+    bx.set_ylabel("closure x (mm)")
+    bx.set_xlabel("time (s)")
+    bx.grid(alpha=0.3)
+    bx.set_xlim(s.time[0], s.time[-1])
+    return fig
+
+
+def loop_figure(s: Series) -> Figure:
+    fig = new_figure(6.4, 4.8)
+    ax = fig.add_subplot()
+    i = stride(s.x.size)
+    x, f = s.x[i] * 1e3, s.force[i]
+    closing = np.gradient(s.x)[i] >= 0
+    ax.plot(
+        x,
+        np.where(closing, f, np.nan),
+        color=COLOURS["measured"],
+        lw=1.3,
+        label="measured, closing (loading)",
+    )
+    ax.plot(
+        x,
+        np.where(closing, np.nan, f),
+        color=COLOURS["open"],
+        lw=1.3,
+        label="measured, opening (unloading)",
+    )
+    ax.plot(x, s.fitted[i], color="k", lw=0.6, ls=(0, (3, 3)), alpha=0.8, label="fitted")
+    ax.set_xlabel("jaw closure x (mm)")
+    ax.set_ylabel("grasp force F (N)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def residual_figure(s: Series) -> Figure:
+    r = s.residual * 1e3
+    fig = new_figure(9.5, 3.4)
+    gs = fig.add_gridspec(1, 2, width_ratios=(4, 1))
+    ax = fig.add_subplot(gs[0])
+    hx = fig.add_subplot(gs[1])
+    rms = float(np.sqrt(np.mean(r**2)))
+    ax.plot(
+        *envelope(s.time, r),
+        color=COLOURS["measured"],
+        lw=0.7,
+        label=f"residual, RMS {rms:.3g} mN",
+    )
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("residual, measured − fitted (mN)")
+    ax.set_xlim(s.time[0], s.time[-1])
+    ax.grid(alpha=0.3)
+    hx.hist(
+        r,
+        bins=min(80, max(15, int(np.sqrt(r.size)))),
+        orientation="horizontal",
+        density=True,
+        color=COLOURS["band"],
+        edgecolor="none",
+        label="histogram",
+    )
+    curves = []
+    if s.sigma is not None and s.expected_sd is not None:
+        if abs(s.expected_sd / s.sigma - 1) > 0.01:
+            curves.append((s.expected_sd * 1e3, "expected residual SD", "-"))
+        curves.append((s.sigma * 1e3, "posterior noise SD σ", "--" if curves else "-"))
+    else:
+        curves.append((rms, "residual RMS", "-"))
+    top = max(sd for sd, _, _ in curves)
+    grid = np.linspace(min(r.min(), -4 * top), max(r.max(), 4 * top), 300)
+    for sd, what, ls in curves:
+        hx.plot(
+            np.exp(-0.5 * (grid / sd) ** 2) / (sd * np.sqrt(2 * np.pi)),
+            grid,
+            ls=ls,
+            color=COLOURS["fitted"] if ls == "-" else "k",
+            lw=1.3,
+            label=f"Gaussian, {what} {sd:.3g} mN",
+        )
+    hx.set_xlabel("density (1/mN)")
+    hx.tick_params(labelleft=False)
+    hx.grid(alpha=0.3)
+    lo, hi = float(grid[0]), float(grid[-1])
+    for a in (ax, hx):
+        a.set_ylim(lo, hi + 0.3 * (hi - lo))  # room for the legend
+    handles, labels = (
+        a + b
+        for a, b in zip(ax.get_legend_handles_labels(), hx.get_legend_handles_labels(), strict=True)
+    )
+    ax.legend(handles, labels, loc="upper right", fontsize=8, ncols=2, framealpha=0.9)
+    return fig
+
+
+def axis_scale(values: Array) -> tuple[float, str]:
+    """A power-of-ten factor that keeps tick labels short, and its label prefix."""
+    top = float(np.max(np.abs(values))) if values.size else 0.0
+    if top == 0 or 1e-2 <= top < 1e4:
+        return 1.0, ""
+    p = 3 * math.floor(math.log10(top) / 3)
+    return 10.0 ** (-p), f"10$^{{{p}}}$ "
+
+
+def tidy_axis(axis: Any) -> None:
+    axis.set_major_locator(MaxNLocator(4))
+    fmt = ScalarFormatter(useOffset=False)
+    fmt.set_scientific(False)
+    axis.set_major_formatter(fmt)
+
+
+def corner_figure(draws: Array, model: TissueModel, mean: Array, ci: Array) -> Figure:
+    """Corner plot: 1-D histograms on the diagonal, 2-D scatter of pairs below it."""
+    p = len(PARAMETERS)
+    units = model.units
+    scaled, labels = [], []
+    for j, name in enumerate(PARAMETERS):
+        factor, prefix = axis_scale(draws[:, j])
+        scaled.append(factor)
+        labels.append(f"{name} ({prefix}{unit_tex(units[name])})")
+    v = draws[:, :p] * np.array(scaled)
+    fig = new_figure(7.6, 7.0)
+    axes = fig.subplots(p, p, squeeze=False, sharex="col")
+    for i in range(p):
+        for j in range(p):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_visible(False)
+                continue
+            if i == j:
+                ax.hist(v[:, j], bins=40, color=COLOURS["band"], edgecolor="none")
+                ax.axvline(mean[j] * scaled[j], color=COLOURS["measured"], lw=1.3)
+                for q in ci[j]:
+                    ax.axvline(q * scaled[j], color=COLOURS["measured"], lw=0.9, ls="--")
+                ax.set_yticks([])
+            else:
+                ax.scatter(
+                    v[:, j],
+                    v[:, i],
+                    s=2,
+                    alpha=0.25,
+                    color=COLOURS["measured"],
+                    linewidths=0,
+                    rasterized=True,
+                )
+                rho = float(np.corrcoef(draws[:, j], draws[:, i])[0, 1])
+                ax.text(
+                    0.03,
+                    0.95,
+                    f"ρ = {rho:+.2f}",
+                    transform=ax.transAxes,
+                    va="top",
+                    fontsize=8,
+                    bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+                )
+                tidy_axis(ax.yaxis)
+            tidy_axis(ax.xaxis)
+            ax.tick_params(labelsize=8)
+            if i == p - 1:
+                ax.set_xlabel(labels[j])
+                ax.tick_params(axis="x", labelrotation=30)
+            else:
+                ax.tick_params(labelbottom=False)
+            if j == 0 and i > 0:
+                ax.set_ylabel(labels[i])
+            elif j > 0 and i != j:
+                ax.tick_params(labelleft=False)
+    for i in range(p):
+        for j in range(i):
+            axes[i, j].set_ylim(axes[i, i].get_xlim())
+    return fig
+
+
+def windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
+    """Per-window pseudoinverse estimates against the Bayesian posterior mean +- 2 SD."""
+    t = pinv.kinematics_.time
+    n = pinv.window_samples_
+    m = pinv.windows_.shape[0]
+    centre = np.array([t[min(i * n + n // 2, t.size - 1)] for i in range(m)])
+    best = pinv.best_window_
+    units = pinv.model_.units
+    fig = new_figure(9.5, 5.6)
+    axes = fig.subplots(2, 2, sharex=True).ravel()
+    panels = [
+        (name, pinv.windows_[:, j], unit_tex(units[name])) for j, name in enumerate(PARAMETERS)
+    ]
+    panels.append(("residual RMS", pinv.residuals_ * 1e3, "mN"))
+    post = band.posterior if band is not None else None
+    for k, (ax, (name, values, unit)) in enumerate(zip(axes, panels, strict=True)):
+        factor, prefix = axis_scale(values)
+        ax.plot(
+            centre,
+            values * factor,
+            "o-",
+            color=COLOURS["measured"],
+            ms=4,
+            lw=0.8,
+            label="each window",
+        )
+        ax.plot(
+            centre[best],
+            values[best] * factor,
+            "*",
+            color=COLOURS["pick"],
+            ms=15,
+            label=f"chosen window (index {best})",
+        )
+        if k < 3:
+            ax.axhline(
+                pinv.pooled_[k] * factor, color="k", lw=0.9, ls=":", label="all windows pooled"
+            )
+            if post is not None:
+                mu, sd = post.mean[k] * factor, post.sd[k] * factor
+                ax.axhspan(
+                    mu - 2 * sd,
+                    mu + 2 * sd,
+                    color=COLOURS["band"],
+                    alpha=0.6,
+                    label="Bayesian mean ± 2 SD",
+                )
+                ax.axhline(mu, color=COLOURS["fitted"], lw=1.1)
+        ax.set_ylabel(f"{name} ({prefix}{unit})")
+        ax.grid(alpha=0.3)
+        tidy_axis(ax.yaxis)
+        if k >= 2:
+            ax.set_xlabel("window centre time (s)")
+    axes[0].legend(fontsize=7, loc="best")
+    return fig

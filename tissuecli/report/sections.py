@@ -1,0 +1,585 @@
+"""The report's sections as HTML: header and formula, parameter tables, model comparison,
+pseudoinverse tables, diagnostics, how to read it, and provenance."""
+
+from __future__ import annotations
+
+import math
+import platform
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from importlib import metadata
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._version import __version__
+from ..core.tissue import PARAMETERS, TissueModel
+from ..identify.bayes import DECISIVE, BayesianFit, ModelResult
+from ..identify.outcome import FitOutcome
+from ..identify.pinv import WindowedPinv
+from .figures import Series
+from .numbers import (
+    CONVENIENT,
+    at_place,
+    convenient,
+    esc,
+    fixed,
+    jeffreys,
+    place,
+    power_of_ten,
+    probability,
+    sig,
+    unit_html,
+    with_sd,
+)
+
+Array = NDArray[np.float64]
+SOFTWARE = f"tissuecli {__version__}"
+
+
+ROLE = {"K": "stiffness", "S": "damping", "M": "moving mass"}
+
+
+CSS = """
+body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;color:#1d1d1d;
+ max-width:1040px;margin:1.5em auto;padding:0 1em;line-height:1.45}
+h1{font-size:1.55em;margin-bottom:.2em}h2{font-size:1.25em;border-bottom:1px solid #ccc;
+ padding-bottom:.2em;margin-top:1.8em}h3{font-size:1.05em;margin-top:1.4em}
+table{border-collapse:collapse;margin:.6em 0;font-size:.92em}
+th,td{border:1px solid #d4d4d4;padding:.25em .55em;vertical-align:top}
+th{background:#f2f2f2;text-align:left}td.n{text-align:right;font-variant-numeric:tabular-nums;
+ white-space:nowrap}tr.best td{background:#eef6ee}
+.wide{overflow-x:auto}.meta th{width:13em}
+.formula{font-size:1.3em;font-family:"Cambria Math",Cambria,Georgia,serif;background:#f7f7f7;
+ border-left:4px solid #1f5fa8;padding:.45em .8em;margin:.6em 0}
+.units{color:#555;font-size:.9em}
+.box{border:1px solid;border-radius:4px;padding:.5em .9em;margin:.8em 0}
+.warn{background:#fff6df;border-color:#e0b243}.ok{background:#eef6ee;border-color:#8dbf8d}
+.info{background:#eef3fa;border-color:#9fb8dc}
+.box ul{margin:.3em 0;padding-left:1.3em}
+figure{margin:1.2em 0}figure img{max-width:100%;height:auto;border:1px solid #e4e4e4}
+figcaption{font-size:.92em;color:#333;margin-top:.3em}
+.small{font-size:.85em;color:#444}.small ul{margin:.2em 0;padding-left:1.1em}
+footer{margin-top:2.5em;border-top:1px solid #ccc;padding-top:.6em;font-size:.85em;color:#444}
+code{font-family:Consolas,Menlo,monospace;font-size:.95em}
+"""
+
+
+def table(
+    head: Sequence[str],
+    rows: Sequence[Sequence[str]],
+    numeric: Sequence[bool],
+    classes: Sequence[str] | None = None,
+) -> str:
+    """A table; ``head`` is text (escaped), cells are markup already."""
+    th = "".join(f"<th>{esc(h)}</th>" for h in head)
+    body = []
+    for k, row in enumerate(rows):
+        cls = f' class="{classes[k]}"' if classes and classes[k] else ""
+        tds = "".join(
+            f'<td class="n">{c}</td>' if num else f"<td>{c}</td>"
+            for c, num in zip(row, numeric, strict=True)
+        )
+        body.append(f"<tr{cls}>{tds}</tr>")
+    return f'<div class="wide"><table><tr>{th}</tr>{"".join(body)}</table></div>'
+
+
+def meta_table(items: Sequence[tuple[str, str]]) -> str:
+    rows = "".join(f"<tr><th>{esc(k)}</th><td>{v}</td></tr>" for k, v in items)
+    return f'<table class="meta">{rows}</table>'
+
+
+def term_labels(model: TissueModel) -> dict[str, str]:
+    return {"K": model.f0.label, "S": model.f1.label, "M": "ẍ"}
+
+
+def formula(model: TissueModel, values: Sequence[str]) -> str:
+    labels = term_labels(model)
+    terms = " + ".join(
+        f"{v}&#8201;{esc(labels[n])}" for n, v in zip(PARAMETERS, values, strict=True)
+    )
+    units = model.units
+    return (
+        f'<div class="formula">F = {terms}</div>'
+        f'<p class="units">F in N, x in m, ẋ in m/s, ẍ in m/s²; '
+        f"K in {esc(unit_html(units['K']))}, S in {esc(unit_html(units['S']))}, "
+        f"M in {esc(unit_html(units['M']))}.</p>"
+    )
+
+
+def header(outcome: FitOutcome, s: Series) -> str:
+    session = outcome.session
+    if outcome.bayes is not None and outcome.pinv is not None:
+        how = (
+            f"Bayesian model choice over {len(outcome.bayes.results_)} form(s), and the "
+            "windowed pseudoinverse"
+        )
+    elif outcome.bayes is not None:
+        how = f"Bayesian model choice over {len(outcome.bayes.results_)} form(s)"
+    else:
+        how = "windowed pseudoinverse (point estimates, no uncertainty)"
+    x_mm = session.position * 1e3
+    items = [
+        ("Session", esc(session.name or "(unnamed)")),
+        ("File", esc(session.meta.get("file") or "—")),
+        ("Tissue", esc(session.meta.get("tissue") or "—")),
+        ("Samples", esc(f"{len(session):,}")),
+        ("Duration", f"{sig(session.duration_s, 4)} s"),
+        ("Sample rate", f"{sig(session.rate_hz, 4)} Hz"),
+        ("Jaw closure range", f"{sig(float(x_mm.min()), 3)} to {sig(float(x_mm.max()), 3)} mm"),
+        (
+            "Force range",
+            f"{sig(float(session.force.min()), 3)} to {sig(float(session.force.max()), 3)} N",
+        ),
+        ("Identification", esc(how)),
+        ("Software", esc(SOFTWARE)),
+    ]
+    model = s.model
+    if outcome.bayes is not None:
+        best = outcome.bayes.best_
+        post = best.posterior
+        assert post is not None
+        values = [with_sd(post.mean[j], post.sd[j]) for j in range(len(PARAMETERS))]
+        chosen = (
+            f"<p>Chosen form: <b>{esc(best.name)}</b> "
+            f"(posterior probability {probability(ln_probabilities(outcome.bayes)[0])}), "
+            "posterior means:</p>"
+        )
+    else:
+        pinv = outcome.pinv
+        assert pinv is not None
+        values = [sig(v, 4) for v in pinv.params_]
+        chosen = (
+            f"<p>Form: <b>{esc(pinv.model_.name)}</b> (given, not chosen), "
+            "estimate of the best window:</p>"
+        )
+    title = f"Tissue identification: {session.name or 'session'}"
+    return f"<h1>{esc(title)}</h1>{meta_table(items)}{chosen}{formula(model, values)}"
+
+
+def ln_probabilities(est: BayesianFit) -> Array:
+    """ln posterior probability of each form (equal prior odds), in ``results_`` order."""
+    ln_z = np.array([r.ln_evidence for r in est.results_])
+    top = ln_z.max()
+    return ln_z - (top + np.log(np.sum(np.exp(ln_z - top))))
+
+
+def warnings_box(outcome: FitOutcome) -> str:
+    warnings = outcome.warnings
+    if outcome.bayes is None:
+        warnings.append(
+            "Point estimates only: the windowed pseudoinverse gives no uncertainty "
+            "and no model choice; the Bayesian fit gives both."
+        )
+        items = "".join(f"<li>{esc(w)}</li>" for w in warnings)
+        return f'<div class="box warn"><b>Note</b><ul>{items}</ul></div>'
+    if not warnings:
+        return (
+            '<div class="box ok"><b>No warnings.</b> Every parameter of the chosen form is '
+            "identified: its 95 % interval stays clear of zero and its SD is below 25 % "
+            "of its value.</div>"
+        )
+    items = "".join(f"<li>{esc(w)}</li>" for w in warnings)
+    return f'<div class="box warn"><b>Warnings ({len(warnings)})</b><ul>{items}</ul></div>'
+
+
+def parameters_bayes(est: BayesianFit, s: Series) -> str:
+    best = est.best_
+    post = best.posterior
+    assert post is not None
+    units = best.model.units
+    labels = term_labels(best.model)
+    rows = []
+    for j, name in enumerate(PARAMETERS):
+        mean, sd = float(post.mean[j]), float(post.sd[j])
+        lo, hi = (float(q) for q in post.ci95[j])
+        digit = place(sd)
+        conv = convenient(mean, units[name])
+        if conv is not None:
+            cname, factor = CONVENIENT[units[name]]
+            cplace = digit + round(math.log10(factor))
+            conv_cell = (
+                f"{at_place(mean * factor, cplace)} "
+                f"[{at_place(lo * factor, cplace)}, {at_place(hi * factor, cplace)}]"
+                f" {esc(cname)}"
+            )
+        else:
+            conv_cell = "—"
+        rel = f"{100 * sd / abs(mean):.2g} %" if mean != 0 else "—"
+        rows.append(
+            [
+                f"<b>{name}</b> · {esc(labels[name])} <span class='small'>"
+                f"({esc(ROLE[name])})</span>",
+                with_sd(mean, sd),
+                sig(sd, 2),
+                f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
+                esc(unit_html(units[name])),
+                rel,
+                conv_cell,
+            ]
+        )
+    draws = post.samples[:, -1] if post.samples.shape[0] > 1 else np.empty(0)
+    sig_sd = float(np.std(draws, ddof=1)) * 1e3 if draws.size > 1 else float("nan")
+    lo, hi = (1e3 * q for q in post.sigma_ci95)
+    digit = place(sig_sd)
+    rows.append(
+        [
+            "<b>σ</b> noise SD of the filtered force",
+            with_sd(post.sigma_mean * 1e3, sig_sd),
+            sig(sig_sd, 2),
+            f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
+            "mN",
+            f"{100 * sig_sd / (post.sigma_mean * 1e3):.2g} %",
+            "—",
+        ]
+    )
+    grid = table(
+        [
+            "parameter",
+            "mean",
+            "SD",
+            "95 % interval",
+            "unit (SI)",
+            "SD / mean",
+            "mean [95 % interval], convenient units",
+        ],
+        rows,
+        [False, True, True, True, False, True, True],
+    )
+    note = (
+        f"<p class='small'>Form <b>{esc(best.name)}</b>; posterior from "
+        f"{esc('the closed form (exact)' if best.status == 'exact' else 'emcee sampling')}. "
+        "Means and intervals are shown to the second significant digit of their SD. "
+        "The noise SD σ is of the force after the same smoothing as the kinematics"
+    )
+    if s.expected_sd is not None and abs(s.expected_sd / post.sigma_mean - 1) > 0.01:
+        rms = float(np.sqrt(np.mean(s.residual**2)))
+        note += (
+            f"; with the errors-in-variables correction it excludes position noise, which "
+            f"the fit expects to raise the residual SD to {sig(s.expected_sd * 1e3, 3)} mN "
+            f"(observed residual RMS {sig(rms * 1e3, 3)} mN)"
+        )
+    return grid + note + ".</p>"
+
+
+def parameters_pinv(pinv: WindowedPinv) -> str:
+    units = pinv.model_.units
+    labels = term_labels(pinv.model_)
+    rows = []
+    for j, name in enumerate(PARAMETERS):
+        w = pinv.windows_[:, j]
+        spread = float(np.std(w, ddof=1)) if w.size > 1 else float("nan")
+        conv = convenient(float(pinv.params_[j]), units[name])
+        rows.append(
+            [
+                f"<b>{name}</b> · {esc(labels[name])} <span class='small'>"
+                f"({esc(ROLE[name])})</span>",
+                sig(float(pinv.params_[j]), 4),
+                sig(float(pinv.pooled_[j]), 4),
+                sig(float(np.mean(w)), 4),
+                sig(spread, 2),
+                esc(unit_html(units[name])),
+                f"{sig(conv[1], 4)} {esc(conv[0])}" if conv else "—",
+            ]
+        )
+    return table(
+        [
+            "parameter",
+            "best window",
+            "all windows pooled",
+            "mean over windows",
+            "SD over windows",
+            "unit (SI)",
+            "best window, convenient units",
+        ],
+        rows,
+        [False, True, True, True, True, False, True],
+    )
+
+
+def comparison(est: BayesianFit) -> str:
+    results = est.results_
+    top = results[0].ln_evidence
+    ln_p = ln_probabilities(est)
+    sampler = any(r.ln_evidence_sampler is not None for r in results)
+    head = ["form", "law", "ln evidence (exact)"]
+    if sampler:
+        head += ["ln evidence (stepping-stone)", "sampler − exact"]
+    head += [
+        "posterior probability",
+        "ln BF vs best",
+        "BF vs best",
+        "evidence against (Jeffreys)",
+        "method",
+        "note",
+        "cond",
+        "cond (scaled)",
+        "residual RMS (mN)",
+    ]
+    rows, classes = [], []
+    for r, lp in zip(results, ln_p, strict=True):
+        lbf = top - r.ln_evidence
+        labels = term_labels(r.model)
+        law = esc(f"K {labels['K']} + S {labels['S']} + M ẍ")
+        row = [f"<b>{esc(r.name)}</b>", law, fixed(r.ln_evidence)]
+        if sampler:
+            if r.ln_evidence_sampler is None:
+                row += ["—", "—"]
+            else:
+                row += [
+                    fixed(r.ln_evidence_sampler),
+                    fixed(r.ln_evidence_sampler - r.ln_evidence, sign=True),
+                ]
+        flags = (
+            (
+                "<div class='small'>flags:<ul>"
+                + "".join(f"<li>{esc(f)}</li>" for f in r.flags)
+                + "</ul></div>"
+            )
+            if r.flags
+            else ""
+        )
+        row += [
+            probability(float(lp)),
+            fixed(lbf),
+            power_of_ten(lbf),
+            esc(jeffreys(lbf)),
+            esc(r.status),
+            f"<span class='small'>{esc(r.reason)}</span>{flags}",
+            sig(r.cond, 3),
+            sig(r.cond_scaled, 3),
+            sig(r.residual_rms * 1e3, 3),
+        ]
+        rows.append(row)
+        classes.append("best" if r is est.best_ else "")
+    numeric = (
+        [False, False, True]
+        + ([True, True] if sampler else [])
+        + [True, True, True, False, False, False, True, True, True]
+    )
+    explain = (
+        "<p class='small'>Forms are ranked by their evidence (marginal likelihood), with "
+        "equal prior probability for each form. The Bayes factor (BF) against the best is "
+        "Z<sub>best</sub> / Z<sub>form</sub>; on Jeffreys' scale a ln BF above "
+        f"{DECISIVE:.1f} (100 : 1) is decisive. <i>exact</i>: closed-form posterior; "
+        "<i>emcee</i>: sampled because the positivity bound cuts the closed form, or on "
+        "request; <i>skipped</i>: decisively behind, so not sampled (its evidence is still "
+        "exact). cond: condition number of the design matrix, raw (depends on units) and "
+        "with unit-norm columns (collinearity of the terms alone).</p>"
+    )
+    if sampler:
+        explain += (
+            "<p class='small'>Stepping-stone is an independent, sampler-based estimate of "
+            "the same evidence; differences well below 1 confirm the exact value.</p>"
+        )
+    return table(head, rows, numeric, classes) + explain
+
+
+def pinv_table(pinv: WindowedPinv, est: BayesianFit | None) -> str:
+    """The pseudoinverse against the Bayesian posterior of the same form."""
+    units = pinv.model_.units
+    match = matching(pinv, est)
+    head = ["parameter", "best window", "all windows pooled", "unit (SI)"]
+    if match is not None:
+        head += ["Bayesian mean ± SD", "best window − Bayesian mean (in SD)"]
+    rows = []
+    for j, name in enumerate(PARAMETERS):
+        row = [
+            f"<b>{name}</b>",
+            sig(float(pinv.params_[j]), 4),
+            sig(float(pinv.pooled_[j]), 4),
+            esc(unit_html(units[name])),
+        ]
+        if match is not None and match.posterior is not None:
+            mu, sd = float(match.posterior.mean[j]), float(match.posterior.sd[j])
+            z = (pinv.params_[j] - mu) / sd if sd > 0 else float("nan")
+            row += [f"{with_sd(mu, sd)} ± {sig(sd, 2)}", fixed(z, 1, sign=True)]
+        rows.append(row)
+    numeric = [False, True, True, False] + ([True, True] if match is not None else [])
+    return table(head, rows, numeric) + pinv_info(pinv)
+
+
+def pinv_info(pinv: WindowedPinv) -> str:
+    rms = float(pinv.residuals_[pinv.best_window_]) * 1e3
+    return (
+        f"<p class='small'>Form {esc(pinv.model_.name)}; {pinv.windows_.shape[0]} windows "
+        f"of {pinv.window_samples_} samples; chosen window index {pinv.best_window_} "
+        f"(from 0; smallest residual, {sig(rms, 3)} mN RMS); "
+        f"condition number of its design {sig(pinv.cond_, 3)}, scaled "
+        f"{sig(pinv.cond_scaled_, 3)}.</p>"
+    )
+
+
+def matching(pinv: WindowedPinv, est: BayesianFit | None) -> ModelResult | None:
+    """The Bayesian result of the pseudoinverse's form, if that form was fitted."""
+    if est is None:
+        return None
+    for r in est.results_:
+        if r.name == pinv.model_.name and r.posterior is not None:
+            return r
+    return None
+
+
+def diagnostics(outcome: FitOutcome) -> str:
+    est, pinv = outcome.bayes, outcome.pinv
+    kin = est.kinematics_ if est is not None else pinv.kinematics_  # type: ignore[union-attr]
+    n = len(outcome.session)
+    grid = len((est or pinv).session_)  # type: ignore[union-attr]
+    trimmed = (kin.window - 1) // 2
+    holes = grid - 2 * trimmed - kin.time.size  # beside lost or clipped samples
+    used = f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where the filter "
+    used += f"is one-sided; {holes:,} beside lost or clipped samples)" if holes else "is one-sided)"
+    g = kin.noise_gain
+    items = [
+        ("Differentiator", f"<code>{esc(kin.method)}</code>"),
+        ("Cutoff (−3 dB)", f"{sig(kin.cutoff_hz, 3)} Hz"),
+        (
+            "Noise gain",
+            f"position {sig(g[0], 3)}, velocity {sig(g[1], 3)} 1/s, "
+            f"acceleration {sig(g[2], 3)} 1/s² "
+            "<span class='small'>(output SD per unit SD of white input noise)</span>",
+        ),
+        ("Samples used", used),
+    ]
+    if est is not None:
+        tau_ms = est.tau_ / max(outcome.session.rate_hz, 1e-300) * 1e3
+        items += [
+            (
+                "Residual autocorrelation time",
+                f"{sig(est.tau_, 3)} samples ({sig(tau_ms, 3)} ms)",
+            ),
+            ("Effective samples", f"{sig(est.n_eff_, 3)} (samples used / autocorrelation time)"),
+            (
+                "Position noise SD",
+                f"{sig(est.sigma_x_ * 1e6, 3)} µm "
+                f"(errors-in-variables correction "
+                f"{'on' if est.eiv else 'off'})",
+            ),
+            (
+                "Settings",
+                esc(
+                    f"sampler {est.sampler}, seed {est.seed}, forms {est.forms}, "
+                    f"decisive ln BF {est.decisive:.2f}"
+                ),
+            ),
+        ]
+    if pinv is not None:
+        items.append(
+            (
+                "Pseudoinverse",
+                esc(
+                    f"form {pinv.model_.name}, window {pinv.window_s:g} s "
+                    f"({pinv.window_samples_} samples), "
+                    f"{pinv.windows_.shape[0]} windows"
+                ),
+            )
+        )
+    out = meta_table(items)
+    if est is not None:
+        out += (
+            "<p class='small'>Why the effective sample count is smaller than the sample "
+            "count: the smoothing filter makes neighbouring residuals alike, so the "
+            "likelihood is tempered by 1/τ to count only independent information; "
+            "treating every sample as independent would make the intervals too narrow.</p>"
+        )
+        sampled = [r for r in est.results_ if r.status == "emcee" and r.posterior is not None]
+        if sampled:
+            rows = []
+            for r in sampled:
+                d = r.posterior.diagnostics  # type: ignore[union-attr]
+                tau = list(d.get("tau", []))
+                tau_text = ", ".join(
+                    f"{lab} {sig(t, 3)}" for lab, t in zip(("K", "S", "M", "σ"), tau, strict=False)
+                )
+                steps = int(d.get("steps", 0))
+                need = 50 * max(tau) if tau else float("nan")
+                conv = d.get("converged")
+                rows.append(
+                    [
+                        f"<b>{esc(r.name)}</b>",
+                        f"{steps:,}",
+                        esc(d.get("walkers", "—")),
+                        esc(tau_text),
+                        sig(d.get("acceptance"), 2),
+                        f"{'yes' if conv else '<b>no</b>'} "
+                        f"<span class='small'>({steps:,} vs 50 τ = {sig(need, 3)})</span>",
+                        esc(d.get("independent_samples", "—")),
+                    ]
+                )
+            out += "<h3>Sampler (emcee)</h3>" + table(
+                [
+                    "form",
+                    "steps",
+                    "walkers",
+                    "autocorrelation time τ (steps)",
+                    "acceptance fraction",
+                    "converged (chain > 50 τ)",
+                    "independent draws",
+                ],
+                rows,
+                [False, True, True, False, True, False, True],
+            )
+        else:
+            out += (
+                "<p class='small'>No form needed sampling: every posterior in this report "
+                "is closed-form, so there are no chain diagnostics.</p>"
+            )
+    return out
+
+
+def how_to_read(outcome: FitOutcome) -> str:
+    law = (
+        "<p>The tissue law is <i>F = K f0(x) + S f1(ẋ) + M ẍ</i>: a stiffness term in jaw "
+        "closure x, a damping term in closing speed ẋ and an inertia term in acceleration "
+        "ẍ. "
+    )
+    if outcome.bayes is not None:
+        body = (
+            "Each candidate form (a stiffness law f0 with a damping law f1, such as x³ with ẋ) "
+            "is fitted to the whole session; its evidence weighs how well it fits against how "
+            "flexible it is, and the chosen form is the one with the highest evidence. "
+            "The parameter table gives posterior means with their SD and 95 % intervals; a "
+            "parameter is trustworthy when its interval is narrow and well away from zero and "
+            "no warning names it. The plots should show the fitted force on top of the measured "
+            "one, residuals without structure (no repeated pattern, histogram close to the "
+            "Gaussian) and compact posterior clouds. "
+        )
+        if outcome.pinv is not None:
+            body += (
+                "The paper's windowed pseudoinverse fits each window separately: the "
+                "spread of its window estimates shows how much one window's answer can "
+                "vary, to be read against the Bayesian band. "
+            )
+    else:
+        body = (
+            "Only the paper's windowed pseudoinverse ran: it fits one given form to each "
+            "window separately and keeps the window with the smallest residual. It gives "
+            "no uncertainty and no choice between forms; the spread of the window estimates "
+            "is the only indication of how much the answer can vary. "
+        )
+    return (
+        law + body + "All values are in SI units; only the columns marked convenient units "
+        "convert to N/mm, N s/mm and g.</p>"
+    )
+
+
+def provenance() -> str:
+    """Software and library versions and the time of writing (no library is imported
+    just to ask its version)."""
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    libs = ", ".join(
+        f"{name} {_version(name)}" for name in ("numpy", "scipy", "emcee", "matplotlib")
+    )
+    parts = [
+        esc(SOFTWARE),
+        esc(f"Python {platform.python_version()}, {libs}"),
+        esc(f"generated {when}"),
+    ]
+    return "<footer><b>Provenance:</b> " + " · ".join(parts) + "</footer>"
+
+
+def _version(distribution: str) -> str:
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return "(not installed)"

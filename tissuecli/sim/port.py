@@ -1,0 +1,82 @@
+"""The pseudo-terminal behind which a simulated device lives, so hosts open it with
+pyserial exactly like hardware. The device side needs no pyserial: plain ``os`` calls."""
+
+from __future__ import annotations
+
+import errno
+import os
+import pty
+import tty
+from pathlib import Path
+
+from ..core.errors import DeviceError
+
+
+class VirtualPort:
+    """A pseudo-terminal for a simulated device, optionally behind a stable symlink.
+
+    The device writes to and reads from the master side; hosts open
+    :attr:`name` (or the link) with pyserial like any serial port. Writes
+    never block: when nobody drains the port the bytes are dropped, as a UART
+    would drop them, and counted in :attr:`overruns`.
+    """
+
+    def __init__(self, link: str | os.PathLike[str] | None = None) -> None:
+        self.master, self._slave = pty.openpty()
+        tty.setraw(self._slave)  # no echo, no line discipline: bytes pass untouched
+        os.set_blocking(self.master, False)
+        self.name = os.ttyname(self._slave)
+        self.link = Path(link) if link else None
+        self.overruns = 0
+        if self.link is not None:
+            if self.link.is_symlink() or self.link.exists():
+                if not self.link.is_symlink():
+                    self.close()
+                    raise DeviceError(
+                        f"{self.link} exists and is not a symlink; choose another --link"
+                    )
+                self.link.unlink()
+            self.link.symlink_to(self.name)
+
+    @property
+    def path(self) -> str:
+        """What a host should open: the link if there is one, else the pty itself."""
+        return str(self.link) if self.link else self.name
+
+    def write(self, data: bytes) -> int:
+        """Write without blocking; return the number of bytes that did not fit."""
+        try:
+            sent = os.write(self.master, data)
+        except BlockingIOError:
+            sent = 0
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                sent = 0
+            else:
+                raise
+        dropped = len(data) - sent
+        self.overruns += dropped
+        return dropped
+
+    def read(self) -> bytes:
+        """Whatever the host has sent, without blocking."""
+        try:
+            return os.read(self.master, 4096)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                return b""
+            raise
+
+    def fileno(self) -> int:
+        return self.master
+
+    def close(self) -> None:
+        if self.link is not None and self.link.is_symlink() and os.readlink(self.link) == self.name:
+            self.link.unlink()
+        for fd in (self.master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
