@@ -24,7 +24,6 @@ from .design import design, eiv_correction, lstsq_scaled, position_noise_sd
 from .noise import data_weight, residual_tau
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
 from .prepare import prepare
-from .sampling import run_emcee, stepping_stone
 
 Array = NDArray[np.float64]
 
@@ -277,6 +276,8 @@ class BayesianFit:
                     f"(> {self.decisive:.1f}, decisive)"
                 )
                 continue
+            from .sampling import run_emcee, stepping_stone  # scipy.stats and emcee, if needed
+
             cut = res.posterior.outside
             res.posterior = run_emcee(res.stats, res.prior, rng, progress=self._progress_for(res))  # type: ignore[arg-type]
             res.status = "emcee"

@@ -11,19 +11,24 @@ Given sigma the posterior of beta is Gaussian and the evidence closed form
 ``ln sigma``. The positivity bound multiplies the evidence by
 ``P(beta >= 0 | y) / P_prior(beta >= 0)`` (the latter is 1/8 for three
 zero-centred half-normals); when that posterior mass outside the bound is not
-negligible the posterior is sampled with emcee instead. Everything works on
-sufficient statistics (A^T A, A^T y, y^T y, n), so cost does not grow with n.
-The data weight ``n_eff / n`` tempers the likelihood for correlated residuals.
+negligible the posterior is sampled with emcee instead
+(:mod:`tissuecli.identify.sampling`). Everything works on sufficient statistics
+(A^T A, A^T y, y^T y, n), so cost does not grow with n. The data weight
+``n_eff / n`` tempers the likelihood for correlated residuals.
+
+NumPy alone: a fit that needs no sampler loads neither SciPy nor emcee.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import optimize, special, stats
+
+from .orthant import normal_cdf, orthant_probability
 
 Array = NDArray[np.float64]
 
@@ -143,8 +148,8 @@ class ExactPosterior:
         w = np.full(nodes, self.u[1] - self.u[0])
         w[[0, -1]] *= 0.5
         lw = self.f + np.log(w)
-        self.ln_z_untruncated = float(special.logsumexp(lw) - np.log(prior.ln_sigma_range))
-        self.weights = np.exp(lw - special.logsumexp(lw))
+        self.ln_z_untruncated = float(logsumexp(lw) - np.log(prior.ln_sigma_range))
+        self.weights = np.exp(lw - logsumexp(lw))
 
     def _rss_ls(self) -> float:
         s = self.s
@@ -183,9 +188,7 @@ class ExactPosterior:
         sd = np.sqrt(np.diag(cov))
         if np.all(mu > 6 * sd):
             return 1.0
-        return float(
-            stats.multivariate_normal(mean=-mu, cov=cov, allow_singular=True).cdf(np.zeros_like(mu))
-        )
+        return orthant_probability(mu, cov)
 
     def summary(self, rng: np.random.Generator, draws: int = 4000) -> Posterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
@@ -228,9 +231,42 @@ class ExactPosterior:
         )
 
 
+def logsumexp(a: Array) -> float:
+    """``ln sum exp(a)`` without overflow."""
+    top = float(np.max(a))
+    if not math.isfinite(top):
+        return top
+    return top + math.log(float(np.sum(np.exp(a - top))))
+
+
+_SQRT2PI = math.sqrt(2.0 * math.pi)
+
+
 def _mixture_quantile(q: float, w: Array, mu: Array, sd: Array) -> float:
+    """The ``q`` quantile of the Gaussian mixture ``sum_i w_i N(mu_i, sd_i^2)``.
+
+    Newton's method on the CDF (its slope is the mixture's density), kept inside a
+    bracket that shrinks with every step and bisected when Newton leaves it; stops
+    at ``1e-14 + 4 eps |x|``, Brent's default tolerance.
+    """
     lo = float(np.min(mu - 10 * sd))
     hi = float(np.max(mu + 10 * sd))
     if hi <= lo:
         return float(mu[0])
-    return float(optimize.brentq(lambda x: w @ stats.norm.cdf(x, mu, sd) - q, lo, hi, xtol=1e-14))
+    x = min(max(float(w @ mu), lo), hi)
+    for _ in range(200):
+        z = (x - mu) / sd
+        excess = float(w @ normal_cdf(z)) - q
+        if excess > 0:
+            hi = x
+        else:
+            lo = x
+        density = float(w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI)))
+        step = excess / density if density > 0 else math.inf
+        new = x - step
+        if not lo < new < hi:
+            new = 0.5 * (lo + hi)
+        if abs(new - x) <= 1e-14 + 4 * np.finfo(float).eps * abs(new):
+            return new
+        x = new
+    return x

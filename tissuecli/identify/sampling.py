@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special, stats
+from scipy import stats
 
-from .posterior import LN_2PI, ExactPosterior, Posterior, Prior, SufficientStats
+from .posterior import LN_2PI, ExactPosterior, Posterior, Prior, SufficientStats, logsumexp
 
 Array = NDArray[np.float64]
 
@@ -202,5 +202,5 @@ def stepping_stone(
             state = sampler.run_mcmc(state, burn + steps, progress=False).coords
             theta = sampler.get_chain(discard=burn, flat=True)
         lr = path.log_ratio(theta)
-        ln_z += float(special.logsumexp(dt * lr) - np.log(lr.size))
+        ln_z += float(logsumexp(dt * lr) - np.log(lr.size))
     return ln_z

@@ -1,0 +1,144 @@
+"""Probabilities of Gaussians in an orthant, ``P(X >= 0)`` for ``X ~ N(mu, Sigma)``: how
+much of a closed-form posterior the positivity bounds cut off.
+
+Genz's separation-of-variables algorithm (Genz 1992, J. Comput. Graph. Stat. 1:141;
+Genz & Bretz 2009, ch. 4) with Genz's variable prioritisation and randomised
+Richtmyer lattices, refined until the spread over the random shifts says the
+estimate is good to 1e-5 absolute and 1e-3 relative. The shifts come
+from a fixed seed, so the answer is the same every time. Each lattice estimate is
+a product of conditional probabilities, so a tiny mass keeps its relative accuracy
+where an absolute tolerance would return 0.
+
+NumPy only: ``scipy.stats.multivariate_normal.cdf`` would cost a fit 0.36 s of
+start-up whenever a form's posterior comes near its bound, most sessions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+#: random shifts per lattice size; their spread is the error estimate
+SHIFTS = 8
+#: first and largest lattice sizes (points per shift)
+FIRST_POINTS, MAX_POINTS = 1 << 10, 1 << 16
+#: target: 3 standard errors below this absolute error and this fraction of the mass
+#: (the evidence needs ln P to 1e-3; the sampling rule, P near 1, needs 1e-5 absolute)
+ABS_TOL, REL_TOL = 1e-5, 1e-3
+_PRIMES = (2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71)
+
+_erfc = np.frompyfunc(math.erfc, 1, 1)
+_SQRT2 = math.sqrt(2.0)
+
+
+def normal_cdf(z: Array) -> Array:
+    """Standard normal CDF to double precision (``erfc`` keeps the lower tail exact)."""
+    return 0.5 * _erfc(-np.asarray(z, dtype=float) / _SQRT2).astype(float)
+
+
+# Acklam's rational approximation of the normal quantile (relative error 1.15e-9)
+_A = (-3.969683028665376e01, 2.209460984245205e02, -2.759285104469687e02,
+      1.383577518672690e02, -3.066479806614716e01, 2.506628277459239e00)  # fmt: skip
+_B = (-5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02,
+      6.680131188771972e01, -1.328068155288572e01)  # fmt: skip
+_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e00,
+      -2.549732539343734e00, 4.374664141464968e00, 2.938163982698783e00)  # fmt: skip
+_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e00, 3.754408661907416e00)
+
+
+def normal_ppf(p: Array) -> Array:
+    """Inverse standard normal CDF: Acklam's approximation, then one Halley step on the
+    exact CDF (double precision). The upper half is the mirror of the lower one, where
+    ``1 - p`` is exact and the CDF has full relative precision; ``p`` is clipped to
+    ``[1e-300, 1 - 1e-16]``."""
+    p = np.clip(np.asarray(p, dtype=float), 1e-300, 1.0 - 1e-16)
+    q = np.minimum(p, 1.0 - p)  # exact for p >= 0.5 (Sterbenz)
+    x = np.empty_like(q)
+    tail = q < 0.02425
+    r = q[~tail] - 0.5
+    rr = r * r
+    num = ((((_A[0] * rr + _A[1]) * rr + _A[2]) * rr + _A[3]) * rr + _A[4]) * rr + _A[5]
+    den = ((((_B[0] * rr + _B[1]) * rr + _B[2]) * rr + _B[3]) * rr + _B[4]) * rr + 1
+    x[~tail] = num * r / den
+    t = np.sqrt(-2 * np.log(q[tail]))
+    num = ((((_C[0] * t + _C[1]) * t + _C[2]) * t + _C[3]) * t + _C[4]) * t + _C[5]
+    x[tail] = num / ((((_D[0] * t + _D[1]) * t + _D[2]) * t + _D[3]) * t + 1)
+    u = (normal_cdf(x) - q) * math.sqrt(2 * math.pi) * np.exp(0.5 * x * x)
+    x = x - u / (1 + 0.5 * x * u)
+    return np.where(p > 0.5, -x, x)
+
+
+def orthant_probability(mean: Array, cov: Array) -> float:
+    """``P(X >= 0)`` for ``X ~ N(mean, cov)``, shapes (p,) and (p, p).
+
+    A singular ``cov`` (a parameter the data fix exactly) is regularised by 1e-12 of
+    its diagonal.
+    """
+    mean = np.asarray(mean, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    sd = np.sqrt(np.diag(cov))
+    # P(X >= 0) = P(Z <= h) with Z = (mean - X) / sd standard, correlation R
+    h = mean / sd
+    corr = cov / np.outer(sd, sd) + 1e-12 * np.eye(mean.size)
+    if mean.size == 1:
+        return float(normal_cdf(h)[0])
+    chol, h = _prioritised_cholesky(corr, h)
+    rng = np.random.default_rng(20261123)  # fixed shifts: the same answer every time
+    root = np.sqrt(np.array(_PRIMES[: h.size - 1], dtype=float))
+    points = FIRST_POINTS
+    while True:
+        k = np.arange(1, points + 1)[:, None]
+        lattice = (k * root) % 1.0
+        estimates = np.array(
+            [_sov(chol, h, lattice, rng.random(h.size - 1)) for _ in range(SHIFTS)]
+        )
+        value = float(np.mean(estimates))
+        error = 3 * float(np.std(estimates, ddof=1)) / math.sqrt(SHIFTS)
+        if error <= min(ABS_TOL, REL_TOL * value) or points >= MAX_POINTS:
+            return value
+        points *= 4
+
+
+def _sov(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
+    """One randomised-lattice estimate of ``P(L Z <= h)``, Z standard normal."""
+    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)  # the baker's transform periodises
+    e = np.full(w.shape[0], normal_cdf(np.array([h[0] / chol[0, 0]]))[0])
+    f = e.copy()
+    y = np.zeros((w.shape[0], h.size - 1))
+    for i in range(1, h.size):
+        # draw variable i-1 below its limit, then the limit of variable i given the draws
+        y[:, i - 1] = normal_ppf(w[:, i - 1] * e)
+        e = normal_cdf((h[i] - y[:, :i] @ chol[i, :i]) / chol[i, i])
+        f *= e
+    return float(np.mean(f))
+
+
+def _prioritised_cholesky(corr: Array, h: Array) -> tuple[Array, Array]:
+    """Cholesky factor and limits reordered so that at each step the variable least
+    likely to stay below its limit, given the earlier ones at their expected values,
+    comes next (Genz & Bretz 2009, section 4.1.3): the later factors vary less."""
+    sigma, h = corr.copy(), h.copy()
+    p = h.size
+    chol = np.zeros((p, p))
+    y = np.zeros(p)
+    for i in range(p):
+        rest = np.arange(i, p)
+        var = np.maximum(np.diag(sigma)[rest] - np.sum(chol[rest, :i] ** 2, axis=1), 1e-300)
+        limits = (h[rest] - chol[rest, :i] @ y[:i]) / np.sqrt(var)
+        j = i + int(np.argmin(normal_cdf(limits)))
+        for arr in (h,):
+            arr[[i, j]] = arr[[j, i]]
+        sigma[[i, j]] = sigma[[j, i]]
+        sigma[:, [i, j]] = sigma[:, [j, i]]
+        chol[[i, j]] = chol[[j, i]]
+        chol[i, i] = math.sqrt(max(sigma[i, i] - float(chol[i, :i] @ chol[i, :i]), 1e-300))
+        below = np.arange(i + 1, p)
+        chol[below, i] = (sigma[below, i] - chol[below, :i] @ chol[i, :i]) / chol[i, i]
+        limit = (h[i] - float(chol[i, :i] @ y[:i])) / chol[i, i]
+        mass = max(float(normal_cdf(np.array([limit]))[0]), 1e-300)
+        y[i] = -math.exp(-0.5 * limit * limit) / (math.sqrt(2 * math.pi) * mass)
+    return chol, h
