@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict
 from datetime import datetime, timezone
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,7 +27,6 @@ from ..core.session import check_name
 from ..core.tissue import Tissue
 from ..formats.jsonfile import write_json
 from ..formats.params import read_profile, read_tissue
-from ..formats.playlog import PlayLog
 from ..hw.link import DEFAULT_BAUD, Link, open_device
 from ..hw.protocol import Encoder, SetVoltage
 from ..hw.realtime import Deadlines, StopFlag, realtime, wait_readable
@@ -35,6 +34,9 @@ from ..hw.stream import Stream
 from ..render.check import GRASP_FORCE_N, CheckResult, check
 from ..render.controller import Controller, Step, tracking_bound
 from ..render.profile import PAPER_DISPLAY, DisplayProfile, profile_from_dict
+
+if TYPE_CHECKING:
+    from ..formats.playlog import PlayLog
 
 #: A missing Encoder frame is bridged by repeating the last voltage this many periods,
 #: then the host sends 0 V until frames return.
@@ -156,6 +158,8 @@ def play(
                 f"(K={tissue.K:g} {tissue.model.units['K']}): " + "; ".join(verdict.reasons)
             )
         if log is not None:
+            from ..formats.playlog import PlayLog  # h5py only when a log is asked for
+
             stamp = datetime.now(timezone.utc)
             meta = {
                 "start_utc": stamp.isoformat(timespec="milliseconds"),

@@ -12,18 +12,31 @@ docs/formats.md describes every layout.
 - :mod:`~tissuecli.formats.jsonfile`, :mod:`~tissuecli.formats.atomic`: JSON and atomic writes.
 """
 
-from .csvfile import read_csv, write_csv
-from .hdf5 import Column, group_names, read_group
-from .params import read_calibration, read_profile, read_tissue, tissue_to_dict, write_params
-from .sessions import (
-    check_new_session,
-    list_sessions,
-    read_session,
-    session_names,
-    session_writer,
-    write_session,
-)
-from .writer import SeriesWriter
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+#: public name -> module: loaded on first use, so reading a JSON file never loads h5py
+_EXPORTS = {
+    "read_csv": "csvfile",
+    "write_csv": "csvfile",
+    "Column": "hdf5",
+    "group_names": "hdf5",
+    "read_group": "hdf5",
+    "read_calibration": "params",
+    "read_profile": "params",
+    "read_tissue": "params",
+    "tissue_to_dict": "params",
+    "write_params": "params",
+    "check_new_session": "sessions",
+    "list_sessions": "sessions",
+    "read_session": "sessions",
+    "session_names": "sessions",
+    "session_writer": "sessions",
+    "write_session": "sessions",
+    "SeriesWriter": "writer",
+}
 
 __all__ = [
     "Column",
@@ -44,3 +57,25 @@ __all__ = [
     "write_params",
     "write_session",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'tissuecli.formats' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+
+
+if TYPE_CHECKING:
+    from .csvfile import read_csv, write_csv
+    from .hdf5 import Column, group_names, read_group
+    from .params import read_calibration, read_profile, read_tissue, tissue_to_dict, write_params
+    from .sessions import (
+        check_new_session,
+        list_sessions,
+        read_session,
+        session_names,
+        session_writer,
+        write_session,
+    )
+    from .writer import SeriesWriter

@@ -10,16 +10,18 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .._version import __version__
 from ..core.calibration import Calibration, calibration_from_dict
 from ..core.errors import InputError
 from ..core.tissue import PARAMETERS, Tissue, TissueModel
-from ..identify.bayes import ModelResult
-from ..identify.outcome import FitOutcome
 from ..render.profile import DisplayProfile, profile_from_dict
 from .jsonfile import read_json, write_json
+
+if TYPE_CHECKING:  # a fit's results are read, never built, here
+    from ..identify.bayes import ModelResult
+    from ..identify.outcome import FitOutcome
 
 FORMAT = "tissuecli-parameters"
 FORMAT_VERSION = 1
