@@ -4,8 +4,7 @@ Usage::
 
     python benchmarks/fit_timing.py
 
-Times (median of 5) exclude Python start-up; add about 0.6 s for the command
-line's imports (numpy, scipy, emcee, h5py).
+Times (median of 5) exclude Python start-up; benchmarks/startup.py measures that.
 """
 
 from __future__ import annotations

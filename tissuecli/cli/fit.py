@@ -66,10 +66,10 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
 )
 @click.option(
     "--differentiator",
-    type=click.Choice(["gaussian", "savgol", "gradient"]),
     default="gaussian",
     show_default=True,
-    help="How velocity and acceleration are estimated.",
+    help="How velocity and acceleration are estimated: gaussian, savgol or gradient "
+    "(any registered differentiator).",
 )
 @click.option(
     "--window",

@@ -12,10 +12,13 @@ N s/mm and g for reading against the literature.
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.figure import Figure
 
+from ..identify.bayes import BayesianFit
 from ..identify.outcome import FitOutcome
 from .figures import (
     MAX_DRAWS,
+    Series,
     corner_figure,
     figure_html,
     loop_figure,
@@ -49,7 +52,7 @@ def render_report(outcome: FitOutcome) -> str:
     Parameters
     ----------
     outcome : FitOutcome
-        What :func:`tissuecli.fit.fit_session` returned: a Bayesian fit, a
+        What :func:`tissuecli.identify.fit_session` returned: a Bayesian fit, a
         windowed pseudoinverse, or both.
 
     Returns
@@ -59,32 +62,42 @@ def render_report(outcome: FitOutcome) -> str:
     """
     s = series(outcome)
     est, pinv = outcome.bayes, outcome.pinv
-    sections = [
-        ("parameters", "Parameters"),
-        ("comparison", "Model comparison"),
-        ("plots", "Plots"),
-        ("diagnostics", "Diagnostics"),
-        ("reading", "How to read this report"),
-    ]
-    nav = " · ".join(f'<a href="#{a}">{esc(t)}</a>' for a, t in sections)
-    parts = [header(outcome, s), f'<p class="small">Contents: {nav}</p>']
-
-    parts.append("<h2 id='parameters'>Parameters</h2>")
-    parts.append(parameters_bayes(est, s) if est is not None else parameters_pinv(pinv))  # type: ignore[arg-type]
-    parts.append(warnings_box(outcome))
-
-    parts.append("<h2 id='comparison'>Model comparison</h2>")
     if est is not None:
-        parts.append(comparison(est))
+        params, compare = parameters_bayes(est, s), comparison(est)
     else:
         assert pinv is not None
-        parts.append(
+        params = parameters_pinv(pinv)
+        compare = (
             f"<p>Only the form {esc(pinv.model_.name)} was fitted, by the windowed "
-            "pseudoinverse, so there is no comparison between forms.</p>"
+            "pseudoinverse, so there is no comparison between forms.</p>" + pinv_info(pinv)
         )
-        parts.append(pinv_info(pinv))
+    sections = [
+        ("parameters", "Parameters", params + warnings_box(outcome)),
+        ("comparison", "Model comparison", compare),
+        ("plots", "Plots", "".join(_plots(outcome, s))),
+        ("diagnostics", "Diagnostics", diagnostics(outcome)),
+        ("reading", "How to read this report", how_to_read(outcome)),
+    ]
+    nav = " · ".join(f'<a href="#{a}">{esc(t)}</a>' for a, t, _ in sections)
+    parts = [header(outcome, s), f'<p class="small">Contents: {nav}</p>']
+    for anchor, title, body in sections:
+        parts += [f"<h2 id='{anchor}'>{esc(title)}</h2>", body]
+    parts.append(provenance())
+    title = f"Tissue identification: {outcome.session.name or 'session'}"
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{esc(title)}</title><style>{CSS}</style></head><body>"
+        + "\n".join(parts)
+        + "</body></html>\n"
+    )
 
-    parts.append("<h2 id='plots'>Plots</h2>")
+
+def _plots(outcome: FitOutcome, s: Series) -> list[str]:
+    """The figures, lettered in order, each with what to look for; the pseudoinverse's
+    table follows its figure."""
+    est, pinv = outcome.bayes, outcome.pinv
+    parts: list[str] = []
     figs = [
         (
             time_figure(s),
@@ -107,44 +120,17 @@ def render_report(outcome: FitOutcome) -> str:
             "plot-residuals",
             "Residuals",
             "residual force over time and its histogram",
-            "Residuals should look like noise: no drift or pattern repeating with the squeezes, "
-            "and a histogram matching the solid Gaussian"
-            + (
-                " of the SD the fit expects (force noise σ plus position noise carried through the "
-                "law; σ alone is dashed)."
-                if s.sigma is not None
-                and s.expected_sd is not None
-                and abs(s.expected_sd / s.sigma - 1) > 0.01
-                else " of the posterior noise SD."
-                if s.sigma is not None
-                else " of the residual RMS."
-            ),
+            _residual_caption(s),
         ),
     ]
     if est is not None:
-        post = est.best_.posterior
-        assert post is not None
-        draws = post.samples
-        if draws.shape[0] > MAX_DRAWS:
-            keep = np.random.default_rng(0).choice(draws.shape[0], MAX_DRAWS, replace=False)
-            draws = draws[np.sort(keep)]
-        if draws.shape[0] >= 20:
-            figs.append(
-                (
-                    corner_figure(draws, est.best_.model, post.mean, post.ci95),
-                    "plot-corner",
-                    f"Posterior of K, S, M ({est.best_.name})",
-                    "corner plot of the posterior draws of K, S and M",
-                    f"{draws.shape[0]:,} posterior draws in SI units; solid lines: means, "
-                    "dashed: 95 % intervals. Look for compact clouds away from zero; ρ is "
-                    "the correlation between two parameters (near ±1: the data separate "
-                    "them poorly).",
-                )
-            )
-        else:
+        corner = _corner(est)
+        if corner is None:
             parts.append(
                 "<p>Too few posterior draws inside the positivity bounds for a corner plot.</p>"
             )
+        else:
+            figs.append(corner)
     if pinv is not None:
         match = matching(pinv, est)
         figs.append(
@@ -167,18 +153,41 @@ def render_report(outcome: FitOutcome) -> str:
         parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
         if anchor == "plot-windows" and est is not None:
             parts.append(pinv_table(pinv, est))  # type: ignore[arg-type]
+    return parts
 
-    parts.append("<h2 id='diagnostics'>Diagnostics</h2>")
-    parts.append(diagnostics(outcome))
-    parts.append("<h2 id='reading'>How to read this report</h2>")
-    parts.append(how_to_read(outcome))
-    parts.append(provenance())
 
-    title = f"Tissue identification: {outcome.session.name or 'session'}"
+def _residual_caption(s: Series) -> str:
+    text = (
+        "Residuals should look like noise: no drift or pattern repeating with the squeezes, "
+        "and a histogram matching the solid Gaussian"
+    )
+    if s.sigma is None:
+        return text + " of the residual RMS."
+    if s.expected_sd is not None and abs(s.expected_sd / s.sigma - 1) > 0.01:
+        return text + (
+            " of the SD the fit expects (force noise σ plus position noise carried through the "
+            "law; σ alone is dashed)."
+        )
+    return text + " of the posterior noise SD."
+
+
+def _corner(est: BayesianFit) -> tuple[Figure, str, str, str, str] | None:
+    """The corner plot of the best form's posterior draws, or None with too few draws."""
+    post = est.best_.posterior
+    assert post is not None
+    draws = post.samples
+    if draws.shape[0] > MAX_DRAWS:
+        keep = np.random.default_rng(0).choice(draws.shape[0], MAX_DRAWS, replace=False)
+        draws = draws[np.sort(keep)]
+    if draws.shape[0] < 20:
+        return None
     return (
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
-        f"<title>{esc(title)}</title><style>{CSS}</style></head><body>"
-        + "\n".join(parts)
-        + "</body></html>\n"
+        corner_figure(draws, est.best_.model, post.mean, post.ci95),
+        "plot-corner",
+        f"Posterior of K, S, M ({est.best_.name})",
+        "corner plot of the posterior draws of K, S and M",
+        f"{draws.shape[0]:,} posterior draws in SI units; solid lines: means, "
+        "dashed: 95 % intervals. Look for compact clouds away from zero; ρ is "
+        "the correlation between two parameters (near ±1: the data separate "
+        "them poorly).",
     )
