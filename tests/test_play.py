@@ -22,7 +22,6 @@ from tissuecli.cli import fail_cleanly as _fail_cleanly
 from tissuecli.core.errors import DeviceError, DeviceLost, RenderError, TissueError
 from tissuecli.core.tissue import Tissue, TissueModel
 from tissuecli.hw.link import Link
-from tissuecli.hw.link import Link as DisplayLink
 from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
 from tissuecli.hw.realtime import StopFlag
 from tissuecli.render import PAPER_DISPLAY
@@ -219,14 +218,14 @@ def test_display_clamps_commands_and_its_watchdog_is_cleared_by_the_next_one(dis
 def test_losing_the_display_sends_zero_and_raises_device_lost(display, monkeypatch):
     d = display()
     sent: list[float] = []
-    original = DisplayLink.send
+    original = Link.send
 
-    def spy(self: DisplayLink, message: object) -> None:
+    def spy(self: Link, message: object) -> None:
         if isinstance(message, SetVoltage):
             sent.append(message.volts)
         original(self, message)
 
-    monkeypatch.setattr(DisplayLink, "send", spy)
+    monkeypatch.setattr(Link, "send", spy)
     threading.Timer(0.8, d.proc.kill).start()
     t0 = time.monotonic()
     with pytest.raises(DeviceLost, match="0 V") as info:
