@@ -13,48 +13,48 @@ the layers (cli -> app -> report | formats | sim -> hw -> identify | render -> c
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from ._lazy import lazy_getattr
 from ._version import __version__
 
 #: public name -> module that defines it
 _EXPORTS = {
     # core
-    "Session": "tissuecli.core.session",
-    "Tissue": "tissuecli.core.tissue",
-    "TissueModel": "tissuecli.core.tissue",
-    "DEFAULT_TISSUE": "tissuecli.core.tissue",
-    "Calibration": "tissuecli.core.calibration",
-    "TissueError": "tissuecli.core.errors",
+    "Session": ".core.session",
+    "Tissue": ".core.tissue",
+    "TissueModel": ".core.tissue",
+    "DEFAULT_TISSUE": ".core.tissue",
+    "Calibration": ".core.calibration",
+    "TissueError": ".core.errors",
     # identify
-    "BayesianFit": "tissuecli.identify.bayes",
-    "WindowedPinv": "tissuecli.identify.pinv",
-    "FitOutcome": "tissuecli.identify.outcome",
-    "fit_session": "tissuecli.identify.outcome",
+    "BayesianFit": ".identify.bayes",
+    "WindowedPinv": ".identify.pinv",
+    "FitOutcome": ".identify.outcome",
+    "fit_session": ".identify.outcome",
     # render
-    "DisplayProfile": "tissuecli.render.profile",
-    "PAPER_DISPLAY": "tissuecli.render.profile",
-    "check": "tissuecli.render.check",
-    "simulate_offline": "tissuecli.render.offline",
+    "DisplayProfile": ".render.profile",
+    "PAPER_DISPLAY": ".render.profile",
+    "check": ".render.check",
+    "simulate_offline": ".render.offline",
     # formats
-    "read_session": "tissuecli.formats.sessions",
-    "write_session": "tissuecli.formats.sessions",
-    "list_sessions": "tissuecli.formats.sessions",
-    "read_csv": "tissuecli.formats.csvfile",
-    "read_tissue": "tissuecli.formats.params",
-    "write_params": "tissuecli.formats.params",
+    "read_session": ".formats.sessions",
+    "write_session": ".formats.sessions",
+    "list_sessions": ".formats.sessions",
+    "read_csv": ".formats.csvfile",
+    "read_tissue": ".formats.params",
+    "write_params": ".formats.params",
     # hw and sim
-    "StopFlag": "tissuecli.hw.realtime",
-    "SimulatorProcess": "tissuecli.sim.process",
-    "ForcepsModel": "tissuecli.sim.synth",
-    "synthesize": "tissuecli.sim.synth",
-    "random_session": "tissuecli.sim.synth",
+    "StopFlag": ".hw.realtime",
+    "SimulatorProcess": ".sim.process",
+    "ForcepsModel": ".sim.synth",
+    "synthesize": ".sim.synth",
+    "random_session": ".sim.synth",
     # services
-    "record": "tissuecli.app.record",
-    "fit_file": "tissuecli.app.fit",
-    "play": "tissuecli.app.play",
-    "render_report": "tissuecli.report",
+    "record": ".app.record",
+    "fit_file": ".app.fit",
+    "play": ".app.play",
+    "render_report": ".report",
 }
 
 __all__ = [
@@ -91,13 +91,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tissuecli' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _EXPORTS)
 
 
 def __dir__() -> list[str]:

@@ -14,28 +14,29 @@ docs/formats.md describes every layout.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_getattr
 
 #: public name -> module: loaded on first use, so reading a JSON file never loads h5py
 _EXPORTS = {
-    "read_csv": "csvfile",
-    "write_csv": "csvfile",
-    "Column": "hdf5",
-    "group_names": "hdf5",
-    "read_group": "hdf5",
-    "read_calibration": "params",
-    "read_profile": "params",
-    "read_tissue": "params",
-    "tissue_to_dict": "params",
-    "write_params": "params",
-    "check_new_session": "sessions",
-    "list_sessions": "sessions",
-    "read_session": "sessions",
-    "session_names": "sessions",
-    "session_writer": "sessions",
-    "write_session": "sessions",
-    "SeriesWriter": "writer",
+    "read_csv": ".csvfile",
+    "write_csv": ".csvfile",
+    "Column": ".hdf5",
+    "group_names": ".hdf5",
+    "read_group": ".hdf5",
+    "read_calibration": ".params",
+    "read_profile": ".params",
+    "read_tissue": ".params",
+    "tissue_to_dict": ".params",
+    "write_params": ".params",
+    "check_new_session": ".sessions",
+    "list_sessions": ".sessions",
+    "read_session": ".sessions",
+    "session_names": ".sessions",
+    "session_writer": ".sessions",
+    "write_session": ".sessions",
+    "SeriesWriter": ".writer",
 }
 
 __all__ = [
@@ -59,11 +60,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tissuecli.formats' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+__getattr__ = lazy_getattr(__name__, _EXPORTS)
 
 
 if TYPE_CHECKING:
