@@ -9,6 +9,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from ..core.tissue import DEFAULT_TISSUE, PARAMETERS
+from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_tissue
 from ..formats.sessions import list_sessions, session_names
 from ..render.check import check
@@ -24,6 +25,7 @@ def run_demo(
     duration_s: float = 5.0,
     workdir: str | os.PathLike[str] | None = None,
     say: Callable[[str], None] = print,
+    force: bool = False,
 ) -> dict[str, str]:
     """Simulate a forceps, record, list, export and fit the session, then play the fitted
     tissue on a simulated display; return the files made.
@@ -36,6 +38,9 @@ def run_demo(
         Where to keep the files; a temporary directory (removed afterwards) by default.
     say : callable
         Receives one line of narration per step.
+    force : bool
+        Replace the CSV, parameter file and report in ``workdir`` if they exist (the
+        HDF5 files only ever gain a session or a play log).
     """
     with ExitStack() as stack:
         if workdir is None:
@@ -44,6 +49,17 @@ def run_demo(
             root = Path(workdir)
             root.mkdir(parents=True, exist_ok=True)
         h5, csv = root / "grasp.h5", root / "demo.csv"
+        params, report, log = root / "tissue.json", root / "report.html", root / "play.h5"
+        check_outputs(
+            [
+                Output(h5, "--dir", appends=True),
+                Output(csv, "--dir"),
+                Output(params, "--dir"),
+                Output(report, "--dir"),
+                Output(log, "--dir", appends=True),
+            ],
+            force=force,
+        )
         t = DEFAULT_TISSUE
         say(
             f"1. simulated forceps: {t.model.name} tissue K={t.K:g} {t.model.units['K']}, "
@@ -62,10 +78,9 @@ def run_demo(
                 f"3. {row['name']}: {row['samples']} samples, {row['duration_s']:.3f} s, "
                 f"{row['rate_hz']:.1f} Hz"
             )
-        export_csv(h5, name, csv)
+        export_csv(h5, name, csv, force=force)
         say(f"4. exported to {csv}")
-        params, report = root / "tissue.json", root / "report.html"
-        outcome = fit_file(h5, name, out=params, report=report)
+        outcome = fit_file(h5, name, out=params, report=report, force=force)
         best = outcome.bayes.best_  # type: ignore[union-attr]
         post = best.posterior
         say(f"5. fitted all forms: {best.name} chosen with probability {best.probability:.3f}")
@@ -81,7 +96,6 @@ def run_demo(
         tissue = read_tissue(params)
         verdict = check(tissue, PAPER_DISPLAY, 1000.0)
         say(f"6. display check: {verdict.verdict}")
-        log = root / "play.h5"
         with SimulatorProcess("display", root / "display") as disp:
             summary = play(tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log)
         say("7. played the fitted tissue on the simulated display:")

@@ -8,6 +8,7 @@ from typing import Any
 
 from ..core.tissue import PARAMETERS
 from ..formats.atomic import write_text_atomic
+from ..formats.outputs import Output, check_outputs
 from ..formats.params import write_params
 from ..formats.sessions import read_session
 from ..identify.outcome import FitOutcome, fit_session
@@ -19,6 +20,7 @@ def fit_file(
     *,
     out: str | os.PathLike[str] | None = None,
     report: str | os.PathLike[str] | None = None,
+    force: bool = False,
     **options: Any,
 ) -> FitOutcome:
     """Fit a stored session; write the parameter file and the HTML report if asked.
@@ -30,10 +32,17 @@ def fit_file(
     session : str, optional
         Session name (may be omitted when the file holds one).
     out, report : path, optional
-        Parameter file (JSON) and HTML report to write.
+        Parameter file (JSON) and HTML report to write (checked before the fit).
+    force : bool
+        Replace ``out`` and ``report`` if they exist (never the HDF5 file read).
     **options
         Passed to :func:`tissuecli.identify.fit_session` (method, forms, sampler, ...).
     """
+    check_outputs(
+        [Output(out, "--out") if out else None, Output(report, "--report") if report else None],
+        [path],
+        force=force,
+    )
     outcome = fit_session(read_session(path, session), **options)
     if out is not None:
         write_params(out, outcome)

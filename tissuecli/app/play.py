@@ -26,6 +26,7 @@ from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG, NONFINITE, SATURATED, UNREND
 from ..core.session import check_name
 from ..core.tissue import Tissue
 from ..formats.jsonfile import write_json
+from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_profile, read_tissue
 from ..hw.link import DEFAULT_BAUD, Link, open_device
 from ..hw.protocol import Encoder, SetVoltage
@@ -49,9 +50,14 @@ def check_file(
     profile: str | os.PathLike[str] | None = None,
     rate_hz: float = 1000.0,
     summary: str | os.PathLike[str] | None = None,
+    force: bool = False,
 ) -> CheckResult:
     """``play --check``: can the display (``profile``, the paper's by default) render the
-    tissue of a parameter file? Writes the verdict as JSON to ``summary`` if given."""
+    tissue of a parameter file? Writes the verdict as JSON to ``summary`` if given (an
+    existing file only with ``force``; never an input)."""
+    check_outputs(
+        [Output(summary, "--summary") if summary else None], [params, profile], force=force
+    )
     tissue = read_tissue(params)
     result = check(tissue, read_profile(profile) if profile else PAPER_DISPLAY, rate_hz)
     if summary is not None:
@@ -66,10 +72,21 @@ def play_file(
     *,
     profile: str | os.PathLike[str] | None = None,
     summary: str | os.PathLike[str] | None = None,
+    force: bool = False,
     **options: Any,
 ) -> dict[str, Any]:
     """``play``: render the tissue of a parameter file (see :func:`play` for ``options``);
-    writes the summary as JSON to ``summary`` if given."""
+    writes the summary as JSON to ``summary`` if given. Outputs are checked before the
+    display is opened: ``summary`` replaces a file only with ``force``, never an input."""
+    log = options.get("log")
+    check_outputs(
+        [
+            Output(summary, "--summary") if summary else None,
+            Output(log, "--log", appends=True) if log else None,
+        ],
+        [params, profile],
+        force=force,
+    )
     tissue = read_tissue(params)
     result = play(
         tissue, url, duration_s, profile=read_profile(profile) if profile else None, **options

@@ -18,6 +18,7 @@ from ..core.calibration import Calibration, calibration_from_dict
 from ..core.clock import ClockMap, TickUnwrapper, fit_clock_map
 from ..core.errors import DeviceError, DeviceLost, InputError
 from ..core.session import check_name
+from ..formats.outputs import Output, check_outputs
 from ..formats.sessions import check_new_session, session_writer
 from ..formats.writer import SeriesWriter
 from ..hw.link import DEFAULT_BAUD, Link, open_device
@@ -106,6 +107,7 @@ def record(
         raise InputError("--duration must be a positive number of seconds")
     check_name(session, "session")
     out = Path(out)
+    check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
     link, info = open_device(
         url,

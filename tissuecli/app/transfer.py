@@ -7,6 +7,7 @@ import os
 from ..core.session import Session
 from ..core.units import parse_units
 from ..formats.csvfile import read_csv, write_csv
+from ..formats.outputs import Output, check_outputs
 from ..formats.sessions import check_new_session, read_session, write_session
 
 
@@ -19,7 +20,9 @@ def import_csv(
     tissue: str = "",
     note: str = "",
 ) -> Session:
-    """Read a ``time,force,position`` CSV (in ``units``, SI by default) into a new session."""
+    """Read a ``time,force,position`` CSV (in ``units``, SI by default) into a new session
+    of the HDF5 file ``out`` (created if missing; other sessions are never touched)."""
+    check_outputs([Output(out, "--out", appends=True)], [csv_path])
     check_new_session(out, session)
     s = read_csv(csv_path, parse_units(units), name=session)
     s.meta.update(tissue=tissue, note=note)
@@ -33,8 +36,11 @@ def export_csv(
     csv_path: str | os.PathLike[str],
     *,
     units: str | None = None,
+    force: bool = False,
 ) -> Session:
-    """Write a stored session to CSV in ``units`` (SI by default)."""
+    """Write a stored session to CSV in ``units`` (SI by default); an existing CSV is
+    replaced only with ``force``, and never the HDF5 file read."""
+    check_outputs([Output(csv_path, "--csv")], [path], force=force)
     s = read_session(path, session)
     write_csv(csv_path, s, parse_units(units))
     return s

@@ -28,8 +28,41 @@ def fail_cleanly(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+class Command(click.Command):
+    """A command that refuses an option given twice instead of silently keeping the last."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        refuse_repeats(self, ctx, args)
+        return super().parse_args(ctx, args)
+
+
+def refuse_repeats(command: click.Command, ctx: click.Context, args: list[str]) -> None:
+    """Raise a usage error if a single-valued option appears twice in ``args``."""
+    options: dict[str, tuple[click.Option, bool]] = {}
+    for param in command.params:
+        if isinstance(param, click.Option) and not (param.multiple or param.count):
+            for name in (*param.opts, *param.secondary_opts):
+                options[name] = (param, not param.is_flag)
+    seen: dict[str, str] = {}
+    i = 0
+    while i < len(args) and args[i] != "--":
+        token = args[i]
+        name = token.split("=", 1)[0] if token.startswith("--") else token
+        if name in options:
+            param, takes_value = options[name]
+            if param.name in seen:
+                also = "" if seen[param.name] == name else f" (also as {seen[param.name]})"
+                raise click.UsageError(f"{name} is given twice{also}; give it once", ctx)
+            seen[param.name or name] = name
+            i += takes_value and "=" not in token  # skip the option's value
+        i += 1
+
+
 class Group(click.Group):
-    """A group whose every command reports :class:`TissueError` as a one-line message."""
+    """A group whose every command reports :class:`TissueError` as a one-line message and
+    refuses repeated options."""
+
+    command_class = Command
 
     def add_command(self, cmd: click.Command, name: str | None = None) -> None:
         if cmd.callback is not None:
@@ -46,6 +79,9 @@ class Group(click.Group):
             return super().main(*args, standalone_mode=False, **kwargs)
         try:
             code = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.NoArgsIsHelpError as exc:
+            click.echo(exc.ctx.get_help())  # no command given: the help is the answer
+            sys.exit(0)
         except click.ClickException as exc:
             exc.show()
             sys.exit(1)
@@ -74,6 +110,17 @@ def cli() -> None:
 
     All quantities are SI (N, m, s, kg, V) inside and in every file.
     """
+
+
+def printable(text: object, width: int | None = None) -> str:
+    """``text`` for one line of a table: control characters escaped (a newline in a label
+    cannot forge a row), cut to ``width`` characters with an ellipsis."""
+    shown = "".join(
+        c if c.isprintable() else c.encode("unicode_escape").decode() for c in str(text)
+    )
+    if width is not None and len(shown) > width:
+        shown = shown[: width - 1] + "…"
+    return shown
 
 
 def live_line(text: str) -> None:

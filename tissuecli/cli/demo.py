@@ -22,7 +22,12 @@ from .base import cli
     default=None,
     help="Keep the files here instead of a temporary directory.",
 )
-def demo(duration: float, workdir: str | None) -> None:
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace demo.csv, tissue.json and report.html in --dir if they exist.",
+)
+def demo(duration: float, workdir: str | None, force: bool) -> None:
     """Everything on simulated devices: simulate, record, list, export, fit, report, play.
 
     \b
@@ -31,4 +36,4 @@ def demo(duration: float, workdir: str | None) -> None:
     """
     from ..app.demo import run_demo
 
-    run_demo(duration_s=duration, workdir=workdir, say=click.echo)
+    run_demo(duration_s=duration, workdir=workdir, say=click.echo, force=force)

@@ -6,8 +6,15 @@ import json
 
 import click
 
-from .base import cli
-from .options import file_argument, h5_out_option, label_options, session_option, units_option
+from .base import cli, printable
+from .options import (
+    file_argument,
+    force_option,
+    h5_out_option,
+    label_options,
+    session_option,
+    units_option,
+)
 
 
 @cli.command()
@@ -36,8 +43,9 @@ def sessions(file: str, as_json: bool) -> None:
     for r in rows:
         flag = "" if r.get("complete", True) else "  (incomplete)"
         click.echo(
-            f"{r['name']:<20} {r['samples']:>9d} {r['duration_s']:>10.3f} {r['rate_hz']:>8.1f} "
-            f"{r['frames_lost']:>5d} {r['frames_bad']:>5d}  {r.get('tissue', '')}{flag}"
+            f"{printable(r['name']):<20} {r['samples']:>9d} {r['duration_s']:>10.3f} "
+            f"{r['rate_hz']:>8.1f} {r['frames_lost']:>5d} {r['frames_bad']:>5d}  "
+            f"{printable(r.get('tissue', ''), 60)}{flag}"
         )
 
 
@@ -72,7 +80,8 @@ def import_(
     "--csv", "csv_out", required=True, type=click.Path(dir_okay=False), help="CSV file to write."
 )
 @units_option("Units to write, e.g. 'mm,gf' [default: s,N,m].")
-def export(file: str, session: str | None, csv_out: str, units: str | None) -> None:
+@force_option()
+def export(file: str, session: str | None, csv_out: str, units: str | None, force: bool) -> None:
     """Export a session to CSV (header time,force,position).
 
     \b
@@ -81,5 +90,5 @@ def export(file: str, session: str | None, csv_out: str, units: str | None) -> N
     """
     from ..app.transfer import export_csv
 
-    s = export_csv(file, session, csv_out, units=units)
+    s = export_csv(file, session, csv_out, units=units, force=force)
     click.echo(f"wrote {len(s)} samples of session {s.name!r} to {csv_out}")

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import click
 
 from .base import cli
-from .options import file_argument, seed_option, session_option
+from .options import file_argument, force_option, seed_option, session_option
 
 
 def _sampling_progress() -> Callable[[str, int, float], None]:
@@ -87,6 +87,7 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
     "50 mm/s, 10 m/s^2). Raise it for stiff materials.",
 )
 @seed_option("Seed of the sampler.")
+@force_option()
 def fit(
     file: str,
     session: str | None,
@@ -99,6 +100,7 @@ def fit(
     window: float,
     force_scale: float,
     seed: int,
+    force: bool,
 ) -> None:
     """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F from a session.
 
@@ -115,6 +117,7 @@ def fit(
         session,
         out=out,
         report=report,
+        force=force,
         method=method,
         forms=forms,
         sampler=sampler,

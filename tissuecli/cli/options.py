@@ -77,5 +77,13 @@ def profile_option(help: str) -> Decorator:
     )
 
 
+def force_option() -> Decorator:
+    return click.option(
+        "--force",
+        is_flag=True,
+        help="Replace output files that exist (an input file is never replaced).",
+    )
+
+
 def file_argument(name: str = "file") -> Decorator:
     return click.argument(name, type=click.Path(dir_okay=False))

@@ -8,7 +8,7 @@ import click
 
 from ..core.errors import InputError, RenderError
 from .base import cli, end_live_line, live_line
-from .options import duration_option, file_argument, profile_option, rate_option
+from .options import duration_option, file_argument, force_option, profile_option, rate_option
 
 
 def _status_line(s: dict[str, Any]) -> None:
@@ -49,6 +49,7 @@ def _status_line(s: dict[str, Any]) -> None:
     help="Only report the renderable band and the verdict; open no port, move nothing.",
 )
 @profile_option("Display profile JSON (SI); default: what the display reports, else the paper's.")
+@force_option()
 def play(
     params_file: str,
     port: str | None,
@@ -58,6 +59,7 @@ def play(
     summary_file: str | None,
     check_only: bool,
     profile_file: str | None,
+    force: bool,
 ) -> None:
     """Render an identified tissue on the solenoid haptic display.
 
@@ -76,7 +78,9 @@ def play(
     from ..hw.realtime import StopFlag
 
     if check_only:
-        result = check_file(params_file, profile=profile_file, rate_hz=rate, summary=summary_file)
+        result = check_file(
+            params_file, profile=profile_file, rate_hz=rate, summary=summary_file, force=force
+        )
         for line in result.lines():
             click.echo(line)
         if not result.renderable:
@@ -91,6 +95,7 @@ def play(
             duration,
             profile=profile_file,
             summary=summary_file,
+            force=force,
             rate_hz=rate,
             log=log,
             stop=StopFlag().install(),

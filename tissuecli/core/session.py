@@ -50,17 +50,24 @@ COLUMNS: tuple[str, ...] = tuple(q.name for q in QUANTITIES)
 def check_name(name: object, kind: str = "session") -> str:
     """Return ``name`` if it can name a session (or play log); raise otherwise.
 
-    Names become HDF5 group names, so they must be non-empty and free of ``/``.
+    Names become HDF5 group names and rows of tables, so they must be non-empty, free
+    of ``/`` and of control characters, and at most 200 characters long.
 
     Raises
     ------
     InputError
-        For an empty name, ``.``/``..``, or a name with ``/``.
+        For an empty name, ``.``/``..``, a name with ``/`` or a control character, or
+        one longer than 200 characters.
     """
     if not isinstance(name, str) or not name.strip():
         raise InputError(f"{kind} name is empty; give one with --{kind} NAME")
     if "/" in name or name in (".", ".."):
         raise InputError(f'{kind} name "{name}" is not allowed; choose a name without "/"')
+    if not name.isprintable() or len(name) > 200:
+        shown = name[:60].encode("unicode_escape").decode()
+        raise InputError(
+            f'{kind} name "{shown}" is not allowed; use at most 200 printable characters'
+        )
     return name
 
 

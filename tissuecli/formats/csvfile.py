@@ -11,6 +11,7 @@ import numpy as np
 from ..core.errors import InputError
 from ..core.session import COLUMNS, Session
 from ..core.units import ColumnUnits
+from .atomic import atomic_file
 
 
 def read_csv(
@@ -67,11 +68,9 @@ def read_csv(
 def write_csv(
     path: str | os.PathLike[str], session: Session, units: ColumnUnits = ColumnUnits()
 ) -> None:
-    """Write ``time,force,position`` in ``units`` (SI by default), full float precision."""
+    """Write ``time,force,position`` in ``units`` (SI by default), full float precision,
+    atomically (see :func:`~tissuecli.formats.atomic.atomic_file`)."""
     cols = np.column_stack([getattr(session, c) / units.factor(c) for c in COLUMNS])
-    try:
-        with Path(path).open("w", newline="") as fh:
-            fh.write(",".join(COLUMNS) + "\n")
-            np.savetxt(fh, cols, delimiter=",", fmt="%.17g")
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc.strerror}") from None
+    with atomic_file(path) as fh:
+        fh.write(",".join(COLUMNS) + "\n")
+        np.savetxt(fh, cols, delimiter=",", fmt="%.17g")

@@ -9,6 +9,8 @@ speaks this protocol and is the kind of device expected.
 
 from __future__ import annotations
 
+import os
+import stat
 import time
 from pathlib import Path
 from typing import Any
@@ -50,6 +52,11 @@ class Link:
         kind: str = "forceps",
     ) -> None:
         self.url = url
+        if "://" not in url and os.path.exists(url) and not stat.S_ISCHR(os.stat(url).st_mode):
+            raise DeviceError(
+                f"{url} is not a serial device (a regular file or a directory); give the "
+                "device's path, e.g. /dev/ttyUSB0, or a simulator's --link"
+            )
         try:
             self._port = serial.serial_for_url(
                 url, baudrate=baudrate, timeout=timeout, write_timeout=1.0, exclusive=True

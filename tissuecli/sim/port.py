@@ -29,14 +29,33 @@ class VirtualPort:
         self.link = Path(link) if link else None
         self.overruns = 0
         if self.link is not None:
-            if self.link.is_symlink() or self.link.exists():
-                if not self.link.is_symlink():
-                    self.close()
-                    raise DeviceError(
-                        f"{self.link} exists and is not a symlink; choose another --link"
-                    )
-                self.link.unlink()
-            self.link.symlink_to(self.name)
+            try:
+                self._make_link(self.link)
+            except BaseException:
+                self.link = None  # not ours: close() must leave it alone
+                self.close()
+                raise
+
+    def _make_link(self, link: Path) -> None:
+        """Point ``link`` at this pty; a stale link (its pty gone) is replaced, a live one
+        (another simulator's) or any other file is refused."""
+        if link.is_symlink():
+            if link.exists():
+                raise DeviceError(
+                    f"{link} is the port of a running simulated device "
+                    f"({os.readlink(link)}); stop it or choose another --link"
+                )
+            link.unlink()  # left by a simulator that was killed
+        elif link.exists():
+            raise DeviceError(f"{link} exists and is not a symlink; choose another --link")
+        try:
+            link.symlink_to(self.name)
+        except FileNotFoundError:
+            raise DeviceError(
+                f"cannot create --link {link}: directory {link.parent} does not exist"
+            ) from None
+        except OSError as exc:
+            raise DeviceError(f"cannot create --link {link}: {exc.strerror}") from None
 
     @property
     def path(self) -> str:
