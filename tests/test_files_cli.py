@@ -78,14 +78,17 @@ def test_sessions_table_and_json(tmp_path):
     assert "b" in table and "250" in table
 
 
+ROWS = [(i * 1e-3, 1.0 + i, 1e-3 * i) for i in range(50)]
+
+
 @pytest.mark.parametrize(
     "header,rows,needle",
     [
-        ("t,f,x", [(0, 1, 1), (1, 1, 1)], "expected exactly 'time,force,position'"),
-        ("time,force,position", [(0, "nan", 1), (1, 1, 1)], "non-finite"),
-        ("time,force,position", [(0, 1, 1), (0, 1, 1), (1, 1, 1)], "not strictly increasing"),
-        ("time,force,position", [(0, "abc", 1), (1, 1, 1)], "not a number"),
-        ("time,force,position", [(0, 1, 1)], "at least 2"),
+        ("a,b,c", ROWS, "no column for time"),
+        ("time,force,position", ROWS[:20] + [(0.001, 1, 1)] + ROWS[20:], "goes back at line 22"),
+        ("time,force,position", [("abc", 1, 1)] * 50, "no rows of numbers"),
+        ("time,force,position", ROWS[:2], "too few"),
+        ("time,force,position", ROWS[:20] + [("x", "y", "z")] * 30, "do not parse"),
     ],
 )
 def test_bad_csv_is_one_clear_line(tmp_path, header, rows, needle):
@@ -95,8 +98,16 @@ def test_bad_csv_is_one_clear_line(tmp_path, header, rows, needle):
     assert not (tmp_path / "g.h5").exists()
 
 
+def test_a_few_bad_rows_are_skipped_and_reported(tmp_path):
+    rows = ROWS[:10] + [(0.0105, "nan", 1)] + ROWS[11:]
+    path = _csv(tmp_path / "some.csv", rows, "t,f,x")
+    r = run("import", str(path), "--out", str(tmp_path / "g.h5"), "--session", "x")
+    assert r.exit_code == 0, r.output
+    assert "1 junk line(s) skipped (line 12)" in r.output and "imported 49 samples" in r.output
+
+
 def test_existing_session_name_is_refused(tmp_path):
-    path = _csv(tmp_path / "a.csv", [(0, 1, 1), (1, 1, 1)])
+    path = _csv(tmp_path / "a.csv", ROWS)
     h5 = tmp_path / "g.h5"
     run("import", str(path), "--out", str(h5), "--session", "x")
     r = run("import", str(path), "--out", str(h5), "--session", "x")
@@ -118,13 +129,13 @@ def test_existing_session_name_is_refused(tmp_path):
 )
 def test_bad_arguments_exit_1_without_traceback(tmp_path, monkeypatch, args, needle):
     monkeypatch.chdir(tmp_path)
-    _csv(tmp_path / "a.csv", [(0, 1, 1), (1, 1, 1)])
+    _csv(tmp_path / "a.csv", ROWS)
     assert_clean_error(run(*args), needle)
 
 
 def test_export_needs_session_when_there_are_several(tmp_path):
     h5 = tmp_path / "g.h5"
-    path = _csv(tmp_path / "a.csv", [(0, 1, 1), (1, 1, 1)])
+    path = _csv(tmp_path / "a.csv", ROWS)
     run("import", str(path), "--out", str(h5), "--session", "one")
     run("import", str(path), "--out", str(h5), "--session", "two")
     assert_clean_error(run("export", str(h5), "--csv", str(tmp_path / "o.csv")), "--session")

@@ -41,7 +41,7 @@ _EXPORTS = {
     "read_session": ".formats.sessions",
     "write_session": ".formats.sessions",
     "list_sessions": ".formats.sessions",
-    "read_csv": ".formats.csvfile",
+    "read_recording": ".formats.recording",
     "read_tissue": ".formats.params",
     "write_params": ".formats.params",
     # hw and sim
@@ -76,7 +76,7 @@ __all__ = [
     "read_session",
     "write_session",
     "list_sessions",
-    "read_csv",
+    "read_recording",
     "read_tissue",
     "write_params",
     "StopFlag",
@@ -106,8 +106,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from .core.errors import TissueError
     from .core.session import Session
     from .core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
-    from .formats.csvfile import read_csv
     from .formats.params import read_tissue, write_params
+    from .formats.recording import read_recording
     from .formats.sessions import list_sessions, read_session, write_session
     from .hw.realtime import StopFlag
     from .identify.bayes import BayesianFit

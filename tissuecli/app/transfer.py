@@ -1,33 +1,52 @@
-"""Moving sessions between CSV files and HDF5 files."""
+"""Moving sessions between foreign files (CSV, TSV, MATLAB, NumPy) and HDF5 files."""
 
 from __future__ import annotations
 
 import os
 
+from ..core.errors import InputError
 from ..core.session import Session
 from ..core.units import parse_units
-from ..formats.csvfile import read_csv, write_csv
+from ..formats.csvfile import write_csv
 from ..formats.outputs import Output, check_outputs
+from ..formats.recording import ImportReport, read_recording
 from ..formats.sessions import check_new_session, read_session, write_session
 
 
-def import_csv(
-    csv_path: str | os.PathLike[str],
+def import_recording(
+    source: str | os.PathLike[str],
     out: str | os.PathLike[str],
     session: str,
     *,
+    columns: str | None = None,
     units: str | None = None,
+    jaw_length_m: float | None = None,
+    rate_hz: float | None = None,
     tissue: str = "",
     note: str = "",
-) -> Session:
-    """Read a ``time,force,position`` CSV (in ``units``, SI by default) into a new session
-    of the HDF5 file ``out`` (created if missing; other sessions are never touched)."""
-    check_outputs([Output(out, "--out", appends=True)], [csv_path])
+) -> tuple[Session, ImportReport]:
+    """Read a recording (text table, .mat or .npz; see
+    :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
+    file ``out`` (created if missing; other sessions are never touched).
+
+    Returns
+    -------
+    session : Session
+        What was stored, in SI.
+    report : ImportReport
+        Columns and units used, what was repaired or skipped, and unit warnings.
+    """
+    check_outputs([Output(out, "--out", appends=True)], [source])
     check_new_session(out, session)
-    s = read_csv(csv_path, parse_units(units), name=session)
+    s, report = read_recording(
+        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        name=session,
+    )  # fmt: skip
     s.meta.update(tissue=tissue, note=note)
+    if report.warnings:
+        s.meta["import_warnings"] = report.warnings
     write_session(out, s)
-    return s
+    return s, report
 
 
 def export_csv(
@@ -41,6 +60,9 @@ def export_csv(
     """Write a stored session to CSV in ``units`` (SI by default); an existing CSV is
     replaced only with ``force``, and never the HDF5 file read."""
     check_outputs([Output(csv_path, "--csv")], [path], force=force)
+    written = parse_units(units)
+    if written.position_is_angle:
+        raise InputError("export writes jaw closure; give --units position=mm (or m, um)")
     s = read_session(path, session)
-    write_csv(csv_path, s, parse_units(units))
+    write_csv(csv_path, s, written)
     return s

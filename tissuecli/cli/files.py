@@ -50,23 +50,75 @@ def sessions(file: str, as_json: bool) -> None:
 
 
 @cli.command("import")
-@file_argument("csv_file")
+@file_argument("source")
 @h5_out_option()
 @session_option("Name of the new session.", required=True)
-@units_option("Units of the CSV columns, any order, e.g. 'mm,gf' or 'ms,mN,um' [default: s,N,m].")
+@click.option(
+    "--columns",
+    default=None,
+    help="Which column is which, by header name or 1-based index, e.g. "
+    "'time=t_ms,force=force_g,position=3' [default: found by header name].",
+)
+@units_option(
+    "Units per column, e.g. 'time=ms,force=gf,position=mm' or the short 'mm,gf' "
+    "[default: from the header, e.g. t_ms, else s, N, m]. An angle (deg, rad) for "
+    "position is the angle between the jaws: give --jaw-length."
+)
+@click.option(
+    "--jaw-length",
+    default=None,
+    help="Hinge-to-tip length of the jaws, e.g. 20mm: turns a jaw angle into the closure "
+    "at the tips.",
+)
+@click.option(
+    "--rate",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Sample rate in Hz, for files without a time column.",
+)
 @label_options()
 def import_(
-    csv_file: str, out: str, session: str, units: str | None, tissue: str, note: str
+    source: str,
+    out: str,
+    session: str,
+    columns: str | None,
+    units: str | None,
+    jaw_length: str | None,
+    rate: float | None,
+    tissue: str,
+    note: str,
 ) -> None:
-    """Import a CSV with header time,force,position as a new session.
+    """Import a recording from another logger as a new session.
+
+    SOURCE is a text table (comma, tab, semicolon or space separated; header,
+    comments and junk lines allowed), a MATLAB .mat (v5 to v7.3) or a NumPy .npz
+    file. Columns are found by header name unless --columns says; time stamps from a
+    coarse or jittery clock are put back on their regular clock.
 
     \b
-    Example (position in mm, force in grams-force):
+    Examples:
         tissuecli import lab.csv --out grasp.h5 --session bench-3 --units mm,gf
+        tissuecli import log.tsv --out grasp.h5 --session cadaver-1 \\
+            --columns time=t_ms,force=force_g,position=angle_deg \\
+            --units time=ms,force=gf,position=deg --jaw-length 20mm
+        tissuecli import rig.mat --out grasp.h5 --session rig-1 --columns time=t,force=F,position=x
     """
-    from ..app.transfer import import_csv
+    from ..app.transfer import import_recording
+    from ..core.units import parse_quantity
 
-    s = import_csv(csv_file, out, session, units=units, tissue=tissue, note=note)
+    s, report = import_recording(
+        source,
+        out,
+        session,
+        columns=columns,
+        units=units,
+        jaw_length_m=parse_quantity(jaw_length, "length", "--jaw-length") if jaw_length else None,
+        rate_hz=rate,
+        tissue=tissue,
+        note=note,
+    )
+    for line in report.lines():
+        click.echo(line)
     click.echo(
         f"imported {len(s)} samples ({s.duration_s:.3f} s at {s.rate_hz:.1f} Hz) "
         f"into {out} session {session!r}"

@@ -1,75 +1,173 @@
 """Unit conversion at the edges. Everything inside tissuecli is SI (N, m, s, kg, V).
 
-Units are given as a comma-separated list such as ``"mm,gf"``; each unit is
-recognised by its dimension (length, force or time), so the order does not matter.
+``--units`` names the unit of each column, ``time=ms,force=gf,position=mm``; the short
+form ``mm,gf`` (any order, any subset) recognises each unit by its dimension. Headers
+such as ``t_ms``, ``force (N)`` or ``closure [mm]`` carry their unit too
+(:func:`unit_in_header`). Jaw closure may be given as the angle between the jaws
+(``deg``, ``rad``), which needs the jaw length to become a closure at the tips.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import re
+from dataclasses import dataclass, field
 
 from .errors import InputError
 from .session import QUANTITIES
 
 STANDARD_GRAVITY = 9.80665  # m/s^2, exact by definition
 
-#: factor to SI for each known unit, by dimension
+#: factor to SI for each known unit, by dimension (angle: to radians)
 UNITS: dict[str, dict[str, float]] = {
-    "length": {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "in": 0.0254},
+    "length": {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9, "in": 0.0254},
     "force": {
         "N": 1.0,
         "mN": 1e-3,
         "kN": 1e3,
         "gf": 1e-3 * STANDARD_GRAVITY,
+        "g": 1e-3 * STANDARD_GRAVITY,  # a force logged "in grams" is grams-force
         "kgf": STANDARD_GRAVITY,
+        "lbf": 0.45359237 * STANDARD_GRAVITY,
     },
-    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9, "min": 60.0},
+    "angle": {"rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180},
 }
 
-#: which column carries which dimension
+#: which column carries which dimension, and the other dimensions it may be given in
 COLUMN_DIMENSION = {q.name: q.dimension for q in QUANTITIES}
+ALTERNATIVES = {"position": ("angle",)}
+
+
+def dimension_of(unit: str) -> str | None:
+    """The dimension of a unit name, or None if unknown."""
+    return next((d for d, table in UNITS.items() if unit in table), None)
 
 
 @dataclass(frozen=True)
 class ColumnUnits:
-    """Units of the time, force and position columns, with factors to SI."""
+    """Units of the time, force and position columns, with factors to SI.
+
+    ``given`` names the columns whose unit was stated (the others may be read from
+    a header, else SI is assumed). A position in an angle unit (``deg``, ``rad``)
+    is the angle between the jaws.
+    """
 
     time: str = "s"
     force: str = "N"
     position: str = "m"
+    given: frozenset[str] = field(default=frozenset(), compare=False)
 
     def factor(self, column: str) -> float:
-        """Multiply a value in this column's unit by this to get SI."""
-        return UNITS[COLUMN_DIMENSION[column]][getattr(self, column)]
+        """Multiply a value in this column's unit by this to get SI (radians for angles)."""
+        unit = getattr(self, column)
+        dim = dimension_of(unit)
+        if dim is None:
+            raise InputError(f"unknown unit {unit!r} for {column}")
+        return UNITS[dim][unit]
+
+    @property
+    def position_is_angle(self) -> bool:
+        return dimension_of(self.position) == "angle"
 
     def __str__(self) -> str:
-        return f"{self.time},{self.force},{self.position}"
+        return f"time={self.time},force={self.force},position={self.position}"
 
 
 def parse_units(spec: str | None) -> ColumnUnits:
-    """Parse ``"mm,gf"`` (any order, any subset) into :class:`ColumnUnits`.
+    """Parse ``--units``: ``time=ms,force=gf,position=mm`` or the short ``mm,gf``.
+
+    In the short form each unit is recognised by its dimension, so the order does
+    not matter; an angle unit is taken for position. The two forms may be mixed.
 
     Raises
     ------
     InputError
-        For an unknown unit or two units of one dimension.
+        For an unknown column or unit, a unit of the wrong dimension for its column,
+        or a column given twice.
     """
-    if not spec:
-        return ColumnUnits()
     chosen: dict[str, str] = {}
-    for token in (t.strip() for t in spec.split(",")):
+    for token in (t.strip() for t in (spec or "").split(",")):
         if not token:
             continue
-        dims = [d for d, table in UNITS.items() if token in table]
-        if not dims:
-            known = ", ".join(u for table in UNITS.values() for u in table)
-            raise InputError(f"unknown unit {token!r} in --units; use any of: {known}")
-        dim = dims[0]
-        if dim in chosen:
-            raise InputError(f"--units gives two {dim} units ({chosen[dim]} and {token}); give one")
-        chosen[dim] = token
-    return ColumnUnits(
-        time=chosen.get("time", "s"),
-        force=chosen.get("force", "N"),
-        position=chosen.get("length", "m"),
-    )
+        if "=" in token:
+            column, unit = (part.strip() for part in token.split("=", 1))
+            if column not in COLUMN_DIMENSION:
+                raise InputError(
+                    f"--units names column {column!r}; the columns are time, force and position"
+                )
+        else:
+            unit = token
+            dim = dimension_of(unit)
+            column = next(
+                (
+                    c
+                    for c, d in COLUMN_DIMENSION.items()
+                    if d == dim or dim in ALTERNATIVES.get(c, ())
+                ),
+                "",
+            )
+        _check_unit(column, unit)
+        if column in chosen:
+            raise InputError(
+                f"--units gives {column} twice ({chosen[column]} and {unit}); give one"
+            )
+        chosen[column] = unit
+    return ColumnUnits(**chosen, given=frozenset(chosen))
+
+
+def _check_unit(column: str, unit: str) -> None:
+    dim = dimension_of(unit)
+    if dim is None:
+        known = ", ".join(u for table in UNITS.values() for u in table)
+        raise InputError(f"unknown unit {unit[:20]!r} in --units; use any of: {known}")
+    if column and (dim == COLUMN_DIMENSION[column] or dim in ALTERNATIVES.get(column, ())):
+        return
+    where = f"for {column}" if column else "for any column"
+    raise InputError(f"--units: {unit} is a {dim} unit, not one {where}")
+
+
+#: a unit at the end of a header: ``t_ms``, ``force (N)``, ``closure [mm]``, ``time/s``
+_UNIT_IN_HEADER = re.compile(r"(?:[\s_/-]|\(|\[)\s*([A-Za-zµ]+)\s*[\)\]]?\s*$")
+
+
+def unit_in_header(header: str, column: str) -> str | None:
+    """The unit a column's header names, if it is one that column may have.
+
+    ``t_ms`` gives ``ms`` for time, ``force_g`` ``g`` for force, ``angle (deg)``
+    ``deg`` for position; ``force`` alone gives None.
+    """
+    match = _UNIT_IN_HEADER.search(header.strip())
+    if match is None:
+        return None
+    unit = match.group(1)
+    for candidate in (unit, unit.lower(), "N" if unit.lower() == "n" else unit):
+        dim = dimension_of(candidate)
+        if dim is not None and (
+            dim == COLUMN_DIMENSION[column] or dim in ALTERNATIVES.get(column, ())
+        ):
+            return candidate
+    return None
+
+
+def parse_quantity(text: str, dimension: str, option: str) -> float:
+    """A number with an optional unit of ``dimension`` (``20mm``, ``0.02``, ``2 cm``) in SI.
+
+    Raises
+    ------
+    InputError
+        For text that is not a finite positive number with a known unit of that dimension.
+    """
+    match = re.fullmatch(r"\s*([-+0-9.eE]+)\s*([A-Za-zµ]*)\s*", text or "")
+    unit = match.group(2) if match else ""
+    try:
+        value = float(match.group(1)) if match else math.nan
+    except ValueError:
+        value = math.nan
+    factor = UNITS[dimension].get(unit or next(iter(UNITS[dimension])))
+    if factor is None or not (math.isfinite(value) and value > 0):
+        known = ", ".join(UNITS[dimension])
+        raise InputError(
+            f"{option} {text[:30]!r}: give a positive {dimension} such as 20mm (units: {known})"
+        )
+    return value * factor

@@ -20,7 +20,7 @@ from .._lazy import lazy_getattr
 
 #: public name -> module: loaded on first use, so reading a JSON file never loads h5py
 _EXPORTS = {
-    "read_csv": ".csvfile",
+    "read_recording": ".recording",
     "write_csv": ".csvfile",
     "Column": ".hdf5",
     "group_names": ".hdf5",
@@ -46,7 +46,7 @@ __all__ = [
     "group_names",
     "list_sessions",
     "read_calibration",
-    "read_csv",
+    "read_recording",
     "read_group",
     "read_profile",
     "read_session",
@@ -64,9 +64,10 @@ __getattr__ = lazy_getattr(__name__, _EXPORTS)
 
 
 if TYPE_CHECKING:
-    from .csvfile import read_csv, write_csv
+    from .csvfile import write_csv
     from .hdf5 import Column, group_names, read_group
     from .params import read_calibration, read_profile, read_tissue, tissue_to_dict, write_params
+    from .recording import read_recording
     from .sessions import (
         check_new_session,
         list_sessions,

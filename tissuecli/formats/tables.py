@@ -1,0 +1,207 @@
+"""Delimited text tables as loggers write them: comma, tab, semicolon, bar or whitespace
+separated (sniffed), with or without a byte-order mark, CRLF or LF, comment and
+preamble lines, a header or none, decimal commas, and junk lines (a truncated last
+line, a repeated header), which are counted and reported, never silently dropped."""
+
+from __future__ import annotations
+
+import codecs
+import os
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import InputError
+
+#: lines starting with these are comments
+COMMENTS = ("#", "%", "//", "!")
+#: candidate separators, in the order that wins a tie
+DELIMITERS = ("\t", ";", ",", "|", " ")
+_WHITESPACE = re.compile(r"\s+")
+
+
+@dataclass
+class Table:
+    """Numeric columns read from a foreign file.
+
+    Attributes
+    ----------
+    names : list of str
+        Column names: the header's, or ``"1"``, ``"2"``, ... without one.
+    data : ndarray, shape (n, k)
+        The numeric rows, in the file's units.
+    lines : ndarray of int, shape (n,)
+        1-based line (or row) number of each row in the file, for messages.
+    source : str
+        What was read, for messages and provenance (``"csv"``, ``"mat v5"``, ...).
+    notes : list of str
+        What the reader found and did: delimiter, encoding, comments, junk lines.
+    junk : list of int
+        Line numbers of lines that are neither data, header, comment nor blank.
+    header : bool
+        Whether the names came from the file.
+    """
+
+    names: list[str]
+    data: NDArray[np.float64]
+    lines: NDArray[np.int64]
+    source: str
+    notes: list[str] = field(default_factory=list)
+    junk: list[int] = field(default_factory=list)
+    header: bool = True
+
+
+def decode(raw: bytes, path: Path) -> tuple[str, str]:
+    """Text and the encoding it was read with: a byte-order mark wins, then UTF-8, then
+    Latin-1 (which decodes anything, so it is said in the notes)."""
+    if raw.startswith(codecs.BOM_UTF8):
+        return raw[len(codecs.BOM_UTF8) :].decode("utf-8", "replace"), "UTF-8 with BOM"
+    for bom, name in ((codecs.BOM_UTF16_LE, "utf-16-le"), (codecs.BOM_UTF16_BE, "utf-16-be")):
+        if raw.startswith(bom):
+            return raw[len(bom) :].decode(name, "replace"), name.upper() + " with BOM"
+    if b"\x00" in raw[:65536]:
+        raise InputError(
+            f"{path} is a binary file, not a text table; give a CSV/TSV export, a MATLAB "
+            ".mat or a NumPy .npz file"
+        )
+    try:
+        return raw.decode("utf-8"), "UTF-8"
+    except UnicodeDecodeError:
+        return raw.decode("latin-1"), "Latin-1 (not valid UTF-8)"
+
+
+def read_table(path: str | os.PathLike[str]) -> Table:
+    """Read a delimited text table, sniffing its layout.
+
+    Raises
+    ------
+    InputError
+        The file is missing, binary, has no numeric rows, or more junk than data.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path} does not exist; check the path") from None
+    except IsADirectoryError:
+        raise InputError(f"{path} is a directory; give a file") from None
+    except OSError as exc:
+        raise InputError(f"cannot read {path}: {exc.strerror}") from None
+    text, encoding = decode(raw, path)
+    numbered = [
+        (i + 1, line.strip())
+        for i, line in enumerate(text.splitlines())
+        if line.strip() and not line.lstrip().startswith(COMMENTS)
+    ]
+    comments = sum(
+        1 for line in text.splitlines() if line.strip() and line.lstrip().startswith(COMMENTS)
+    )
+    if not numbered:
+        raise InputError(f"{path} holds no data lines")
+    sniffed = _sniff([line for _, line in numbered[:400]])
+    if sniffed is None:
+        raise InputError(
+            f"{path} holds no rows of numbers (no line parses as two or more numbers "
+            "separated by commas, tabs, semicolons, bars or spaces)"
+        )
+    delimiter, width, decimal_comma = sniffed
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    header: list[str] | None = None
+    before: list[tuple[int, list[str]]] = []  # lines before the first data row
+    junk: list[int] = []
+    for number, line in numbered:
+        fields = _split(line, delimiter)
+        values = _numbers(fields, decimal_comma) if len(fields) == width else None
+        if values is not None:
+            rows.append(values)
+            lines.append(number)
+        elif rows:
+            junk.append(number)
+        else:
+            before.append((number, fields))
+    if not rows:
+        raise InputError(
+            f"{path} holds no rows of numbers ({width} fields); check that it is a table"
+        )
+    # the header is the line right before the data, if it has a name for every column;
+    # anything earlier is a preamble (a logger's title, date, settings)
+    if before and len(before[-1][1]) == width:
+        header = [f.strip().strip('"').strip("'") for f in before.pop()[1]]
+    preamble = [number for number, _ in before]
+    if len(junk) > max(10, len(rows) // 10):
+        raise InputError(
+            f"{path}: {len(junk)} of {len(junk) + len(rows)} lines do not parse as {width} "
+            f"numbers (first at line {junk[0]}); check the delimiter and the columns"
+        )
+    names = header if header is not None else [str(i + 1) for i in range(width)]
+    shown = {"\t": "tab", " ": "whitespace", ";": "semicolon", ",": "comma", "|": "bar"}
+    notes = [
+        f"{shown[delimiter]}-separated, {encoding}"
+        + (", decimal commas" if decimal_comma else "")
+        + (f", {comments} comment line(s)" if comments else "")
+        + (f", {len(preamble)} preamble line(s)" if preamble else "")
+    ]
+    if junk:
+        where = ", ".join(str(j) for j in junk[:5]) + (" ..." if len(junk) > 5 else "")
+        notes.append(f"{len(junk)} junk line(s) skipped (line {where})")
+    return Table(
+        names=names,
+        data=np.array(rows, dtype=float),
+        lines=np.array(lines, dtype=np.int64),
+        source="text table",
+        notes=notes,
+        junk=junk,
+        header=header is not None,
+    )
+
+
+def _split(line: str, delimiter: str) -> list[str]:
+    return _WHITESPACE.split(line.strip()) if delimiter == " " else line.split(delimiter)
+
+
+def _sniff(sample: list[str]) -> tuple[str, int, bool] | None:
+    """The separator, field count and decimal mark that parse most sample lines as numbers;
+    None if no line parses as two or more numbers."""
+    best: tuple[int, int, int] | None = None
+    choice = (",", 1, False)
+    for rank, delim in enumerate(DELIMITERS):
+        widths = Counter(len(_split(line, delim)) for line in sample)
+        width, _ = widths.most_common(1)[0]
+        if width < 2:
+            continue
+        for decimal_comma in (False, True):
+            if decimal_comma and delim == ",":
+                continue
+            numeric = sum(
+                1
+                for line in sample
+                if len(f := _split(line, delim)) == width and _numbers(f, decimal_comma)
+            )
+            key = (numeric, width if numeric else 0, -rank)
+            if best is None or key > best:
+                best, choice = key, (delim, width, decimal_comma)
+    if best is None or best[0] == 0:
+        return None
+    return choice
+
+
+def _numbers(fields: list[str], decimal_comma: bool) -> list[float] | None:
+    """The fields as finite floats, or None if any is not one."""
+    out = []
+    for f in fields:
+        f = f.strip().strip('"')
+        if decimal_comma:
+            f = f.replace(",", ".")
+        try:
+            value = float(f)
+        except ValueError:
+            return None
+        if value != value or value in (float("inf"), float("-inf")):
+            return None
+        out.append(value)
+    return out
