@@ -32,16 +32,36 @@ UNITS: dict[str, dict[str, float]] = {
     },
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9, "min": 60.0},
     "angle": {"rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180},
+    "torque": {"Nm": 1.0, "N*m": 1.0, "mNm": 1e-3, "Nmm": 1e-3, "N*mm": 1e-3},
 }
 
 #: which column carries which dimension, and the other dimensions it may be given in
 COLUMN_DIMENSION = {q.name: q.dimension for q in QUANTITIES}
-ALTERNATIVES = {"position": ("angle",)}
+ALTERNATIVES = {"position": ("angle",), "force": ("torque",)}
+
+#: a unit, optionally scaled: ``mm``, ``0.0007670*rad`` (one ADC count), ``3.98e-5Nm``
+_SCALED = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)?\s*\*?\s*(\S+?)\s*")
+
+
+def unit_factor(unit: str) -> tuple[str, float] | None:
+    """The dimension and SI factor of a unit, optionally scaled (``0.5*mm``); None if unknown
+    or the scale is not a finite positive number."""
+    match = _SCALED.fullmatch(unit or "")
+    if match is None:
+        return None
+    dim = next((d for d, table in UNITS.items() if match.group(2) in table), None)
+    if dim is None:
+        return None
+    scale = float(match.group(1)) if match.group(1) else 1.0
+    if not (math.isfinite(scale) and scale > 0):
+        return None
+    return dim, scale * UNITS[dim][match.group(2)]
 
 
 def dimension_of(unit: str) -> str | None:
-    """The dimension of a unit name, or None if unknown."""
-    return next((d for d, table in UNITS.items() if unit in table), None)
+    """The dimension of a (possibly scaled) unit, or None if unknown."""
+    found = unit_factor(unit)
+    return found[0] if found else None
 
 
 @dataclass(frozen=True)
@@ -49,8 +69,10 @@ class ColumnUnits:
     """Units of the time, force and position columns, with factors to SI.
 
     ``given`` names the columns whose unit was stated (the others may be read from
-    a header, else SI is assumed). A position in an angle unit (``deg``, ``rad``)
-    is the angle between the jaws.
+    a header, else SI is assumed). A unit may carry a scale, ``0.000767*rad`` for a
+    position logged in ADC counts. A position in an angle unit (``deg``, ``rad``) is
+    the angle between the jaws; a force in a torque unit (``Nm``) is the torque about
+    their hinge.
     """
 
     time: str = "s"
@@ -59,16 +81,21 @@ class ColumnUnits:
     given: frozenset[str] = field(default=frozenset(), compare=False)
 
     def factor(self, column: str) -> float:
-        """Multiply a value in this column's unit by this to get SI (radians for angles)."""
+        """Multiply a value in this column's unit by this to get SI (radians for angles,
+        N m for torques)."""
         unit = getattr(self, column)
-        dim = dimension_of(unit)
-        if dim is None:
+        found = unit_factor(unit)
+        if found is None:
             raise InputError(f"unknown unit {unit!r} for {column}")
-        return UNITS[dim][unit]
+        return found[1]
 
     @property
     def position_is_angle(self) -> bool:
         return dimension_of(self.position) == "angle"
+
+    @property
+    def force_is_torque(self) -> bool:
+        return dimension_of(self.force) == "torque"
 
     def __str__(self) -> str:
         return f"time={self.time},force={self.force},position={self.position}"
@@ -120,7 +147,10 @@ def _check_unit(column: str, unit: str) -> None:
     dim = dimension_of(unit)
     if dim is None:
         known = ", ".join(u for table in UNITS.values() for u in table)
-        raise InputError(f"unknown unit {unit[:20]!r} in --units; use any of: {known}")
+        raise InputError(
+            f"unknown unit {unit[:20]!r} in --units; use any of: {known}, optionally scaled "
+            "as 0.5*mm"
+        )
     if column and (dim == COLUMN_DIMENSION[column] or dim in ALTERNATIVES.get(column, ())):
         return
     where = f"for {column}" if column else "for any column"

@@ -6,7 +6,8 @@ Columns are found by header name (``time``/``t``/``timestamp``, ``force``/``load
 ``time=NAME,force=NAME,position=NAME`` (a name or a 1-based index). Units come from
 ``--units``, else from the header (``t_ms``, ``force (N)``), else SI. A position in
 degrees or radians is the angle between the jaws and becomes the closure at the tips,
-``x = -2 L sin(theta / 2)`` for jaws of length ``L`` (docs/real-data.md). Time stamps
+``x = -2 L sin(theta / 2)`` for jaws of length ``L``, and a torque about the hinge the
+force at the tips, ``tau / L`` (docs/real-data.md). Time stamps
 are put back on the regular clock they came from, when they did
 (:func:`tissuecli.core.timebase.regularise`).
 """
@@ -109,7 +110,7 @@ def read_recording(
         report.units[quantity] = unit + origin
     report.ignored = [n for i, n in enumerate(table.names) if i not in chosen.values()]
     data = table.data
-    force = data[:, picked["force"][0]] * ColumnUnits(force=picked["force"][1]).factor("force")
+    force = _force(data[:, picked["force"][0]], picked["force"][1], jaw_length_m, path)
     position = _closure(data[:, picked["position"][0]], picked["position"][1], jaw_length_m, path)
     if "time" in picked:
         stamps = data[:, picked["time"][0]] * ColumnUnits(time=picked["time"][1]).factor("time")
@@ -231,6 +232,19 @@ def _unit(quantity: str, header: str, given: ColumnUnits, has_header: bool) -> t
             "position=deg (or rad) and the jaws' length with --jaw-length"
         )
     return getattr(ColumnUnits(), quantity), " (SI, assumed)"
+
+
+def _force(values: np.ndarray, unit: str, jaw_length_m: float | None, path: Path) -> np.ndarray:
+    """Force in N; a torque about the jaws' hinge becomes the force at the tips, ``tau / L``."""
+    factor = ColumnUnits(force=unit).factor("force")
+    if dimension_of(unit) != "torque":
+        return values * factor
+    if not (jaw_length_m and jaw_length_m > 0 and math.isfinite(jaw_length_m)):
+        raise InputError(
+            f"force in {path} is a torque ({unit}); give the jaws' hinge-to-tip length "
+            "with --jaw-length, e.g. --jaw-length 20mm"
+        )
+    return values * factor / jaw_length_m
 
 
 def _closure(values: np.ndarray, unit: str, jaw_length_m: float | None, path: Path) -> np.ndarray:

@@ -92,14 +92,20 @@ def read_table(path: str | os.PathLike[str]) -> Table:
     except OSError as exc:
         raise InputError(f"cannot read {path}: {exc.strerror}") from None
     text, encoding = decode(raw, path)
-    numbered = [
-        (i + 1, line.strip())
-        for i, line in enumerate(text.splitlines())
-        if line.strip() and not line.lstrip().startswith(COMMENTS)
-    ]
-    comments = sum(
-        1 for line in text.splitlines() if line.strip() and line.lstrip().startswith(COMMENTS)
-    )
+    numbered: list[tuple[int, str]] = []
+    comment_lines: list[tuple[int, str]] = []
+    marks = 0  # lines of punctuation alone: a rich-text export's "\\", a closing "}"
+    for i, raw_line in enumerate(text.splitlines()):
+        line = raw_line.strip()
+        if not line:
+            continue
+        if line.startswith(COMMENTS):
+            comment_lines.append((i + 1, line))
+        elif not any(c.isalnum() for c in line):
+            marks += 1
+        else:
+            numbered.append((i + 1, line))
+    comments = len(comment_lines)
     if not numbered:
         raise InputError(f"{path} holds no data lines")
     sniffed = _sniff([line for _, line in numbered[:400]])
@@ -132,6 +138,13 @@ def read_table(path: str | os.PathLike[str]) -> Table:
     # anything earlier is a preamble (a logger's title, date, settings)
     if before and len(before[-1][1]) == width:
         header = [f.strip().strip('"').strip("'") for f in before.pop()[1]]
+    elif not before:
+        # some loggers write the header as the last comment line before the data
+        lead = [c for c in comment_lines if c[0] < lines[0]]
+        if lead:
+            fields = _split(lead[-1][1].lstrip("#%/! "), delimiter)
+            if len(fields) == width and _numbers(fields, decimal_comma) is None:
+                header = [f.strip().strip('"').strip("'") for f in fields]
     preamble = [number for number, _ in before]
     if len(junk) > max(10, len(rows) // 10):
         raise InputError(
@@ -145,6 +158,7 @@ def read_table(path: str | os.PathLike[str]) -> Table:
         + (", decimal commas" if decimal_comma else "")
         + (f", {comments} comment line(s)" if comments else "")
         + (f", {len(preamble)} preamble line(s)" if preamble else "")
+        + (f", {marks} line(s) of punctuation alone" if marks else "")
     ]
     if junk:
         where = ", ".join(str(j) for j in junk[:5]) + (" ..." if len(junk) > 5 else "")

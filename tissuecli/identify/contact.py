@@ -1,0 +1,188 @@
+"""Grasps: where the jaws hold tissue, told from free jaw motion by the force.
+
+A forceps session alternates grasps with free motion, during which the force
+sensor reads its own offset (the baseline) plus noise. The baseline is the level
+of the lowest long, flat stretch of the smoothed force; a sample is in contact when
+the smoothed force stands above the baseline by more than 6 noise SDs (entering) and
+until it falls below 3 (leaving). Stretches shorter than :data:`MIN_GRASP_S` are not
+grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
+covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.session import Session
+
+Array = NDArray[np.float64]
+
+#: shortest grasp and shortest break between grasps, s
+MIN_GRASP_S = 0.1
+MIN_GAP_S = 0.05
+#: enter and leave contact at these many noise SDs above the baseline
+ENTER_SD, LEAVE_SD = 6.0, 3.0
+#: smoothing of the force before thresholding, s
+SMOOTH_S = 0.02
+#: the free stretches must cover this much of a session for it to have any
+MIN_FREE_FRACTION = 0.05
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """One grasp: samples ``start`` (inclusive) to ``stop`` (exclusive) of the session."""
+
+    start: int
+    stop: int
+    start_s: float
+    end_s: float
+    peak_force_n: float  # above the baseline, N
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_s - self.start_s
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Where a session is in contact.
+
+    Attributes
+    ----------
+    grasps : tuple of Grasp
+        In time order.
+    mask : ndarray of bool, shape (n,)
+        True on in-contact samples.
+    baseline_n : float
+        Force with the jaws free (the sensor's offset), N; NaN when the session has no
+        free stretch.
+    noise_n : float
+        SD of the force noise, N.
+    all_contact : bool
+        The session has no free stretch: it is one contact from start to end.
+    """
+
+    grasps: tuple[Grasp, ...]
+    mask: NDArray[np.bool_]
+    baseline_n: float
+    noise_n: float
+    all_contact: bool
+
+    def describe(self) -> str:
+        if self.all_contact:
+            return "no free jaw motion found: the whole session is one contact"
+        durations = [g.duration_s for g in self.grasps]
+        if not durations:
+            return f"no grasp found (baseline {self.baseline_n:.4g} N)"
+        return (
+            f"{len(self.grasps)} grasp(s) of {min(durations):.2f}-{max(durations):.2f} s, "
+            f"peak {max(g.peak_force_n for g in self.grasps):.3g} N above a baseline of "
+            f"{self.baseline_n:.4g} N; {100 * np.mean(self.mask):.0f} % of the samples in contact"
+        )
+
+
+def find_contact(session: Session) -> Contact:
+    """Find the grasps of a session (on a regular or nearly regular sample grid)."""
+    f = session.force
+    n = f.size
+    dt = float(np.median(np.diff(session.time))) if n > 1 else 1.0
+    noise = _noise_sd(f)
+    smooth = _moving_mean(f, max(1, int(round(SMOOTH_S / dt))))
+    baseline, free = _baseline(smooth, noise, dt)
+    if free < MIN_FREE_FRACTION:
+        return Contact(
+            grasps=(
+                Grasp(0, n, float(session.time[0]), float(session.time[-1]), float(np.ptp(f))),
+            ),
+            mask=np.ones(n, bool),
+            baseline_n=float("nan"),
+            noise_n=noise,
+            all_contact=True,
+        )
+    above = smooth - baseline
+    mask = _hysteresis(above, ENTER_SD * noise, LEAVE_SD * noise)
+    mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
+    grasps = []
+    for start, stop in _runs(mask):
+        if (stop - start) * dt < MIN_GRASP_S:
+            mask[start:stop] = False
+            continue
+        grasps.append(
+            Grasp(
+                start,
+                stop,
+                float(session.time[start]),
+                float(session.time[stop - 1]),
+                float(np.max(above[start:stop])),
+            )
+        )
+    return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
+
+
+def _noise_sd(f: Array) -> float:
+    """Force noise SD from successive differences (robust to the signal's slow changes)."""
+    d = np.diff(f)
+    if d.size == 0:
+        return 0.0
+    sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2)
+    if sd > 0:
+        return sd
+    nonzero = np.abs(d[d != 0])  # a quantised, mostly constant signal: one step
+    return float(np.min(nonzero)) / 2 if nonzero.size else 0.0
+
+
+def _moving_mean(f: Array, width: int) -> Array:
+    if width <= 1:
+        return f.astype(float)
+    kernel = np.ones(width) / width
+    padded = np.pad(f.astype(float), (width // 2, width - 1 - width // 2), mode="edge")
+    return np.convolve(padded, kernel, mode="valid")
+
+
+def _baseline(smooth: Array, noise: float, dt: float) -> tuple[float, float]:
+    """The lowest level the smoothed force rests at for long stretches (free jaws), and
+    the fraction of the session spent within a few noise SDs of it."""
+    floor = float(np.percentile(smooth, 2))
+    band = max(ENTER_SD * noise, 1e-12 * max(abs(floor), 1.0))
+    near = smooth <= floor + band
+    long_free = np.zeros_like(near)
+    for start, stop in _runs(near):
+        if (stop - start) * dt >= MIN_GRASP_S:
+            long_free[start:stop] = True
+    if not np.any(long_free):
+        return floor, 0.0
+    return float(np.median(smooth[long_free])), float(np.mean(long_free))
+
+
+def _hysteresis(signal: Array, enter: float, leave: float) -> NDArray[np.bool_]:
+    """True from where ``signal`` exceeds ``enter`` until it falls below ``leave``."""
+    high, low = signal > enter, signal < leave
+    mask = np.zeros(signal.size, bool)
+    state = False
+    # run-wise rather than sample-wise: states change only at crossings
+    change = np.flatnonzero(high | low)
+    last = 0
+    for i in change:
+        mask[last:i] = state
+        state = bool(high[i]) or (state and not low[i])
+        last = i
+    mask[last:] = state
+    return mask
+
+
+def _close_gaps(mask: NDArray[np.bool_], width: int) -> NDArray[np.bool_]:
+    out = mask.copy()
+    runs = _runs(~mask)
+    for start, stop in runs:
+        if 0 < start and stop < mask.size and stop - start <= width:
+            out[start:stop] = True
+    return out
+
+
+def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """(start, stop) of every run of True."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
