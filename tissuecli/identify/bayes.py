@@ -183,6 +183,13 @@ class BayesianFit:
         results.sort(key=lambda r: -r.ln_evidence)
         best = results[0]
         warnings.extend(f"{best.name}: {f}" for f in best.flags)
+        floor = best.prior.sigma_lo if best.prior is not None else 0.0
+        if best.posterior.sigma_mean < 10 * floor:  # type: ignore[union-attr]
+            warnings.append(
+                f"the force residual is at the {floor:g} N floor of the noise prior: the "
+                "session looks noise-free (synthetic?), so its intervals reflect rounding, "
+                "not measurement noise"
+            )
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(_outlier_warnings(kin, fitted))
 

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.errors import FitError
 from .orthant import normal_cdf, orthant_probability
 
 Array = NDArray[np.float64]
@@ -132,9 +133,14 @@ class ExactPosterior:
         self.lam = np.clip(lam, 0.0, None)
         self.c = self.Q.T @ (self.ws * s.b)
         self.s = s
-        u_hat = 0.5 * np.log(max(self._rss_ls() / max(s.n, 1.0), 1e-300))
-        half = max(12.0 / np.sqrt(2 * max(s.n, 1.0)), 0.05)
         lo, hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
+        # the least-squares noise level may lie outside the prior's range (a noise-free
+        # session, where rounding leaves a residual of 1e-150 N, or none at all): the
+        # posterior then piles up at that end, so start there. Unclamped, the grid ran
+        # from lo down to below lo, its node spacing was negative and every weight NaN.
+        u_hat = 0.5 * np.log(max(self._rss_ls() / max(s.n, 1.0), 1e-300))
+        u_hat = min(max(u_hat, lo), hi)
+        half = max(12.0 / np.sqrt(2 * max(s.n, 1.0)), 0.05)
         for _ in range(8):  # widen until the integrand is negligible at both ends
             self.u = np.linspace(max(lo, u_hat - half), min(hi, u_hat + half), nodes)
             self.f = self._ln_z_given_sigma(np.exp(self.u))
@@ -150,6 +156,11 @@ class ExactPosterior:
         lw = self.f + np.log(w)
         self.ln_z_untruncated = float(logsumexp(lw) - np.log(prior.ln_sigma_range))
         self.weights = np.exp(lw - logsumexp(lw))
+        if not (np.all(np.isfinite(self.weights)) and math.isfinite(self.ln_z_untruncated)):
+            raise FitError(
+                "the posterior of the noise level is not finite (the session's forces or "
+                "positions reach values floating point cannot square); check its units"
+            )
 
     def _rss_ls(self) -> float:
         s = self.s

@@ -64,6 +64,11 @@ def prepare(session: Session, diff: Differentiator) -> tuple[Session, Kinematics
     warnings: list[str] = []
     if grid is None:
         session, warnings = longest_gapless(session)
+        if len(session) < MIN_SAMPLES:
+            raise FitError(
+                f"the session's sample times do not fall on one grid and its longest gap-free "
+                f"stretch has {len(session)} samples; at least {MIN_SAMPLES} are needed to fit"
+            )
         valid = np.ones(len(session), bool)
         lost = 0
     else:
