@@ -48,17 +48,24 @@ class DisplayProfile:
         return self.alpha * self.v_max**2
 
     def validate(self) -> DisplayProfile:
-        """Raise :class:`InputError` unless every constant is finite and positive (b >= 0)."""
+        """Raise :class:`InputError` unless every constant is a finite number within
+        :data:`PROFILE_RANGES` and the encoder resolves at least 100 steps of the stroke."""
         for f in fields(self):
             value = getattr(self, f.name)
-            ok = isinstance(value, (int, float)) and math.isfinite(value)
-            ok = ok and (value >= 0 if f.name == "b" else value > 0)
+            lo, hi = PROFILE_RANGES[f.name]
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            ok = ok and math.isfinite(value) and lo <= value <= hi and (value > 0 or f.name == "b")
             if not ok:
-                sign = ">= 0" if f.name == "b" else "> 0"
                 raise InputError(
-                    f"display profile: {f.name} = {value!r} {PROFILE_UNITS[f.name]} "
-                    f"must be finite and {sign}"
+                    f"display profile: {f.name} = {_shown(value)} {PROFILE_UNITS[f.name]} must "
+                    f"be finite and in {'[' if f.name == 'b' else '('}{lo:g}, {hi:g}] "
+                    f"{PROFILE_UNITS[f.name]} (docs/formats.md)"
                 )
+        if self.resolution > self.stroke / 100:
+            raise InputError(
+                f"display profile: resolution {self.resolution:g} m resolves fewer than 100 "
+                f"steps of the {self.stroke:g} m stroke"
+            )
         return self
 
     def as_dict(self) -> dict[str, Any]:
@@ -84,6 +91,31 @@ PROFILE_UNITS = {
 }
 
 
+#: Physical range of each constant, SI: a hand-held solenoid display, with margins of
+#: orders of magnitude around the paper's prototype, so a typo in a unit (g for kg, mm
+#: for m) or an absurd value is refused before any arithmetic. ``b`` may be 0; every
+#: other constant must be > 0.
+PROFILE_RANGES = {
+    "Mp": (1e-3, 10.0),  # a piston of a gram to 10 kg
+    "Kp": (1e-3, 1e6),  # N/m
+    "alpha": (1e-6, 1e3),  # N/V^2
+    "v_max": (1e-3, 1e3),  # V
+    "stroke": (1e-4, 1.0),  # 0.1 mm to 1 m
+    "resolution": (1e-9, 1e-2),  # m per count
+    "b": (0.0, 1e4),  # N s/m
+}
+
+PROFILE_FORMAT = "tissuecli-display"
+PROFILE_VERSION = 1
+_SHOW_CHARS = 60
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)`` cut to 60 characters (a value from a file may be huge)."""
+    text = repr(value)
+    return text if len(text) <= _SHOW_CHARS else text[: _SHOW_CHARS - 3] + "..."
+
+
 def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") -> DisplayProfile:
     """Build a :class:`DisplayProfile` from a JSON object.
 
@@ -105,21 +137,50 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
     """
     if not isinstance(data, Mapping):
         raise InputError(f"{source} must be a JSON object")
-    units = PROFILE_UNITS
-    unknown = sorted(set(data) - set(units) - {"format", "version", "name", "note"})
-    if unknown:
+    fmt = data.get("format", PROFILE_FORMAT)
+    if fmt != PROFILE_FORMAT:
         raise InputError(
-            f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(units)}"
+            f"{source}: format {_shown(fmt)} is not {PROFILE_FORMAT!r}; is it a display profile?"
         )
+    version = data.get("version", PROFILE_VERSION)
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError(f"{source}: version = {_shown(version)} must be a whole number >= 1")
+    if version > PROFILE_VERSION:
+        raise InputError(
+            f"{source} has format version {_shown(version)}, written by a newer tissuecli; "
+            f"this one reads up to version {PROFILE_VERSION}: upgrade tissuecli"
+        )
+    units = PROFILE_UNITS
+    unknown = [k for k in data if k not in units and k not in ("format", "version", "name", "note")]
+    if unknown:
+        raise InputError(f"{source}: unknown key {_shown(unknown[0])}; known: {', '.join(units)}")
+    for key in ("name", "note"):
+        if key in data and not isinstance(data[key], str):
+            raise InputError(f"{source}: {key} must be a string")
     values: dict[str, float] = {}
     for key, unit in units.items():
         if key not in data:
             continue
         entry = data[key]
-        value = entry.get("value") if isinstance(entry, Mapping) else entry
-        if isinstance(entry, Mapping) and entry.get("unit", unit) != unit:
-            raise InputError(f"{source}: {key} is in {entry['unit']!r}; give it in {unit!r}")
+        if isinstance(entry, Mapping):
+            extra = [k for k in entry if k not in ("value", "unit")]
+            if extra or "value" not in entry:
+                raise InputError(
+                    f'{source}: {key} must be a number or {{"value": number, "unit": "{unit}"}}'
+                )
+            if entry.get("unit", unit) != unit:
+                raise InputError(
+                    f"{source}: {key} is in {_shown(entry['unit'])}; give it in {unit!r}"
+                )
+            value = entry["value"]
+        else:
+            value = entry
         if not isinstance(value, (int, float)) or isinstance(value, bool):
             raise InputError(f"{source}: {key} must be a number in {unit}")
+        if not math.isfinite(float(value)):
+            raise InputError(f"{source}: {key} = {_shown(value)} is not a finite number")
         values[key] = float(value)
-    return replace(PAPER_DISPLAY, **values).validate()
+    try:
+        return replace(PAPER_DISPLAY, **values).validate()
+    except InputError as exc:
+        raise InputError(str(exc).replace("display profile", source, 1)) from None
