@@ -1,16 +1,27 @@
 """fit says what it knows: time gaps anywhere, of any length, fit or are refused with a
-reason; the noise integral works whatever the residual."""
+reason; the noise integral works whatever the residual; incomplete and lossy recordings
+are warned about and recorded in the parameter file."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
+import h5py
 import numpy as np
+import pytest
+from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tissuecli.cli import cli
 from tissuecli.core.errors import TissueError
 from tissuecli.core.session import Session
 from tissuecli.core.tissue import DEFAULT_TISSUE
+from tissuecli.formats.params import document
+from tissuecli.formats.sessions import write_session
 from tissuecli.identify import fit_session
+from tissuecli.identify.outcome import recording_state, session_warnings
 from tissuecli.identify.posterior import ExactPosterior, Prior, SufficientStats
 from tissuecli.sim.synth import random_session
 
@@ -95,3 +106,58 @@ def test_a_noise_free_session_is_said_to_be_one():
     t[2500:] += 0.5
     out = fit_session(Session(t, CLEAN.force, CLEAN.position), forms="x,xdot")
     assert any("looks noise-free" in w for w in out.warnings), out.warnings
+
+
+# --------------------------------------------------------------------------- recordings
+
+
+def _recorded(meta: dict) -> Session:
+    s = random_session(DEFAULT_TISSUE, rate_hz=RATE, seed=1, duration_s=3.0)[0]
+    return Session(s.time, s.force, s.position, name="rec", meta=meta, adc=s.adc)
+
+
+def test_incomplete_and_lossy_sessions_are_warned_about_and_recorded():
+    meta = {"complete": np.bool_(False), "frames_lost": np.int64(12), "frames_bad": 3}
+    meta["stop_reason"] = "x" * 500
+    out = fit_session(_recorded(meta), forms="x,xdot")
+    warnings = out.warnings
+    assert warnings[0].startswith("session 'rec' is incomplete: its recording never closed")
+    assert len(warnings[0]) < 300  # a long stop reason is cut short
+    assert warnings[1].startswith("the recording lost 12 frame(s) and rejected 3 corrupt")
+    doc = document(out)
+    assert doc["warnings"][:2] == warnings[:2]
+    assert {k: doc["data"][k] for k in ("complete", "frames_lost", "frames_bad")} == {
+        "complete": False,
+        "frames_lost": 12,
+        "frames_bad": 3,
+    }
+    json.dumps(doc, allow_nan=False)
+
+
+@pytest.mark.parametrize(
+    ("meta", "complete"),
+    [({"complete": True, "frames_lost": 0, "frames_bad": 0}, True), ({}, None)],
+)
+def test_complete_clean_and_unknown_sessions_get_no_recording_warning(meta, complete):
+    session = _recorded(meta)
+    assert session_warnings(session) == []
+    assert recording_state(session) == {
+        "complete": complete,
+        "frames_lost": 0,
+        "frames_bad": 0,
+        "stop_reason": "",
+    }
+
+
+def test_fit_command_warns_about_a_crashed_recording(tmp_path: Path):
+    h5, out = tmp_path / "grasp.h5", tmp_path / "fit.json"
+    write_session(h5, _recorded({"tissue": "liver"}))
+    with h5py.File(h5, "r+") as f:  # what a recorder killed mid-session leaves
+        f["sessions/rec"].attrs["complete"] = False
+        f["sessions/rec"].attrs["frames_lost"] = 4
+    result = CliRunner().invoke(cli, ["fit", str(h5), "--forms", "x,xdot", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "warning: session 'rec' is incomplete" in result.output
+    assert "warning: the recording lost 4 frame(s)" in result.output
+    data = json.loads(out.read_text())["data"]
+    assert data["complete"] is False and data["frames_lost"] == 4

@@ -90,6 +90,8 @@ def _param_block(res: ModelResult) -> dict[str, Any]:
 def document(outcome: FitOutcome) -> dict[str, Any]:
     """The parameter file of a fit (docs/formats.md): best model, uncertainty, evidence,
     provenance."""
+    from ..identify.outcome import recording_state  # loaded by the fit already
+
     session, est, pinv = outcome.session, outcome.bayes, outcome.pinv
     doc = _header()
     data = {
@@ -99,6 +101,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
         "samples": len(session),
         "duration_s": session.duration_s,
         "rate_hz": session.rate_hz,
+        **recording_state(session),
     }
     if est is not None:
         best = est.best_
@@ -131,7 +134,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
             }
             for r in est.results_
         }
-        doc["warnings"] = est.warnings_
+        doc["warnings"] = outcome.warnings
         data.update(
             {
                 "differentiator": kin.method,
@@ -154,7 +157,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
         }
         doc["pinv"] = {**pinv.summary(), "parameters": block}
         if est is None:
-            doc["warnings"] = pinv.warnings_
+            doc["warnings"] = outcome.warnings
             doc["model"] = _model(pinv.model_)
             doc["parameters"] = {
                 name: {"mean": v["value"], "unit": v["unit"]} for name, v in block.items()

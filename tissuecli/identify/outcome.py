@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ..core.errors import FitError
 from ..core.forms import FORCE_SCALE
@@ -35,10 +36,62 @@ class FitOutcome:
 
     @property
     def warnings(self) -> list[str]:
-        """What the user should know: the Bayesian fit's warnings, else the pseudoinverse's."""
-        if self.bayes is not None:
-            return list(self.bayes.warnings_)
-        return list(self.pinv.warnings_) if self.pinv is not None else []
+        """What the user should know: what the session's recording lost (see
+        :func:`session_warnings`), then the Bayesian fit's warnings, else the
+        pseudoinverse's."""
+        fit = (
+            self.bayes.warnings_
+            if self.bayes is not None
+            else self.pinv.warnings_
+            if self.pinv is not None
+            else []
+        )
+        return session_warnings(self.session) + list(fit)
+
+
+def recording_state(session: Session) -> dict[str, Any]:
+    """What the session's attributes say of its recording, JSON-ready: ``complete``
+    (True, False, or None when the session does not say), ``frames_lost``,
+    ``frames_bad`` (0 when not recorded) and ``stop_reason``."""
+    meta = session.meta
+    complete = meta.get("complete")
+    known = complete is not None and not (isinstance(complete, str) and not complete)
+    return {
+        "complete": bool(complete) if known else None,
+        "frames_lost": _count(meta.get("frames_lost")),
+        "frames_bad": _count(meta.get("frames_bad")),
+        "stop_reason": str(meta.get("stop_reason") or ""),
+    }
+
+
+def _count(value: Any) -> int:
+    try:
+        return max(int(value), 0)
+    except (TypeError, ValueError, OverflowError):
+        return 0
+
+
+def session_warnings(session: Session) -> list[str]:
+    """Warnings about the data itself: an incomplete recording (``complete`` False: the
+    recorder crashed or was killed, so the last samples are missing) and frames lost or
+    rejected as corrupt on the line."""
+    state = recording_state(session)
+    out = []
+    if state["complete"] is False:
+        why = f" (stop reason: {state['stop_reason'][:80]})" if state["stop_reason"] else ""
+        out.append(
+            f"session {session.name[:60]!r} is incomplete: its recording never closed{why}, "
+            f"as after a crash or kill; fitted the {len(session)} samples committed before "
+            "it ended"
+        )
+    lost, bad = state["frames_lost"], state["frames_bad"]
+    if lost or bad:
+        out.append(
+            f"the recording lost {lost} frame(s) and rejected {bad} corrupt frame(s): the "
+            "fit uses the samples that arrived, leaving out those beside the holes; "
+            "check the cable and the line rate"
+        )
+    return out
 
 
 def fit_session(
