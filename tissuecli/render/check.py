@@ -1,5 +1,6 @@
-"""Can the display render this tissue? The renderable band, the force limit, the gains,
-the sampled loop's stability and Colgate's passivity margin, and a verdict with reasons."""
+"""Can the display render this tissue? The renderable band, the force limit, the damping
+at the speeds of a grasp, the gains, the sampled loop's stability and Colgate's passivity
+margin, and a verdict with reasons."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from numpy.typing import NDArray
 from ..core.errors import InputError
 from ..core.tissue import Tissue
 from .gains import choose_gains, loop_is_stable
-from .law import Gains, local_slopes, static_force
+from .law import FORCE_TOLERANCE_N, Gains, local_slopes, static_force
 from .profile import PAPER_DISPLAY, DisplayProfile
 
 Array = NDArray[np.float64]
@@ -22,9 +23,16 @@ Array = NDArray[np.float64]
 #: Largest grasp force measured on porcine liver (field notes, section 2): a display that
 #: saturates below it lets the tissue give way under a firm squeeze.
 GRASP_FORCE_N = 3.4
-#: Rule for tissues softer than the display's spring near rest (e.g. x^3): refused when
-#: that happens over more than this fraction of the working depth.
+#: Rule for tissues softer than the display's spring near rest (e.g. x^3), and for
+#: damping that outweighs the tissue's elastic force on release: refused when the
+#: solenoid would have to push over more than this fraction of the working depth.
 MAX_SOFT_FRACTION = 0.5
+#: Closing and opening speed of the jaws a grasp reaches, m/s. A hand, not the tissue,
+#: sets the speed of a grasp: 50 mm/s is the jaw-scale closing speed of the fit's priors
+#: (core.forms.TYPICAL), and on the offline loop the simulated finger (1-2.5 N presses
+#: rising and releasing in 0.25-0.5 s) moves the piston at 30-60 mm/s on liver-like
+#: tissues. The damping must be renderable at that speed, closing and opening.
+GRASP_SPEED_M_S = 0.05
 
 
 def finite_or_none(value: float) -> float | None:
@@ -98,6 +106,21 @@ class CheckResult:
         delay, filter, model); >= 1 means the loop itself oscillates.
     rate_hz : float
         Loop rate of the analysis, Hz.
+    grasp_speed : float
+        Closing and opening speed the damping is judged at, m/s.
+    damping_force : float
+        The tissue's damping force ``S f1(v)`` at that speed, N.
+    closing_saturation_depth : float
+        Depth from which closing at ``grasp_speed`` saturates the solenoid, m
+        (``inf`` if nowhere within the working depth).
+    release_push_fraction : float
+        Fraction of the working depth over which opening at ``grasp_speed`` asks the
+        solenoid to push (the tissue's damping outweighs its elastic force less the
+        display's spring).
+    soft_gap : float
+        Where the tissue is softer than the display's spring, the largest gap between
+        the tissue's depth and the unpowered piston's under the same force, m: a
+        tracking error the display cannot avoid (0 if nowhere soft).
     """
 
     renderable: bool
@@ -117,24 +140,35 @@ class CheckResult:
     passivity_margin: float
     spectral_radius: float
     rate_hz: float
+    grasp_speed: float = GRASP_SPEED_M_S
+    damping_force: float = 0.0
+    closing_saturation_depth: float = math.inf
+    release_push_fraction: float = 0.0
+    soft_gap: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready summary (the band arrays left out)."""
-        return {
+        out = {
             "renderable": self.renderable,
             "verdict": self.verdict,
             "reasons": list(self.reasons),
             "caveats": list(self.caveats),
-            "force_limit_n": finite_or_none(self.force_limit),
-            "saturation_depth_m": finite_or_none(self.saturation_depth),
-            "working_depth_m": finite_or_none(self.working_depth),
+            "force_limit_n": self.force_limit,
+            "saturation_depth_m": self.saturation_depth,
+            "working_depth_m": self.working_depth,
             "force_n": self.force,
-            "gains": asdict(self.gains),
+            "grasp_speed_m_s": self.grasp_speed,
+            "damping_force_n": self.damping_force,
+            "closing_saturation_depth_m": self.closing_saturation_depth,
+            "release_push_fraction": self.release_push_fraction,
+            "soft_gap_m": self.soft_gap,
+            "gains": {k: finite_or_none(v) for k, v in asdict(self.gains).items()},
             "passivity_required_ns_per_m": self.passivity_required,
             "passivity_margin_ns_per_m": self.passivity_margin,
             "spectral_radius": self.spectral_radius,
             "rate_hz": self.rate_hz,
         }
+        return {k: finite_or_none(v) if isinstance(v, float) else v for k, v in out.items()}
 
     def lines(self) -> list[str]:
         """A short human report."""
@@ -153,6 +187,16 @@ class CheckResult:
             if j < self.depth.size
         )
         out.append(f"  renderable secant stiffness {band}")
+        v = self.grasp_speed
+        closing = (
+            f"saturates closing from {self.closing_saturation_depth * mm:.2f} mm"
+            if math.isfinite(self.closing_saturation_depth)
+            else "closing never saturates"
+        )
+        out.append(
+            f"  at {v * mm:.0f} mm/s: damping force {self.damping_force:.3g} N; {closing}; "
+            f"opening asks a push over {self.release_push_fraction:.0%} of the working depth"
+        )
         g = self.gains
         out.append(
             f"  gains Cp {g.Cp:.1f} N/m, Cv {g.Cv:.2f} N s/m ({g.bandwidth_hz:.0f} Hz), "
@@ -172,8 +216,10 @@ def check(
     profile: DisplayProfile = PAPER_DISPLAY,
     rate_hz: float = 1000.0,
     force: float = GRASP_FORCE_N,
+    speed: float = GRASP_SPEED_M_S,
 ) -> CheckResult:
-    """Can this display render this tissue at this loop rate, up to ``force``?
+    """Can this display render this tissue at this loop rate, up to ``force`` and at the
+    speed of a grasp?
 
     Refused (``renderable`` False) when:
 
@@ -182,12 +228,23 @@ def check(
     * the tissue is softer than the display's spring (below ``Kp``, the band's
       lower edge, the solenoid would have to push) over more than
       ``MAX_SOFT_FRACTION`` of its working depth;
+    * the damping force alone at the closing ``speed``, less the piston's own
+      damping, exceeds the solenoid's pull ``alpha v_max^2``;
+    * opening at ``speed``, the damping outweighs the tissue's elastic force less
+      the display's spring (the solenoid would have to push) over more than
+      ``MAX_SOFT_FRACTION`` of the working depth;
     * the working depth exceeds the stroke;
-    * the linearised sampled loop is unstable (spectral radius >= 1).
+    * the linearised sampled loop is unstable (spectral radius >= 1), or cannot
+      be analysed at all (forces beyond floating point).
 
     Caveats (rendered, but not exactly): a part of the depth where the tissue is
-    softer than the spring; a model mass raised to the floor; Colgate's passivity
-    condition ``b > K T / 2 + |B|`` not met.
+    softer than the spring, or asks for a push when opening fast; closing fast
+    saturating deep in the grasp; a model mass raised to the floor; Colgate's
+    passivity condition ``b > K T / 2 + |B|`` not met.
+
+    Any finite tissue gets a verdict: the only exception raised is
+    :class:`InputError`, for a tissue, profile, rate, force or speed that is not a
+    finite non-negative number.
 
     Parameters
     ----------
@@ -200,35 +257,31 @@ def check(
     force : float
         Force up to which the tissue must be rendered, N (default: the largest
         grasp force measured on liver, 3.4 N).
+    speed : float
+        Closing and opening speed of a grasp, m/s (default 50 mm/s,
+        :data:`GRASP_SPEED_M_S`).
     """
     tissue.validate()
     profile.validate()
-    if not (rate_hz > 0 and math.isfinite(rate_hz)):
-        raise InputError(f"loop rate {rate_hz} Hz must be a positive number")
+    for name, value, unit in (("loop rate", rate_hz, "Hz"), ("force", force, "N")):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise InputError(f"{name} {value} {unit} must be a positive number")
+    if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
+        raise InputError(f"grasp speed {speed} m/s must be a number >= 0")
     reasons: list[str] = []
     caveats: list[str] = []
-    depth, k_min, k_max, k_tissue = _band(tissue, profile)
-    x_work, x_sat, f_limit = _limits(tissue, profile, force, reasons)
-    x_eval = min(x_work, x_sat, profile.stroke)
-    _softness(tissue, profile, x_eval, reasons, caveats)
-    gains, radius = choose_gains(tissue, profile, rate_hz, x_eval)
-    if gains.M > tissue.M:
-        caveats.append(
-            f"model mass raised from {tissue.M * 1e3:.1f} g to {gains.M * 1e3:.1f} g "
-            f"({gains.M / profile.Mp:.0%} of the piston's) to keep the {rate_hz:g} Hz loop "
-            "stable: the tissue's inertia is felt heavier"
-        )
-    required = _passivity_required(tissue, profile, gains, x_eval, 1.0 / rate_hz)
+    with np.errstate(all="ignore"):
+        depth, k_min, k_max, k_tissue = _band(tissue, profile)
+        x_work, x_sat, f_limit = _limits(tissue, profile, force, reasons)
+        x_eval = min(x_work, x_sat, profile.stroke)
+        soft, soft_gap = _softness(tissue, profile, x_eval, reasons, caveats)
+        damping = _damping(tissue, profile, x_eval, speed, soft, reasons, caveats)
+        gains, radius, required = _loop(tissue, profile, rate_hz, x_eval, reasons, caveats)
     margin = profile.b - required
     if margin <= 0:
         caveats.append(
             f"passivity not guaranteed (Colgate: b = {profile.b:g} N s/m <= K T/2 + |B| = "
-            f"{required:.2f} N s/m); a stiff grip could feel a buzz"
-        )
-    if not loop_is_stable(radius, tissue, gains.M, rate_hz):
-        reasons.append(
-            f"the sampled loop at {rate_hz:g} Hz is unstable (spectral radius {radius:.4f}); "
-            "raise the loop rate"
+            f"{required:.4g} N s/m); a stiff grip could feel a buzz"
         )
     verdict = (
         "not renderable" if reasons else "renderable with caveats" if caveats else "renderable"
@@ -251,7 +304,103 @@ def check(
         passivity_margin=margin,
         spectral_radius=radius,
         rate_hz=rate_hz,
+        grasp_speed=speed,
+        soft_gap=soft_gap,
+        **damping,
     )
+
+
+def _loop(
+    tissue: Tissue,
+    profile: DisplayProfile,
+    rate_hz: float,
+    x_eval: float,
+    reasons: list[str],
+    caveats: list[str],
+) -> tuple[Gains, float, float]:
+    """Gains, the sampled loop's spectral radius and Colgate's required damping; a
+    refusal when the loop is unstable or its analysis overflows."""
+    try:
+        gains, radius = choose_gains(tissue, profile, rate_hz, x_eval)
+        required = _passivity_required(tissue, profile, gains, x_eval, 1.0 / rate_hz)
+        stable = loop_is_stable(radius, tissue, gains.M, rate_hz)
+        finite = all(math.isfinite(z) for z in (*asdict(gains).values(), radius, required))
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError):
+        finite = False
+    if not finite:
+        reasons.append(
+            f"the {rate_hz:g} Hz loop cannot be analysed for this tissue: its forces over "
+            "the stroke overflow floating point"
+        )
+        nan = math.nan
+        return Gains(Cp=nan, Cv=nan, bandwidth_hz=nan, M=max(tissue.M, 0.0)), math.inf, math.inf
+    if gains.M > tissue.M:
+        caveats.append(
+            f"model mass raised from {tissue.M * 1e3:.3g} g to {gains.M * 1e3:.3g} g "
+            f"({gains.M / profile.Mp:.0%} of the piston's) to keep the {rate_hz:g} Hz loop "
+            "stable: the tissue's inertia is felt heavier"
+        )
+    if not stable:
+        reasons.append(
+            f"the sampled loop at {rate_hz:g} Hz is unstable (spectral radius {radius:.6g}); "
+            "raise the loop rate"
+        )
+    return gains, radius, required
+
+
+def _damping(
+    tissue: Tissue,
+    profile: DisplayProfile,
+    x_eval: float,
+    speed: float,
+    soft_fraction: float,
+    reasons: list[str],
+    caveats: list[str],
+) -> dict[str, float]:
+    """The pull the law asks for at the speed of a grasp, closing and opening.
+
+    With the piston at depth ``x`` moving at ``v`` and the model tracking it, the law
+    asks for ``u = K f0(x) - Kp x + S f1(v) - b v``. Closing (``v = speed``) it must
+    stay within the solenoid's pull; opening (``v = -speed``) it must not ask for a
+    push (``u < 0``), which the solenoid cannot give.
+    """
+    mm = 1e3
+    pull = profile.max_pull
+    damping_force = tissue.S * tissue.model.f1.scalar(speed)
+    own = profile.b * speed  # the piston's own damping, which the law subtracts
+    grid = np.linspace(0.0, x_eval, 201)[1:] if math.isfinite(x_eval) else np.zeros(0)
+    elastic = tissue.K * tissue.model.f0(grid) - profile.Kp * grid
+    closing = elastic + damping_force - own
+    opening = elastic - damping_force + own
+    above = np.nonzero(~(closing <= pull))[0]  # NaN counts as saturated
+    x_close = float(grid[above[0]]) if above.size else math.inf
+    push = float(np.mean(~(opening >= -FORCE_TOLERANCE_N))) if grid.size else 0.0
+    v = f"{speed * mm:g} mm/s"
+    if not damping_force - own <= pull:
+        reasons.append(
+            f"damping too strong: closing at {v} (the speed of a grasp) the tissue's damping "
+            f"alone is {damping_force:.3g} N, more than the solenoid's {pull:.3g} N pull"
+        )
+    elif math.isfinite(x_close):
+        caveats.append(
+            f"closing at {v} saturates the solenoid from {x_close * mm:.2f} mm: a fast "
+            "grasp feels softer there"
+        )
+    if push > MAX_SOFT_FRACTION >= soft_fraction:  # else softness alone is the reason
+        reasons.append(
+            f"damping outweighs the tissue's spring on release: opening at {v} the solenoid "
+            f"would have to push over {push:.0%} of the working depth (it can only pull)"
+        )
+    elif soft_fraction < push <= MAX_SOFT_FRACTION:
+        caveats.append(
+            f"opening at {v} asks the solenoid to push over {push:.0%} of the working depth: "
+            "a fast release feels the display's spring there"
+        )
+    return {
+        "damping_force": damping_force,
+        "closing_saturation_depth": x_close,
+        "release_push_fraction": push,
+    }
 
 
 def _band(tissue: Tissue, profile: DisplayProfile) -> tuple[Array, Array, Array, Array]:
@@ -298,12 +447,18 @@ def _softness(
     x_eval: float,
     reasons: list[str],
     caveats: list[str],
-) -> None:
-    """Where the tissue is softer than the display's spring, the solenoid would have to push."""
+) -> tuple[float, float]:
+    """Where the tissue is softer than the display's spring, the solenoid would have to
+    push: the fraction of the working depth where it is, and the largest gap there
+    between the tissue's depth and the unpowered piston's under the same force, m."""
     grid = np.linspace(0.0, x_eval, 201)[1:]
     with np.errstate(all="ignore"):
-        soft = tissue.K * tissue.model.f0(grid) < profile.Kp * grid
+        force = tissue.K * tissue.model.f0(grid)
+    soft = force < profile.Kp * grid
     soft_fraction = float(np.mean(soft)) if grid.size else 1.0
+    # under the force that holds the tissue at x, the unpowered piston sits at F / Kp
+    gap = grid[soft] - force[soft] / profile.Kp
+    soft_gap = float(np.max(gap)) if gap.size and np.all(np.isfinite(gap)) else 0.0
     if soft_fraction > MAX_SOFT_FRACTION:
         reasons.append(
             f"the tissue is softer than the display's spring (Kp = {profile.Kp:.0f} N/m) over "
@@ -312,8 +467,10 @@ def _softness(
     elif soft_fraction > 0:
         caveats.append(
             f"softer than the display's spring over {soft_fraction:.0%} of the working depth "
-            "(near rest): felt as the spring there"
+            f"(near rest): felt as the spring there, the piston up to {soft_gap * 1e3:.2f} mm "
+            "shallower than the tissue"
         )
+    return soft_fraction, soft_gap
 
 
 def _passivity_required(
