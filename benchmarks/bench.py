@@ -41,16 +41,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from tissuecli.core.session import Session  # noqa: E402
-from tissuecli.core.tissue import Tissue, TissueModel, all_models  # noqa: E402
+from tissuecli.core.terms import Law, paper_laws  # noqa: E402
+from tissuecli.core.tissue import Tissue  # noqa: E402
 from tissuecli.identify import BayesianFit, WindowedPinv  # noqa: E402
 from tissuecli.identify.sampling import run_emcee  # noqa: E402
 from tissuecli.sim.synth import ForcepsModel, Sensors, random_session, synthesize  # noqa: E402
 
 TISSUES = [
-    Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x", "xdot^2"), 350.0, 60.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot^2"), 8e6, 60.0, 0.05),
+    Tissue(Law.paper("x", "xdot"), 350.0, 3.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot"), 8e6, 3.0, 0.05),
+    Tissue(Law.paper("x", "xdot^2"), 350.0, 60.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot^2"), 8e6, 60.0, 0.05),
 ]
 
 
@@ -72,7 +73,7 @@ class Scene:
     def family(self) -> str:
         noise = f" noise x{self.noise:g}" if self.noise != 1.0 else ""
         length = f" {self.duration_s:g} s" if self.label_duration else ""
-        return f"{self.tissue.model.name} {self.rate_hz:g} Hz {self.bits}-bit{noise}{length}"
+        return f"{self.tissue.law.name} {self.rate_hz:g} Hz {self.bits}-bit{noise}{length}"
 
     def draw(self) -> tuple[Session, ForcepsModel]:
         return random_session(
@@ -110,14 +111,14 @@ def _timed(fn: Callable[[], tuple[str, np.ndarray]]) -> Outcome:
 
 
 def pinv_config(s: Session) -> tuple[str, np.ndarray]:
-    fits = [WindowedPinv(m.name).fit(s) for m in all_models()]
+    fits = [WindowedPinv(m.name).fit(s) for m in paper_laws()]
     best = min(fits, key=lambda p: p.residuals_[p.best_window_])
     return best.model_.name, best.params_
 
 
 def bayes_config(differentiator: str) -> Callable[[Session], tuple[str, np.ndarray]]:
     def run(s: Session) -> tuple[str, np.ndarray]:
-        est = BayesianFit(differentiator=differentiator).fit(s)
+        est = BayesianFit("paper", differentiator=differentiator).fit(s)
         return est.best_.name, est.best_.posterior.mean  # type: ignore[union-attr]
 
     return run
@@ -125,7 +126,7 @@ def bayes_config(differentiator: str) -> Callable[[Session], tuple[str, np.ndarr
 
 def emcee_config(steps: int) -> Callable[[Session], tuple[str, np.ndarray]]:
     def run(s: Session) -> tuple[str, np.ndarray]:
-        est = BayesianFit().fit(s)
+        est = BayesianFit("paper").fit(s)
         best = est.best_
         post = run_emcee(
             best.stats,
@@ -184,7 +185,7 @@ def scenes(
     bits = (8,) if quick else (8, 16)
     tissues = TISSUES[:2] if quick else TISSUES
     if forms:
-        tissues = [t for t in tissues if t.model.name in forms]
+        tissues = [t for t in tissues if t.law.name in forms]
     return [
         Scene(t, r, b, seed, 2.0 if quick else d, noise, len(durations) > 1)
         for d in durations
@@ -212,7 +213,7 @@ def cramer_rao_rel(scene: Scene, model: ForcepsModel) -> np.ndarray:
     except ImportError:
         return np.full(3, np.nan)
     crb = peers.cramer_rao(scene.tissue, model, scene.duration_s)
-    return crb / scene.tissue.p
+    return crb / scene.tissue.coef
 
 
 def rms(a: np.ndarray, axis: int | None = None) -> np.ndarray:
@@ -287,9 +288,9 @@ def length_scaling(quick: bool) -> list[tuple[int, float]]:
     out = []
     for duration in (1.0, 4.0) if quick else (1.0, 10.0, 60.0, 600.0):
         s, _ = synthesize(ForcepsModel(seed=1), duration)
-        BayesianFit().fit(s)  # warm caches (FFT plans) once
+        BayesianFit("paper").fit(s)  # warm caches (FFT plans) once
         t0 = time.perf_counter()
-        BayesianFit().fit(s)
+        BayesianFit("paper").fit(s)
         out.append((len(s), time.perf_counter() - t0))
     return out
 
@@ -398,10 +399,10 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
                 continue
             tally = tallies[name]
             tally.times.append(o.seconds)
-            ok = o.form == scene.tissue.model.name
+            ok = o.form == scene.tissue.law.name
             tally.right.append(ok)
             if ok:
-                tally.signed[i] = o.params / scene.tissue.p - 1
+                tally.signed[i] = o.params / scene.tissue.coef - 1
                 err = np.abs(tally.signed[i])
                 tally.errors.append(err)
                 tally.families.setdefault(scene.family, []).append(err)

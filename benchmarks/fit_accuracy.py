@@ -17,16 +17,17 @@ import time
 
 import numpy as np
 
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.derivatives import Gaussian
 from tissuecli.sim.synth import random_session
 
 TISSUES = [
-    Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x", "xdot^2"), 350.0, 60.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot^2"), 8e6, 60.0, 0.05),
+    Tissue(Law.paper("x", "xdot"), 350.0, 3.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot"), 8e6, 3.0, 0.05),
+    Tissue(Law.paper("x", "xdot^2"), 350.0, 60.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot^2"), 8e6, 60.0, 0.05),
 ]
 
 
@@ -61,21 +62,23 @@ def main() -> None:
                         if args.cutoff_ratio
                         else Gaussian()
                     )
-                    est = BayesianFit(differentiator=diff).fit(s)
+                    est = BayesianFit("paper", differentiator=diff).fit(s)
                     secs += time.perf_counter() - t0
                     best = est.best_
-                    if best.name != tissue.model.name:
+                    if best.name != tissue.law.name:
                         continue
                     right += 1
                     post = best.posterior
-                    errs.append(np.abs(post.mean - tissue.p) / tissue.p * 100)
-                    inside.append((post.ci95[:, 0] <= tissue.p) & (tissue.p <= post.ci95[:, 1]))
+                    errs.append(np.abs(post.mean - tissue.coef) / tissue.coef * 100)
+                    inside.append(
+                        (post.ci95[:, 0] <= tissue.coef) & (tissue.coef <= post.ci95[:, 1])
+                    )
                     flags += any(f.startswith("M ") for f in best.flags)
                 n = args.seeds
                 med = np.median(errs, axis=0) if errs else np.full(3, np.nan)
                 cov = np.mean(inside, axis=0) if inside else np.full(3, np.nan)
                 print(
-                    f"{tissue.model.name:<11} {bits:>4} {rate:>5.0f} {right:>3}/{n:<2} "
+                    f"{tissue.law.name:<11} {bits:>4} {rate:>5.0f} {right:>3}/{n:<2} "
                     f"{med[0]:8.3f} {med[1]:8.3f} {med[2]:8.2f} {cov[0]:5.2f} {cov[1]:5.2f} "
                     f"{cov[2]:5.2f} {flags:>6} {secs / n:6.3f}",
                     flush=True,

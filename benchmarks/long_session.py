@@ -30,7 +30,7 @@ def main() -> None:
     del truth
     data_mb = peak_mb()
     t0 = time.perf_counter()
-    est = BayesianFit().fit(session)
+    est = BayesianFit("paper").fit(session)
     seconds = time.perf_counter() - t0
     print(
         f"{n} samples: fit in {seconds:.1f} s; peak memory {peak_mb():.0f} MB "

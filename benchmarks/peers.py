@@ -83,9 +83,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 
-from tissuecli.core.forms import FORMS
 from tissuecli.core.session import Session
-from tissuecli.core.tissue import Tissue, TissueModel, all_models
+from tissuecli.core.terms import Law, paper_laws
+from tissuecli.core.tissue import Tissue
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.prepare import longest_gapless
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
@@ -215,10 +215,7 @@ def pysindy_fit(
         return i if contribution[i] >= contribution[j] else j
 
     i0, i1 = pick(0, 1), pick(2, 3)
-    model = TissueModel(
-        FORMS["stiffness"]["x" if i0 == 0 else "x^3"],
-        FORMS["damping"]["xdot" if i1 == 2 else "xdot^2"],
-    )
+    model = Law.paper("x" if i0 == 0 else "x^3", "xdot" if i1 == 2 else "xdot^2")
     kept = [t for t, c in zip(TERMS, coef, strict=True) if c != 0]
     notes = [f"STLSQ kept {', '.join(kept) or 'nothing'}", f"window {window} samples"]
     if note:
@@ -232,11 +229,10 @@ def pysindy_fit(
     )
 
 
-def _residual(
-    p: lmfit.Parameters, model: TissueModel, x: Array, v: Array, a: Array, f: Array
-) -> Array:
+def _residual(p: lmfit.Parameters, model: Law, x: Array, v: Array, a: Array, f: Array) -> Array:
     """Unweighted residual ``F - (K f0(x) + S f1(xdot) + M xddot)`` for lmfit (N)."""
-    return f - (p["K"].value * model.f0(x) + p["S"].value * model.f1(v) + p["M"].value * a)
+    coef = [p[name].value for name in "KSM"]
+    return f - model.force(coef, x, v, a)
 
 
 def lmfit_emcee_fit(
@@ -287,7 +283,7 @@ def lmfit_emcee_fit(
     rms_f = float(np.sqrt(np.mean(f * f)))
 
     fits, starts = {}, {}
-    for model in all_models():
+    for model in paper_laws():
         params = lmfit.Parameters()
         for name, column in zip("KSM", model.regressors(x, v, a).T, strict=True):
             scale = float(np.sqrt(np.mean(column * column)))
@@ -364,7 +360,7 @@ def cramer_rao(truth_tissue: Tissue, model: ForcepsModel, duration_s: float) -> 
     """
     n = int(round(duration_s * model.rate_hz))
     x, v, a, _ = model.truth(np.arange(n))
-    A = truth_tissue.model.regressors(x, v, a)
+    A = truth_tissue.law.regressors(x, v, a)
     step = model.sensors.calibration.force.gain
     sigma2 = model.sensors.force_noise_n**2 + step**2 / 12.0
     d = np.linalg.norm(A, axis=0)  # unit-norm columns: x^3 in SI is 1e6 smaller than x
@@ -376,7 +372,7 @@ def cramer_rao(truth_tissue: Tissue, model: ForcepsModel, duration_s: float) -> 
 def _bayes(session: Session) -> PeerResult:
     """tissuecli's own BayesianFit in the peers' format, for the comparison table."""
     t0 = time.perf_counter()
-    fit = BayesianFit().fit(session)
+    fit = BayesianFit("paper").fit(session)
     assert fit.best_.posterior is not None
     return PeerResult(
         name="tissuecli-bayes",
@@ -410,14 +406,14 @@ def main() -> None:
             lmfit_emcee_fit(session, steps=args.steps, seed=args.seed),
         ]
         for r in results:
-            if r.model == truth.model.name:
-                err = " ".join(f"{e:+8.3f}" for e in 100 * (r.params / truth.p - 1))
+            if r.model == truth.law.name:
+                err = " ".join(f"{e:+8.3f}" for e in 100 * (r.params / truth.coef - 1))
             else:
                 err = f"{'-':>8} {'-':>8} {'-':>8}"
             print(f"{bits:>4} {r.name:<16} {r.model:<11} {err} {r.seconds:7.2f}  {r.note}")
         print(
-            f"{bits:>4} {'CRB (SD)':<16} {truth.model.name:<11} "
-            + " ".join(f"{e:8.3f}" for e in 100 * crb / truth.p)
+            f"{bits:>4} {'CRB (SD)':<16} {truth.law.name:<11} "
+            + " ".join(f"{e:8.3f}" for e in 100 * crb / truth.coef)
         )
         print()
 

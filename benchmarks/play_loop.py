@@ -15,7 +15,8 @@ import tempfile
 from pathlib import Path
 
 from tissuecli.app.play import play
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.render import PAPER_DISPLAY
 from tissuecli.sim.process import SimulatorProcess
 
@@ -26,8 +27,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     args = ap.parse_args()
     tissues = {
-        "K=600 N/m, M=50 g": Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, 0.05),
-        "M = Mp": Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, PAPER_DISPLAY.Mp),
+        "K=600 N/m, M=50 g": Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05),
+        "M = Mp": Tissue(Law.paper("x", "xdot"), 600.0, 3.0, PAPER_DISPLAY.Mp),
     }
     print(
         f"{'tissue':<18} {'run':>3} {'rate Hz':>9} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "

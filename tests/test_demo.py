@@ -15,13 +15,13 @@ def test_demo_runs_every_step_and_keeps_its_files(tmp_path):
     for step in (
         "1. simulated forceps",
         "2. recorded 2000 samples",
-        "5. fitted all forms",
+        "5. fitted all laws",
         "6. display check",
         "7. played",
     ):
         assert step in r.stdout, r.stdout
     assert formats.session_names(tmp_path / "grasp.h5") == ["demo-1"]
     doc = json.loads((tmp_path / "tissue.json").read_text())
-    assert doc["model"] == {"f0": "x", "f1": "xdot"}
+    assert doc["law"]["name"] == "x+xdot+xddot"
     assert (tmp_path / "report.html").stat().st_size > 10_000
     assert formats.group_names(tmp_path / "play.h5", "plays")

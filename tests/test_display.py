@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from tissuecli.core.errors import InputError
 from tissuecli.core.flags import NONFINITE, SATURATED, UNRENDERABLE
-from tissuecli.core.forms import FORMS
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.render import (
     PAPER_DISPLAY,
     Controller,
@@ -29,7 +29,7 @@ from tissuecli.render import (
 )
 from tissuecli.sim.finger import OperatorForce
 
-LINEAR = TissueModel.from_names("x", "xdot")
+LINEAR = Law.paper("x", "xdot")
 INSIDE = Tissue(LINEAR, K=600.0, S=3.0, M=0.05)
 STIFF = Tissue(LINEAR, K=5000.0, S=3.0, M=0.05)
 
@@ -117,10 +117,10 @@ def test_operator_presses_are_smooth_bounded_and_reproducible():
 # --------------------------------------------------------------------------- control law
 
 
-def _law(**kw: float) -> RenderLaw:
-    base = dict(K=600.0, S=3.0, Kp=264.78, b=0.0, alpha=1.1768, v_max=1.5, Cp=100.0, Cv=5.0)
+def _law(K: float = 600.0, S: float = 3.0, **kw: float) -> RenderLaw:
+    base = dict(Kp=264.78, b=0.0, alpha=1.1768, v_max=1.5, Cp=100.0, Cv=5.0)
     base.update(kw)
-    return RenderLaw(f0=lambda u: u, f1=lambda u: u, **base)
+    return RenderLaw(static=lambda u: K * u, speed=lambda u: S * u, **base)
 
 
 def test_linear_law_is_paper_eq9():
@@ -160,13 +160,13 @@ gain = st.one_of(st.floats(0.0, 1e5), anything)
     Kp=st.one_of(st.floats(1.0, 1e4), anything),
     alpha=st.one_of(st.floats(1e-6, 1e3), anything),
     v_max=st.one_of(st.floats(1e-3, 100.0), anything),
-    forms=st.sampled_from([(f0, f1) for f0 in FORMS["stiffness"] for f1 in FORMS["damping"]]),
+    forms=st.sampled_from([(f0, f1) for f0 in ("x", "x^3") for f1 in ("xdot", "xdot^2")]),
 )
 def test_voltage_never_leaves_0_vmax(xp, vp, xm, vm, K, S, Cp, Cv, b, Kp, alpha, v_max, forms):
-    tissue = Tissue(TissueModel.from_names(*forms), 1.0, 1.0, 0.05)
+    tissue = Tissue(Law.paper(*forms), K, S, 0.05)
     law = RenderLaw.build(tissue, PAPER_DISPLAY, Gains(Cp, Cv, 20.0, 0.05))
     law = RenderLaw(
-        K=K, S=S, f0=law.f0, f1=law.f1, Kp=Kp, b=b, alpha=alpha, v_max=v_max, Cp=Cp, Cv=Cv
+        static=law.static, speed=law.speed, Kp=Kp, b=b, alpha=alpha, v_max=v_max, Cp=Cp, Cv=Cv
     )
     volts, flags = control_voltage(law, xp, vp, xm, vm)
     assert isinstance(volts, float) and math.isfinite(volts)

@@ -13,9 +13,10 @@ from tissuecli import formats
 from tissuecli.cli import cli
 from tissuecli.core.errors import FitError
 from tissuecli.core.session import Session
-from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue
 from tissuecli.formats.params import document, read_tissue, tissue_from_dict
-from tissuecli.identify import BayesianFit, WindowedPinv, fit_session
+from tissuecli.identify import BayesianFit, WindowedPinv, fit_session, parse_forms
 from tissuecli.identify.posterior import ExactPosterior, Prior
 from tissuecli.identify.posterior import SufficientStats as Stats
 from tissuecli.identify.sampling import run_emcee, stepping_stone
@@ -24,10 +25,10 @@ from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session,
 from .conftest import assert_clean_error
 
 TISSUES = [
-    Tissue(TissueModel.from_names("x", "xdot"), 350.0, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 3.0, 0.05),
-    Tissue(TissueModel.from_names("x", "xdot^2"), 350.0, 60.0, 0.05),
-    Tissue(TissueModel.from_names("x^3", "xdot^2"), 8e6, 60.0, 0.05),
+    Tissue(Law.paper("x", "xdot"), 350.0, 3.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot"), 8e6, 3.0, 0.05),
+    Tissue(Law.paper("x", "xdot^2"), 350.0, 60.0, 0.05),
+    Tissue(Law.paper("x^3", "xdot^2"), 8e6, 60.0, 0.05),
 ]
 
 
@@ -89,22 +90,22 @@ def test_emcee_posterior_matches_exact_within_monte_carlo_error():
     np.testing.assert_allclose(post.sd, exact.sd, rtol=0.15)
 
 
-@pytest.mark.parametrize("tissue", TISSUES, ids=lambda t: t.model.name)
+@pytest.mark.parametrize("tissue", TISSUES, ids=lambda t: t.law.name)
 def test_right_form_chosen_across_rates(tissue):
     # 3 rates x 3 seeds per form; all 36 must be right for a >= 95 % claim to be credible
     for rate in (250.0, 1000.0, 2000.0):
         for seed in range(3):
             est = BayesianFit().fit(session_for(tissue, rate, seed))
-            assert est.best_.name == tissue.model.name, (rate, seed, est.best_.name)
+            assert est.best_.name == tissue.law.name, (rate, seed, est.best_.name)
             assert est.best_.probability > 0.95
 
 
 def test_clean_data_gives_k_and_s_to_a_fraction_of_a_percent():
     for tissue in TISSUES:
         s = session_for(tissue, 1000.0, 7, bits=16, force_noise_n=1e-3, position_noise_m=1e-6)
-        post = BayesianFit(forms=tissue.model.name).fit(s).best_.posterior
-        err = np.abs(post.mean - tissue.p) / tissue.p
-        assert err[0] < 2e-3 and err[1] < 1e-2, (tissue.model.name, err)
+        post = BayesianFit(forms=tissue.law.name).fit(s).best_.posterior
+        err = np.abs(post.mean - tissue.coef) / tissue.coef
+        assert err[0] < 2e-3 and err[1] < 1e-2, (tissue.law.name, err)
 
 
 def _misses(seeds: range, j: int) -> int:
@@ -112,7 +113,7 @@ def _misses(seeds: range, j: int) -> int:
     for seed in seeds:
         s = session_for(DEFAULT_TISSUE, 1000.0, seed, bits=12)
         lo, hi = BayesianFit(forms="x,xdot").fit(s).best_.posterior.ci95[j]
-        misses += not lo <= DEFAULT_TISSUE.p[j] <= hi
+        misses += not lo <= DEFAULT_TISSUE.coef[j] <= hi
     return misses
 
 
@@ -147,10 +148,11 @@ def test_units_of_the_input_do_not_change_the_answer(tmp_path):
         == 0
     )
     assert r.invoke(cli, ["import", str(si), "--out", str(h5), "--session", "si"]).exit_code == 0
-    a = document(fit_session(formats.read_session(h5, "mm")))["parameters"]
-    b = document(fit_session(formats.read_session(h5, "si")))["parameters"]
-    for name in ("K", "S", "M"):
-        assert a[name]["mean"] == pytest.approx(b[name]["mean"], rel=1e-9)
+    a = document(fit_session(formats.read_session(h5, "mm")))["law"]
+    b = document(fit_session(formats.read_session(h5, "si")))["law"]
+    assert a["name"] == b["name"]
+    for ta, tb in zip(a["terms"], b["terms"], strict=True):
+        assert ta["mean"] == pytest.approx(tb["mean"], rel=1e-9, abs=1e-12)
 
 
 def test_unidentifiable_mass_is_flagged():
@@ -159,7 +161,7 @@ def test_unidentifiable_mass_is_flagged():
     model = ForcepsModel(tissue=DEFAULT_TISSUE, operator=op, seed=1)
     s, _ = synthesize(model, 10.0)
     est = BayesianFit(forms="x,xdot").fit(s)
-    assert any(w.startswith("x,xdot: M not identified") for w in est.warnings_), est.warnings_
+    assert any(w.startswith("x+xdot+xddot: M not identified") for w in est.warnings_), est.warnings_
 
 
 @pytest.mark.parametrize(
@@ -195,7 +197,7 @@ def test_fit_export_round_trips_into_the_simulator(forceps, tmp_path):
     """fit(record(simulate(p))) against p, through files and a real pty."""
     from tissuecli.app.record import record
 
-    truth = Tissue(TissueModel.from_names("x^3", "xdot"), 8e6, 4.0, 0.05)
+    truth = Tissue(Law.paper("x^3", "xdot"), 8e6, 4.0, 0.05)
     params = tmp_path / "truth.json"
     from tissuecli.formats.jsonfile import write_json
     from tissuecli.formats.params import tissue_to_dict
@@ -208,12 +210,12 @@ def test_fit_export_round_trips_into_the_simulator(forceps, tmp_path):
     r = CliRunner().invoke(cli, ["fit", str(h5), "--out", str(out)])
     assert r.exit_code == 0, r.output
     doc = json.loads(out.read_text())
-    assert doc["model"] == {"f0": "x^3", "f1": "xdot"}
+    assert doc["law"]["name"] == "x^3+xdot+xddot"
     fitted = read_tissue(out)
-    assert fitted.K == pytest.approx(truth.K, rel=0.01)
+    assert fitted.K3 == pytest.approx(truth.K3, rel=0.01)
     assert fitted.S == pytest.approx(truth.S, rel=0.05)
-    assert tissue_from_dict(doc).model == truth.model
-    assert set(doc["probabilities"]) == {"x,xdot", "x,xdot^2", "x^3,xdot", "x^3,xdot^2"}
+    assert tissue_from_dict(doc).law == truth.law
+    assert set(doc["probabilities"]) == {law.name for law in parse_forms("all")}
 
 
 def test_fit_cli_errors_are_one_line(tmp_path):
@@ -229,7 +231,7 @@ def test_fit_cli_errors_are_one_line(tmp_path):
 
 
 def test_clipped_force_is_warned_about():
-    stiff = Tissue(TissueModel.from_names("x", "xdot"), 900.0, 3.0, 0.05)  # up to ~9 N: clips at 5
+    stiff = Tissue(Law.paper("x", "xdot"), 900.0, 3.0, 0.05)  # up to ~9 N: clips at 5
     s, _ = synthesize(ForcepsModel(tissue=stiff, seed=1), 5.0)  # meta carries the 8-bit ADC
     est = BayesianFit(forms="x,xdot").fit(s)
     assert any(w.startswith("force is at an end of the 8-bit ADC") for w in est.warnings_)
@@ -238,7 +240,7 @@ def test_clipped_force_is_warned_about():
 
 
 def test_random_sessions_stay_inside_the_sensor_ranges():
-    stiff = Tissue(TissueModel.from_names("x^3", "xdot"), 1.6e7, 3.0, 0.05)
+    stiff = Tissue(Law.paper("x^3", "xdot"), 1.6e7, 3.0, 0.05)
     lo, hi = Sensors().force_range_n
     drawn = [random_session(stiff, seed=seed, duration_s=5.0)[0] for seed in range(8)]
     assert all(lo < s.force.min() and s.force.max() < hi for s in drawn)
@@ -248,7 +250,7 @@ def test_random_sessions_stay_inside_the_sensor_ranges():
     ]
     assert any(s.force.max() >= hi for s in raw)
     with pytest.raises(ValueError, match="100 random operators"):
-        random_session(Tissue(stiff.model, 8e8, 3.0, 0.05), seed=0, duration_s=1.0)
+        random_session(Tissue(stiff.law, 8e8, 3.0, 0.05), seed=0, duration_s=1.0)
 
 
 @pytest.mark.parametrize("rate", [5000.0, 10000.0])
@@ -276,7 +278,7 @@ def test_lost_frames_leave_out_only_the_filtered_samples_beside_them():
 
 
 def test_clipped_samples_are_left_out_not_fitted():
-    stiff = Tissue(TissueModel.from_names("x", "xdot"), 900.0, 3.0, 0.05)  # clips at 5 N
+    stiff = Tissue(Law.paper("x", "xdot"), 900.0, 3.0, 0.05)  # clips at 5 N
     s, _ = synthesize(ForcepsModel(tissue=stiff, seed=1, sensors=Sensors(bits=12)), 10.0)
     hi = Sensors().force_range_n[1]
     assert np.mean(s.force >= hi - 1e-9) > 0.01  # a clipped session...
@@ -288,7 +290,7 @@ def test_clipped_samples_are_left_out_not_fitted():
     # so the fit stays within 5 posterior SDs of the truth, while fitting the clipped
     # values too (an ADC the session does not describe) misses K by 50 of those SDs
     post = est.best_.posterior
-    assert np.all(np.abs(post.mean - stiff.p) < 5 * post.sd), (post.mean, post.sd)
+    assert np.all(np.abs(post.mean - stiff.coef) < 5 * post.sd), (post.mean, post.sd)
     s.adc = None
     blind = BayesianFit(forms="x,xdot").fit(s).best_.posterior
     assert abs(blind.mean[0] - stiff.K) > 50 * post.sd[0]

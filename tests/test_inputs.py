@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from tests.conftest import assert_clean_error, tissuecli
 from tissuecli.cli import cli
 from tissuecli.core.errors import InputError
-from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+from tissuecli.core.terms import TERMS, Law
+from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue
 from tissuecli.formats.jsonfile import MAX_BYTES, MAX_DEPTH, SHOW_CHARS, read_json
 from tissuecli.formats.params import (
     FORMAT_VERSION,
@@ -30,6 +31,17 @@ from tissuecli.formats.params import (
 from tissuecli.render import PAPER_DISPLAY, check
 
 VALID_PARAMS = tissue_to_dict(DEFAULT_TISSUE)
+#: the same tissue in a version 1 file, which this tissuecli still reads
+VALID_PARAMS_V1 = {
+    "format": "tissuecli-parameters",
+    "version": 1,
+    "model": {"f0": "x", "f1": "xdot"},
+    "parameters": {
+        "K": {"mean": 350.0, "unit": "N/m"},
+        "S": {"mean": 3.0, "unit": "N s/m"},
+        "M": {"mean": 0.05, "unit": "kg"},
+    },
+}
 VALID_CAL = {
     "force": {"gain": 0.0235294, "offset": 2.0117647, "unit": "N"},
     "position": {"gain": 6.0784e-05, "offset": 0.0072804, "unit": "m"},
@@ -58,15 +70,21 @@ def _one_line(message: str, path: Path) -> None:
 # --------------------------------------------------------------------------- examples
 
 
-def _params(**changes: Any) -> dict[str, Any]:
-    doc = json.loads(json.dumps(VALID_PARAMS))
+def _params(base: dict[str, Any] = VALID_PARAMS_V1, **changes: Any) -> dict[str, Any]:
+    """A copy of ``base`` with items changed: ``parameters__K__mean=1`` sets
+    ``doc["parameters"]["K"]["mean"]``; a number in the path indexes a list."""
+    doc = json.loads(json.dumps(base))
     for path, value in changes.items():
         *head, last = path.split("__")
         node = doc
         for key in head:
-            node = node[key]
-        node[last] = value
+            node = node[int(key)] if key.isdigit() else node[key]
+        node[int(last) if last.isdigit() else last] = value
     return doc
+
+
+def _v2(**changes: Any) -> dict[str, Any]:
+    return _params(VALID_PARAMS, **changes)
 
 
 @pytest.mark.parametrize(
@@ -100,6 +118,16 @@ def _params(**changes: Any) -> dict[str, Any]:
         ("[1, 2]", ["must hold a JSON object", "an array"]),
         ('{"a": ', ["not valid JSON", "line 1"]),
         ("", ["not valid JSON"]),
+        (_v2(law__terms__0__mean=1e300), ["law.terms[0].mean", "<= 1e+06 N/m"]),
+        (_v2(law__terms__1__term="xdot^3"), ["law.terms[1].term", "is not a term"]),
+        (_v2(law__terms__2__unit="g"), ["law.terms[2].unit", "'kg'"]),
+        (_v2(law__terms=[]), ["law.terms", "non-empty"]),
+        (_v2(law__terms__1__term="x"), ["law.terms[1].term", "appears twice"]),
+        (_v2(law__terms__0__mean=-1.0), ["law.terms[0].mean", ">= 0"]),
+        (
+            _v2(law={"terms": [{"term": "offset", "mean": -2e3}]}),
+            ["law.terms[0].mean", ">= -1000 N"],
+        ),
     ],
 )
 def test_bad_parameter_files_are_one_line_naming_the_item(tmp_path, content, needles):
@@ -133,24 +161,32 @@ def test_the_minimal_and_the_written_files_are_read_back(tmp_path):
         "parameters": {"K": 1e8, "S": {"mean": 2.0}, "M": {"mean": 0.0, "unit": "kg"}},
     }
     t = read_tissue(_write(tmp_path, minimal))
-    assert (t.model.name, t.K, t.S, t.M) == ("x^3,xdot^2", 1e8, 2.0, 0.0)
+    assert (t.law.name, t.K3, t.S2, t.M) == ("x^3+xdot|xdot|+xddot", 1e8, 2.0, 0.0)
     assert read_tissue(_write(tmp_path, VALID_PARAMS)) == DEFAULT_TISSUE
+    assert read_tissue(_write(tmp_path, VALID_PARAMS_V1)) == DEFAULT_TISSUE
+    offset = {"law": {"terms": [{"term": "x", "mean": 100}, {"term": "offset", "mean": -0.3}]}}
+    assert read_tissue(_write(tmp_path, offset)).F0 == -0.3
     assert read_calibration(_write(tmp_path, VALID_CAL)).force.gain == 0.0235294
     assert read_profile(_write(tmp_path, VALID_PROFILE)) == PAPER_DISPLAY
     # the limits themselves are accepted: a range is inclusive
-    model = TissueModel.from_names("x", "xdot^2")
-    edge = Tissue(model, parameter_range(model, "K"), parameter_range(model, "S"), 1e3)
+    model = Law.paper("x", "xdot^2")
+    edge = Tissue(model, *(parameter_range(t) for t in model.terms))
     assert read_tissue(_write(tmp_path, tissue_to_dict(edge))) == edge
 
 
 def test_parameter_ranges_are_a_kilonewton_at_small_jaw_motion():
-    expected = {"x": 1e6, "x^3": 1e12, "xdot": 1e5, "xdot^2": 1e7}
-    for f0 in ("x", "x^3"):
-        for f1 in ("xdot", "xdot^2"):
-            model = TissueModel.from_names(f0, f1)
-            assert parameter_range(model, "K") == pytest.approx(expected[f0])
-            assert parameter_range(model, "S") == pytest.approx(expected[f1])
-            assert parameter_range(model, "M") == pytest.approx(1e3)
+    expected = {
+        "x": 1e6,
+        "x^3": 1e12,
+        "xdot": 1e5,
+        "xdot|xdot|": 1e7,
+        "sign(xdot)": 1e3,
+        "xddot": 1e3,
+        "offset": 1e3,
+    }
+    for name, top in expected.items():
+        # dry friction is tanh(v / 1 mm/s): at 10 mm/s it is 1 - 4e-9
+        assert parameter_range(TERMS[name]) == pytest.approx(top, rel=1e-8), name
 
 
 @pytest.mark.parametrize(
@@ -437,8 +473,8 @@ def test_play_check_judges_any_tissue_a_file_may_hold(tmp_path):
     """The largest values a file may hold still get a verdict, not an exception."""
     for f0 in ("x", "x^3"):
         for f1 in ("xdot", "xdot^2"):
-            model = TissueModel.from_names(f0, f1)
-            top = [parameter_range(model, n) for n in ("K", "S", "M")]
+            model = Law.paper(f0, f1)
+            top = [parameter_range(t) for t in model.terms]
             for values in (top, [top[0], 0.0, 0.0], [0.0, 0.0, 0.0], [1e-300, 1e-300, 1e-300]):
                 result = check(Tissue(model, *values))
                 assert not result.renderable

@@ -43,7 +43,7 @@ def test_cramer_rao_is_not_beaten_by_bayesian_fit() -> None:
         model = ForcepsModel(tissue=truth, seed=seed, sensors=Sensors(bits=12))
         session, _ = synthesize(model, 10.0)
         fit = BayesianFit().fit(session)
-        (result,) = [r for r in fit.results_ if r.name == truth.model.name]
+        (result,) = [r for r in fit.results_ if r.name == truth.law.name]
         assert result.posterior is not None
         estimates.append(result.posterior.mean[0])
     crb = cramer_rao(truth, ForcepsModel(tissue=truth, sensors=Sensors(bits=12)), 10.0)
@@ -72,7 +72,7 @@ def check(result: PeerResult, name: str) -> None:
     assert result.params.shape == (3,)
     assert np.all(np.isfinite(result.params))
     assert result.seconds > 0
-    assert result.model == DEFAULT_TISSUE.model.name
+    assert result.model == DEFAULT_TISSUE.law.name
     assert result.params[0] == pytest.approx(DEFAULT_TISSUE.K, rel=0.01)
 
 

@@ -20,13 +20,14 @@ from tissuecli import formats
 from tissuecli.app.play import play
 from tissuecli.cli import fail_cleanly as _fail_cleanly
 from tissuecli.core.errors import DeviceError, DeviceLost, RenderError, TissueError
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.hw.link import Link
 from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
 from tissuecli.hw.realtime import StopFlag
 from tissuecli.render import PAPER_DISPLAY
 
-LINEAR = TissueModel.from_names("x", "xdot")
+LINEAR = Law.paper("x", "xdot")
 INSIDE = Tissue(LINEAR, K=600.0, S=3.0, M=0.05)
 MATCHED = Tissue(LINEAR, K=600.0, S=3.0, M=PAPER_DISPLAY.Mp)
 STIFF = Tissue(LINEAR, K=5000.0, S=3.0, M=0.05)
@@ -42,9 +43,10 @@ print(json.dumps(counters), flush=True)
 
 HOST = """
 import sys
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.app.play import play
-tissue = Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, 0.05)
+tissue = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05)
 play(tissue, sys.argv[1], 30.0, on_status=lambda s: print("playing", flush=True),
      status_interval_s=0.1)
 """
@@ -263,12 +265,12 @@ def test_check_command_verdicts_and_exit_codes(tmp_path):
     from click.testing import CliRunner
 
     from tissuecli.cli import cli
-    from tissuecli.core.tissue import TissueModel
+    from tissuecli.core.terms import Law
     from tissuecli.formats.jsonfile import write_json
     from tissuecli.formats.params import tissue_to_dict
 
     soft, stiff = tmp_path / "soft.json", tmp_path / "stiff.json"
-    model = TissueModel.from_names("x", "xdot")
+    model = Law.paper("x", "xdot")
     write_json(soft, tissue_to_dict(Tissue(model, 600.0, 3.0, 0.05)))
     write_json(stiff, tissue_to_dict(Tissue(model, 5000.0, 3.0, 0.05)))
     ok = CliRunner().invoke(

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from tissuecli.core.errors import InputError
 from tissuecli.core.flags import SATURATED, UNRENDERABLE
-from tissuecli.core.tissue import Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.render import PAPER_DISPLAY, DisplayProfile, check, simulate_offline
 from tissuecli.render.check import GRASP_SPEED_M_S, MAX_SOFT_FRACTION
 from tissuecli.render.law import FORCE_TOLERANCE_N
@@ -24,7 +25,7 @@ PULL = PAPER_DISPLAY.max_pull
 
 
 def _tissue(f0: str, f1: str, K: float, S: float, M: float) -> Tissue:
-    return Tissue(TissueModel.from_names(f0, f1), K, S, M)
+    return Tissue(Law.paper(f0, f1), K, S, M)
 
 
 def test_strong_quadratic_damping_is_refused_and_would_not_render():

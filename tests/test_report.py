@@ -12,7 +12,8 @@ import pytest
 
 from tissuecli import __version__
 from tissuecli.app.fit import write_report
-from tissuecli.core.tissue import Tissue, TissueModel, all_models
+from tissuecli.core.terms import Law, paper_laws
+from tissuecli.core.tissue import Tissue
 from tissuecli.identify import FitOutcome, fit_session
 from tissuecli.report.figures import MAX_POINTS
 from tissuecli.report.figures import envelope as _envelope
@@ -85,8 +86,8 @@ def test_report_embeds_at_least_five_png_figures(both: tuple[FitOutcome, str]) -
 def test_report_names_the_best_model_and_its_formula(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
     best = outcome.bayes.best_
-    assert best.name == "x,xdot"
-    assert f"Chosen form: <b>{best.name}</b>" in text
+    assert best.name == "x+xdot+xddot"
+    assert f"Chosen law: <b>{best.name}</b>" in text
     numbers = _formula_numbers(text)
     assert len(numbers) == 3
     post = best.posterior
@@ -115,7 +116,7 @@ def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
 def test_report_compares_all_four_forms(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
     section = text[text.index("id='comparison'") : text.index("id='plots'")]
-    names = [m.name for m in all_models()]
+    names = [m.name for m in paper_laws()]
     assert len(names) == 4
     for name in names:
         assert f"<td><b>{html.escape(name)}</b></td>" in section
@@ -171,7 +172,7 @@ def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
 
 
 def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
-    massless = Tissue(TissueModel.from_names("x", "xdot"), K=350.0, S=3.0, M=0.0)
+    massless = Tissue(Law.paper("x", "xdot"), K=350.0, S=3.0, M=0.0)
     outcome = fit_session(_session(seed=5, duration_s=4.0, tissue=massless))
     warnings = outcome.warnings
     assert warnings, "a massless tissue should leave M unidentified"

@@ -11,7 +11,8 @@ import pytest
 
 from tissuecli.core.errors import FitError, InputError
 from tissuecli.core.session import Session
-from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue
 from tissuecli.identify import BayesianFit
 from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
@@ -20,32 +21,27 @@ from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session,
 def base() -> tuple[Session, np.ndarray]:
     model = ForcepsModel(seed=1, sensors=Sensors(bits=16))
     s, _ = synthesize(model, 10.0)
-    est = BayesianFit(forms="all").fit(s)
+    est = BayesianFit(forms="paper").fit(s)
     return s, est.best_.posterior.mean
 
 
 @pytest.mark.parametrize("cf", [1e-6, 1e-3, 1e3, 1e6])
 @pytest.mark.parametrize("cx", [1e-3, 1e3])
-def test_scaled_sessions_scale_the_answer_or_are_refused(base, cf, cx):
-    """Force x cf and position x cx: (K, S, M) must scale by cf/cx, cf/cx, cf/cx exactly
-    (to rounding and the priors' pull, 1e-6), the form must not change, or the fit must
-    refuse because the data sit far outside the priors."""
+def test_scaled_sessions_scale_the_answer(base, cf, cx):
+    """Force x cf and position x cx: (K, S, M) must scale by cf/cx exactly (to rounding,
+    1e-6) and the law must not change. The priors are set from the session's own
+    scales, so no session is refused for its size."""
     s, p0 = base
     scaled = Session(s.time, s.force * cf, s.position * cx)
-    try:
-        est = BayesianFit(forms="all", force_scale=20.0 * cf).fit(scaled)
-    except FitError as exc:
-        assert "prior scale" in str(exc) and "--force-scale" in str(exc)
-        assert cx < 1  # only micrometre-scale motion leaves the priors' range
-        return
-    assert est.best_.name == "x,xdot"
+    est = BayesianFit(forms="paper").fit(scaled)
+    assert est.best_.name == "x+xdot+xddot"
     np.testing.assert_allclose(est.best_.posterior.mean, p0 * cf / cx, rtol=1e-6)
 
 
 def test_cubic_stiffness_at_submillimetre_closure():
     """x^3 at 0.1-0.5 mm: columns differ by 1e9 in SI; scaling keeps the fit exact."""
     op = Operator(mean_m=0.3e-3, amplitudes_m=(0.1e-3, 0.05e-3, 0.02e-3, 0.01e-3))
-    tissue = Tissue(TissueModel.from_names("x^3", "xdot"), 2e10, 3.0, 0.05)
+    tissue = Tissue(Law.paper("x^3", "xdot"), 2e10, 3.0, 0.05)
     model = ForcepsModel(
         tissue=tissue,
         operator=op,
@@ -59,10 +55,8 @@ def test_cubic_stiffness_at_submillimetre_closure():
         ),
     )
     s, _ = synthesize(model, 10.0)
-    # the priors are written at 5 mm, where this law would give 2500 N: say so, or be refused
-    with pytest.raises(FitError, match="--force-scale"):
-        BayesianFit(forms="x^3,xdot").fit(s)
-    est = BayesianFit(forms="x^3,xdot", force_scale=2500.0).fit(s)
+    # priors from the session's own closure scale: no --force-scale needed
+    est = BayesianFit(forms="x^3,xdot").fit(s)
     assert est.best_.cond > 1e6 > 100 > est.best_.cond_scaled
     assert est.best_.posterior.mean[0] == pytest.approx(2e10, rel=2e-3)
 

@@ -23,7 +23,7 @@ _EXPORTS = {
     # core
     "Session": ".core.session",
     "Tissue": ".core.tissue",
-    "TissueModel": ".core.tissue",
+    "Law": ".core.terms",
     "DEFAULT_TISSUE": ".core.tissue",
     "Calibration": ".core.calibration",
     "TissueError": ".core.errors",
@@ -61,7 +61,7 @@ __all__ = [
     "__version__",
     "Session",
     "Tissue",
-    "TissueModel",
+    "Law",
     "DEFAULT_TISSUE",
     "Calibration",
     "TissueError",
@@ -105,7 +105,8 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from .core.calibration import Calibration
     from .core.errors import TissueError
     from .core.session import Session
-    from .core.tissue import DEFAULT_TISSUE, Tissue, TissueModel
+    from .core.terms import Law
+    from .core.tissue import DEFAULT_TISSUE, Tissue
     from .formats.params import read_tissue, write_params
     from .formats.recording import read_recording
     from .formats.sessions import list_sessions, read_session, write_session

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-from ..core.tissue import DEFAULT_TISSUE, PARAMETERS
+from ..core.tissue import DEFAULT_TISSUE
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_tissue
 from ..formats.sessions import list_sessions, session_names
@@ -62,8 +62,8 @@ def run_demo(
         )
         t = DEFAULT_TISSUE
         say(
-            f"1. simulated forceps: {t.model.name} tissue K={t.K:g} {t.model.units['K']}, "
-            f"S={t.S:g} {t.model.units['S']}, M={t.M:g} kg, 1 kHz, 8-bit ADC"
+            f"1. simulated forceps: {t.law.name} tissue K={t.K:g} N/m, S={t.S:g} N s/m, "
+            f"M={t.M:g} kg, 1 kHz, 8-bit ADC"
         )
         with SimulatorProcess("forceps", root / "forceps", ["--seed", "1"]) as sim:
             say(f"   listening on {sim.link}")
@@ -83,13 +83,17 @@ def run_demo(
         outcome = fit_file(h5, name, out=params, report=report, force=force)
         best = outcome.bayes.best_  # type: ignore[union-attr]
         post = best.posterior
-        say(f"5. fitted all forms: {best.name} chosen with probability {best.probability:.3f}")
-        for j, p in enumerate(PARAMETERS):
-            truth = getattr(t, p)
-            say(
-                f"   {p} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {best.model.units[p]}"
-                f"  (true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %)"
+        say(f"5. fitted all laws: {best.name} chosen with probability {best.probability:.3f}")
+        for j, term in enumerate(best.model.terms):
+            truth = t.get(term.symbol, float("nan"))
+            error = (
+                f"true {truth:g}, error {100 * (post.mean[j] / truth - 1):+.2f} %"
+                if truth
+                else "true 0"
+                if truth == 0
+                else "not in the simulated law"
             )
+            say(f"   {term.symbol} = {post.mean[j]:.5g} ± {post.sd[j]:.2g} {term.unit}  ({error})")
         for w in outcome.bayes.warnings_:  # type: ignore[union-attr]
             say(f"   warning: {w}")
         say(f"   parameters -> {params}, report -> {report}")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from ..core.tissue import PARAMETERS
 from ..formats.atomic import write_text_atomic
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import write_params
@@ -67,9 +66,12 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
     )
     est = outcome.bayes
     if est is not None:
-        lines.append(f"{'form':<12} {'ln Z':>12} {'P':>7}  method")
+        width = max(len(r.name) for r in est.results_)
+        lines.append(f"{'law':<{width}} {'ln Z':>12} {'P':>7}  method")
         for r in est.results_:
-            lines.append(f"{r.name:<12} {r.ln_evidence:12.2f} {r.probability:7.3f}  {r.status}")
+            lines.append(
+                f"{r.name:<{width}} {r.ln_evidence:12.2f} {r.probability:7.3f}  {r.status}"
+            )
         best = est.best_
         post = best.posterior
         assert post is not None
@@ -77,16 +79,16 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
             f"best: {best.name}  (noise {post.sigma_mean * 1e3:.2f} mN, "
             f"{est.n_eff_:.0f} effective samples)"
         )
-        for j, name in enumerate(PARAMETERS):
+        for j, t in enumerate(best.model.terms):
             lo, hi = post.ci95[j]
             lines.append(
-                f"  {name} = {post.mean[j]:.6g} ± {post.sd[j]:.2g} {best.model.units[name]}"
-                f"  (95 % [{lo:.6g}, {hi:.6g}])"
+                f"  {t.symbol} = {post.mean[j]:.6g} ± {post.sd[j]:.2g} {t.unit}"
+                f"  (95 % [{lo:.6g}, {hi:.6g}]; {t.name})"
             )
     if outcome.pinv is not None:
         p = outcome.pinv
         vals = ", ".join(
-            f"{n}={v:.6g} {p.model_.units[n]}" for n, v in zip(PARAMETERS, p.params_, strict=True)
+            f"{t.symbol}={v:.6g} {t.unit}" for t, v in zip(p.model_.terms, p.params_, strict=True)
         )
         lines.append(
             f"pinv ({p.model_.name}, best of {p.windows_.shape[0]} windows of "

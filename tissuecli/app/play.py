@@ -171,8 +171,8 @@ def play(
         verdict = check(tissue, profile, rate_hz, force)
         if not verdict.renderable:
             raise RenderError(
-                f"the display cannot render this {tissue.model.name} tissue "
-                f"(K={tissue.K:g} {tissue.model.units['K']}): " + "; ".join(verdict.reasons)
+                f"the display cannot render this {tissue.law.name} tissue: "
+                + "; ".join(verdict.reasons)
             )
         if log is not None:
             from ..formats.playlog import PlayLog  # h5py only when a log is asked for
@@ -183,7 +183,7 @@ def play(
                 "source": f"serial:{url}",
                 "device": info,
                 "rate_hz": rate_hz,
-                "tissue": {**_describe(tissue), "units": tissue.model.units},
+                "tissue": {**tissue.describe(), "units": tissue.law.units},
                 "profile": profile.as_dict(),
                 "gains": asdict(verdict.gains),
                 "check": verdict.as_dict(),
@@ -225,16 +225,12 @@ def play(
     finally:
         link.close()
     summary["check"] = verdict.as_dict()
-    summary["tissue"] = _describe(tissue)
+    summary["tissue"] = tissue.describe()
     summary = _jsonable(summary)
     if log_file is not None:
         summary["log"] = {"path": str(log), "group": log_file.group}
         log_file.close(complete=True, **{k: v for k, v in summary.items() if k != "log"})
     return summary
-
-
-def _describe(tissue: Tissue) -> dict[str, Any]:
-    return {"model": tissue.model.name, "K": tissue.K, "S": tissue.S, "M": tissue.M}
 
 
 def _open_display(

@@ -104,7 +104,7 @@ def simulate_forceps(
     def ready(port: Any, tissue: Any) -> None:
         _announce(
             port,
-            f"simulated forceps streaming {tissue.model.name} tissue at {rate:g} Hz, "
+            f"simulated forceps streaming {tissue.law.name} tissue at {rate:g} Hz, "
             f"{adc_bits}-bit ADC; Ctrl-C to stop",
         )
 

@@ -1,97 +1,160 @@
-"""The tissue law ``K f0(x) + S f1(xdot) + M xddot = F``: a choice of forms
-(:class:`TissueModel`) and a model with values (:class:`Tissue`), in SI units."""
+"""A tissue: a law (:class:`~tissuecli.core.terms.Law`) with the value of each coefficient,
+in SI units; what ``simulate``, ``fit`` and ``play`` share."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError
-from .forms import FORCE_SCALE, FORMS, TYPICAL, Form, form
+from .terms import Law, Term
 
 Array = NDArray[np.float64]
 
 
-PARAMETERS = ("K", "S", "M")
+class Tissue:
+    """A law with its coefficients.
 
+    ``Tissue(law, 350.0, 3.0, 0.05)`` gives the coefficients in the law's order;
+    ``Tissue(law, K=350.0, S=3.0, M=0.05)`` by symbol. Coefficients read as
+    attributes by symbol (``tissue.K``) or as an array (``tissue.coef``).
 
-@dataclass(frozen=True)
-class TissueModel:
-    """A choice of forms: ``K f0(x) + S f1(xdot) + M xddot = F``."""
+    Parameters
+    ----------
+    law : Law
+        The terms.
+    *values : float
+        Coefficients in the order of ``law.terms``, SI.
+    **by_symbol : float
+        Or by symbol (``K``, ``S``, ``M``, ``F0``, ...).
+    """
 
-    f0: Form
-    f1: Form
+    __slots__ = ("law", "coef")
 
-    @classmethod
-    def from_names(cls, f0: str = "x", f1: str = "xdot") -> TissueModel:
-        return cls(form("stiffness", f0), form("damping", f1))
+    def __init__(self, law: Law, *values: float, **by_symbol: float) -> None:
+        if values and by_symbol:
+            raise TypeError("give the coefficients in order or by symbol, not both")
+        if by_symbol:
+            unknown = sorted(set(by_symbol) - set(law.symbols))
+            missing = [s for s in law.symbols if s not in by_symbol]
+            if unknown or missing:
+                raise InputError(
+                    f"law {law.name} has coefficients {', '.join(law.symbols)}; unknown "
+                    f"{', '.join(unknown) or 'none'}, missing {', '.join(missing) or 'none'}"
+                )
+            values = tuple(by_symbol[s] for s in law.symbols)
+        if len(values) != len(law.terms):
+            raise InputError(f"law {law.name} has {len(law.terms)} coefficients, got {len(values)}")
+        object.__setattr__(self, "law", law)
+        object.__setattr__(self, "coef", np.array(values, dtype=float))
 
-    @property
-    def name(self) -> str:
-        return f"{self.f0.name},{self.f1.name}"
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("a Tissue is immutable")
 
-    def prior_scales(self, force_scale: float = FORCE_SCALE) -> NDArray[np.float64]:
-        """Half-normal prior scales of (K, S, M) in SI, for terms reaching ``force_scale`` N."""
-        return np.array(
-            [
-                self.f0.prior_scale(force_scale),
-                self.f1.prior_scale(force_scale),
-                force_scale / TYPICAL["inertia"],
-            ]
+    def __getattr__(self, symbol: str) -> float:
+        law = object.__getattribute__(self, "law")
+        if symbol in law.symbols:
+            return float(self.coef[law.symbols.index(symbol)])
+        raise AttributeError(f"{type(self).__name__} of {law.name} has no coefficient {symbol!r}")
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, Tissue)
+            and other.law == self.law
+            and bool(np.array_equal(other.coef, self.coef))
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.law, tuple(self.coef)))
+
+    def __repr__(self) -> str:
+        values = ", ".join(f"{s}={c:g}" for s, c in zip(self.law.symbols, self.coef, strict=True))
+        return f"Tissue({self.law.name}: {values})"
+
+    def get(self, symbol: str, default: float = 0.0) -> float:
+        """The coefficient of ``symbol``, or ``default`` if the law has no such term."""
+        return (
+            float(self.coef[self.law.symbols.index(symbol)])
+            if symbol in self.law.symbols
+            else default
         )
 
     @property
-    def units(self) -> dict[str, str]:
-        """SI unit of each parameter."""
-        return {"K": self.f0.unit, "S": self.f1.unit, "M": "kg"}
+    def mass(self) -> float:
+        """The inertia coefficient M, kg (0 for a law without inertia)."""
+        return self.get("M")
 
-    def regressors(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
-        """The law's columns at exact kinematics, shape (n, 3): f0(x), f1(xdot), xddot."""
-        x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
-        return np.column_stack([self.f0(x), self.f1(v), a])
-
-    def force(self, p: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
-        """F = K f0(x) + S f1(xdot) + M xddot for p = (K, S, M); shape (n,) in N."""
-        return self.regressors(x, v, a) @ np.asarray(p, dtype=float)
-
-
-def all_models() -> list[TissueModel]:
-    """Every registered combination of stiffness and damping forms."""
-    return [
-        TissueModel(f0, f1)
-        for f0 in FORMS["stiffness"].values()
-        for f1 in FORMS["damping"].values()
-    ]
-
-
-@dataclass(frozen=True)
-class Tissue:
-    """A model with parameter values (SI): what ``simulate``, ``fit`` and ``play`` share."""
-
-    model: TissueModel
-    K: float
-    S: float
-    M: float
-
-    @property
-    def p(self) -> Array:
-        return np.array([self.K, self.S, self.M])
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready: the law's name and each coefficient by symbol, SI."""
+        return {
+            "law": self.law.name,
+            **{s: float(c) for s, c in zip(self.law.symbols, self.coef, strict=True)},
+        }
 
     def force(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
-        return self.model.force(self.p, x, v, a)
+        """The law's force at exact kinematics, shape (n,), N."""
+        return self.law.force(self.coef, x, v, a)
 
     def validate(self) -> Tissue:
-        """Raise :class:`InputError` unless the parameters are finite and non-negative."""
-        for name in PARAMETERS:
-            value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
-                raise InputError(
-                    f"parameter {name} = {value} {self.model.units[name]} must be finite and >= 0"
-                )
+        """Raise :class:`InputError` unless every coefficient is finite, and the passive
+        ones non-negative."""
+        for t, c in zip(self.law.terms, self.coef, strict=True):
+            if not math.isfinite(c) or (t.passive and c < 0):
+                sign = " and >= 0" if t.passive else ""
+                raise InputError(f"coefficient {t.symbol} = {c} {t.unit} must be finite{sign}")
         return self
 
+    # the display renders the tissue's own terms (not a sensor's offset) without inertia,
+    # which the controller's reference model carries
 
-DEFAULT_TISSUE = Tissue(TissueModel.from_names("x", "xdot"), K=350.0, S=3.0, M=0.05)
+    def _rendered(self, variable: str) -> list[tuple[Term, float]]:
+        return [
+            (t, float(c))
+            for t, c in zip(self.law.terms, self.coef, strict=True)
+            if t.rendered and t.variable == variable
+        ]
+
+    def static_force(self, x: ArrayLike) -> Array:
+        """The rendered force at rest at closures ``x`` (m), N: the position terms."""
+        x = np.asarray(x, dtype=float)
+        with np.errstate(all="ignore"):
+            return sum((c * t(x) for t, c in self._rendered("x")), np.zeros_like(x))
+
+    def damping_force(self, v: ArrayLike) -> Array:
+        """The rendered force of speed ``v`` (m/s), N: damping and friction."""
+        v = np.asarray(v, dtype=float)
+        with np.errstate(all="ignore"):
+            return sum((c * t(v) for t, c in self._rendered("v")), np.zeros_like(v))
+
+    def stiffness(self, x: ArrayLike) -> Array:
+        """Local stiffness d static_force / dx at ``x``, N/m."""
+        x = np.asarray(x, dtype=float)
+        with np.errstate(all="ignore"):
+            return sum((c * t.derivative(x) for t, c in self._rendered("x")), np.zeros_like(x))
+
+    def damping(self, v: ArrayLike) -> Array:
+        """Local damping d damping_force / dv at ``v``, N s/m."""
+        v = np.asarray(v, dtype=float)
+        with np.errstate(all="ignore"):
+            return sum((c * t.derivative(v) for t, c in self._rendered("v")), np.zeros_like(v))
+
+    def scalar_law(self) -> tuple[Any, Any]:
+        """Two float -> float functions, the static and the speed part of the rendered force,
+        in plain arithmetic for a real-time loop."""
+        xs = tuple(self._rendered("x"))
+        vs = tuple(self._rendered("v"))
+
+        def static(x: float) -> float:
+            return sum(c * t.scalar(x) for t, c in xs)
+
+        def speed(v: float) -> float:
+            return sum(c * t.scalar(v) for t, c in vs)
+
+        return static, speed
+
+
+DEFAULT_TISSUE = Tissue(Law.paper("x", "xdot"), K=350.0, S=3.0, M=0.05)
 """A liver-like default: 350 N/m, 3 N s/m, 50 g moving mass (field notes, section 2)."""

@@ -18,8 +18,8 @@ import numpy as np
 from .._version import __version__
 from ..core.calibration import SI_UNITS, Calibration, calibration_from_dict
 from ..core.errors import InputError
-from ..core.forms import FORMS
-from ..core.tissue import PARAMETERS, Tissue, TissueModel
+from ..core.terms import TERMS, Law, Term
+from ..core.tissue import Tissue
 from ..render.profile import DisplayProfile, profile_from_dict
 from .jsonfile import item_name, json_type, read_json, shown, write_json
 
@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # a fit's results are read, never built, here
     from ..identify.outcome import FitOutcome
 
 FORMAT = "tissuecli-parameters"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 CALIBRATION_FORMAT = "tissuecli-calibration"
 CALIBRATION_VERSION = 1
 
@@ -45,7 +45,7 @@ KINDS = {
 RANGE_FORCE_N = 1000.0
 #: Small jaw motion for the ranges: 1 mm closure, 10 mm/s, 1 m/s^2 (a fifth to a tenth
 #: of the jaw-scale motion of the fit's priors, 5 mm, 50 mm/s, 10 m/s^2).
-RANGE_MOTION = {"stiffness": 1e-3, "damping": 1e-2, "inertia": 1.0}
+RANGE_MOTION = {"x": 1e-3, "v": 1e-2, "a": 1.0, "1": 1.0}
 #: Calibration ranges, per channel: largest and smallest magnitude of one count (SI per
 #: count) and largest magnitude of the offset (SI). A forceps measures tens of newtons
 #: over millimetres of jaw travel: 10 N a count is an 8-bit ADC spanning +-1.3 kN, 1 mm a
@@ -57,34 +57,33 @@ def _header() -> dict[str, Any]:
     return {"format": FORMAT, "version": FORMAT_VERSION, "software": f"tissuecli {__version__}"}
 
 
-def _model(model: TissueModel) -> dict[str, str]:
-    return {"f0": model.f0.name, "f1": model.f1.name}
+def _terms(law: Law, mean: Any, sd: Any = None, ci95: Any = None) -> list[dict[str, Any]]:
+    """One entry per term: its name, its coefficient's symbol and unit, and the values."""
+    out = []
+    for j, t in enumerate(law.terms):
+        entry: dict[str, Any] = {"term": t.name, "symbol": t.symbol, "unit": t.unit}
+        entry["mean"] = float(mean[j])
+        if sd is not None:
+            entry["sd"] = float(sd[j])
+        if ci95 is not None:
+            entry["ci95"] = [float(ci95[j][0]), float(ci95[j][1])]
+        out.append(entry)
+    return out
+
+
+def _law(law: Law, mean: Any, sd: Any = None, ci95: Any = None) -> dict[str, Any]:
+    return {"name": law.name, "terms": _terms(law, mean, sd, ci95)}
 
 
 def tissue_to_dict(tissue: Tissue) -> dict[str, Any]:
     """The minimal parameter file for a tissue (``fit`` adds uncertainty and evidence)."""
-    return {
-        **_header(),
-        "model": _model(tissue.model),
-        "parameters": {
-            name: {"mean": getattr(tissue, name), "unit": tissue.model.units[name]}
-            for name in PARAMETERS
-        },
-    }
+    return {**_header(), "law": _law(tissue.law, tissue.coef)}
 
 
-def _param_block(res: ModelResult) -> dict[str, Any]:
+def _result_law(res: ModelResult) -> dict[str, Any]:
     post = res.posterior
     assert post is not None
-    return {
-        name: {
-            "mean": float(post.mean[j]),
-            "sd": float(post.sd[j]),
-            "ci95": [float(post.ci95[j, 0]), float(post.ci95[j, 1])],
-            "unit": res.model.units[name],
-        }
-        for j, name in enumerate(PARAMETERS)
-    }
+    return _law(res.model, post.mean, post.sd, post.ci95)
 
 
 def document(outcome: FitOutcome) -> dict[str, Any]:
@@ -106,8 +105,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
     if est is not None:
         best = est.best_
         kin = est.kinematics_
-        doc["model"] = _model(best.model)
-        doc["parameters"] = _param_block(best)
+        doc["law"] = {**_result_law(best), "probability": best.probability}
         doc["noise"] = {
             "sd": best.posterior.sigma_mean,  # type: ignore[union-attr]
             "ci95": list(best.posterior.sigma_ci95),
@@ -123,9 +121,9 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
             for r in est.results_
         }
         doc["probabilities"] = {r.name: r.probability for r in est.results_}
-        doc["models"] = {
+        doc["laws"] = {
             r.name: {
-                "parameters": _param_block(r),
+                "terms": _result_law(r)["terms"],
                 "flags": r.flags,
                 "cond": r.cond,
                 "cond_scaled": r.cond_scaled,
@@ -151,17 +149,10 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
             }
         )
     if pinv is not None:
-        block = {
-            name: {"value": float(pinv.params_[j]), "unit": pinv.model_.units[name]}
-            for j, name in enumerate(PARAMETERS)
-        }
-        doc["pinv"] = {**pinv.summary(), "parameters": block}
+        doc["pinv"] = {**pinv.summary(), "terms": _terms(pinv.model_, pinv.params_)}
         if est is None:
             doc["warnings"] = outcome.warnings
-            doc["model"] = _model(pinv.model_)
-            doc["parameters"] = {
-                name: {"mean": v["value"], "unit": v["unit"]} for name, v in block.items()
-            }
+            doc["law"] = _law(pinv.model_, pinv.params_)
     doc["data"] = data
     return doc
 
@@ -173,18 +164,16 @@ def write_params(path: str | os.PathLike[str], outcome: FitOutcome) -> dict[str,
     return data
 
 
-def parameter_range(model: TissueModel, name: str) -> float:
-    """Largest value a parameter file may give ``name`` (K, S or M) for ``model``, SI: the
+def parameter_range(t: Term) -> float:
+    """Largest magnitude a parameter file may give the coefficient of term ``t``, SI: the
     coefficient whose term alone reaches :data:`RANGE_FORCE_N` at :data:`RANGE_MOTION`.
-    Smallest is 0: a passive tissue has no negative stiffness, damping or mass.
+    A passive coefficient is at least 0 (no negative stiffness, damping or mass); an
+    offset may have either sign.
 
-    x: K <= 1e6 N/m; x^3: K <= 1e12 N/m^3; xdot: S <= 1e5 N s/m; xdot^2: S <= 1e7
-    N s^2/m^2; M <= 1e3 kg.
+    x: K <= 1e6 N/m; x^3: K3 <= 1e12 N/m^3; xdot: S <= 1e5 N s/m; xdot|xdot|: S2 <= 1e7
+    N s^2/m^2; sign(xdot): Fc <= 1e3 N; xddot: M <= 1e3 kg; offset: |F0| <= 1e3 N.
     """
-    if name == "M":
-        return RANGE_FORCE_N / RANGE_MOTION["inertia"]
-    f = model.f0 if name == "K" else model.f1
-    return RANGE_FORCE_N / abs(float(f(np.array([RANGE_MOTION[f.role]]))[0]))
+    return RANGE_FORCE_N / abs(float(t(np.array([RANGE_MOTION[t.variable]]))[0]))
 
 
 class _Schema:
@@ -271,9 +260,9 @@ def tissue_from_dict(data: Mapping[str, Any], source: str = "parameter file") ->
     """Validate a parameter document (docs/formats.md) and build its :class:`Tissue`.
 
     Checked: the header (``format``, ``version`` no newer than this tissuecli's), every
-    top-level key known and of its type, ``model`` a known pair of forms, ``parameters``
-    holding exactly K, S and M, each a number or ``{"mean", "sd", "ci95", "unit"}`` with
-    a finite mean within :func:`parameter_range` and the form's unit.
+    top-level key known and of its type, and the law: in version 2 a list of known
+    terms, each with a finite coefficient within :func:`parameter_range` in its unit; in
+    version 1 a pair of forms ``model: {f0, f1}`` with ``parameters`` K, S and M.
 
     Raises
     ------
@@ -284,75 +273,126 @@ def tissue_from_dict(data: Mapping[str, Any], source: str = "parameter file") ->
     if not isinstance(data, Mapping):
         raise InputError(f"{source} must hold a JSON object")
     sc.header(data, FORMAT, FORMAT_VERSION)  # first: a newer file is told to upgrade
-    sc.keys(data, (), tuple(_TOP_LEVEL), required=("model", "parameters"))
-    for key, kind in _TOP_LEVEL.items():
+    # a file without a version tells its layout by its keys
+    version = data.get("version", 1 if "model" in data and "law" not in data else FORMAT_VERSION)
+    top = _TOP_LEVEL if version >= 2 else _TOP_LEVEL_V1
+    sc.keys(data, (), tuple(top), required=("law",) if version >= 2 else ("model", "parameters"))
+    for key, kind in top.items():
         if key in data and kind is not None:
             sc.typed(data, (key,), kind)
     for j, w in enumerate(data.get("warnings", [])):
         if not isinstance(w, str):
             raise sc.fail(("warnings", j), f"must be a string, not {json_type(w)}")
+    if version >= 2:
+        law, values = _read_law(sc, data["law"])
+    else:
+        law, values = _read_v1(sc, data)
+    return Tissue(law, *values).validate()
+
+
+def _coefficient(sc: _Schema, t: Term, entry: Any, path: tuple[str | int, ...]) -> float:
+    """A term's coefficient: a number, or ``{"mean", "sd", "ci95", "unit"}``, in range."""
+    if isinstance(entry, Mapping):
+        sc.keys(entry, path, ("term", "symbol", "mean", "sd", "ci95", "unit"), required=("mean",))
+        given = entry.get("unit", t.unit)
+        if given != t.unit:
+            raise sc.fail((*path, "unit"), f"= {shown(given)}, but {t.name} needs {t.unit!r}")
+        if "sd" in entry:
+            sc.number(entry["sd"], (*path, "sd"), 0.0, unit=t.unit)
+        if "ci95" in entry:
+            ci = entry["ci95"]
+            if not isinstance(ci, list) or len(ci) != 2:
+                raise sc.fail((*path, "ci95"), "must be an array [low, high]")
+            for i, v in enumerate(ci):
+                sc.number(v, (*path, "ci95", i), unit=t.unit)
+        path, entry = (*path, "mean"), entry["mean"]
+    top = parameter_range(t)
+    return sc.number(
+        entry,
+        path,
+        0.0 if t.passive else -top,
+        top,
+        t.unit,
+        f" (larger makes a term of over {RANGE_FORCE_N:g} N at 1 mm, 10 mm/s or 1 m/s^2, "
+        "no tissue a forceps meets; docs/formats.md)",
+    )
+
+
+def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
+    if not isinstance(spec, Mapping):
+        raise sc.fail(("law",), f"must be an object, not {json_type(spec)}")
+    sc.keys(spec, ("law",), ("name", "terms", "probability"), required=("terms",))
+    terms = spec["terms"]
+    if not isinstance(terms, list) or not terms:
+        raise sc.fail(("law", "terms"), "must be a non-empty array of terms")
+    chosen: list[Term] = []
+    values = []
+    for j, entry in enumerate(terms):
+        path: tuple[str | int, ...] = ("law", "terms", j)
+        if not isinstance(entry, Mapping):
+            raise sc.fail(path, f"must be an object, not {json_type(entry)}")
+        name = entry.get("term")
+        if not isinstance(name, str) or name not in TERMS:
+            raise sc.fail(
+                (*path, "term"), f"= {shown(name)} is not a term; choose among: {', '.join(TERMS)}"
+            )
+        t = TERMS[name]
+        if t in chosen:
+            raise sc.fail((*path, "term"), f"= {name!r} appears twice")
+        chosen.append(t)
+        values.append(_coefficient(sc, t, entry, path))
+    law = Law.of(t.name for t in chosen)
+    order = [chosen.index(t) for t in law.terms]
+    return law, [values[i] for i in order]
+
+
+#: version 1 form names and parameters
+_V1_FORMS = {"stiffness": ("x", "x^3"), "damping": ("xdot", "xdot^2")}
+_V1_PARAMETERS = ("K", "S", "M")
+
+
+def _read_v1(sc: _Schema, data: Mapping[str, Any]) -> tuple[Law, list[float]]:
+    """A version 1 file: ``model: {f0, f1}`` and ``parameters: {K, S, M}``."""
     spec = data["model"]
     sc.keys(spec, ("model",), ("f0", "f1"), required=("f0", "f1"))
     names = []
     for key, role in (("f0", "stiffness"), ("f1", "damping")):
         name = spec[key]
-        if not isinstance(name, str) or name not in FORMS[role]:
+        if not isinstance(name, str) or name not in _V1_FORMS[role]:
             raise sc.fail(
                 ("model", key),
-                f"= {shown(name)} is not a {role} form; choose one of: {', '.join(FORMS[role])}",
+                f"= {shown(name)} is not a {role} form; choose one of: "
+                + ", ".join(_V1_FORMS[role]),
             )
         names.append(name)
-    model = TissueModel.from_names(*names)
+    law = Law.paper(*names)
     params = data["parameters"]
-    sc.keys(params, ("parameters",), PARAMETERS, required=PARAMETERS)
-    values = {}
-    for name in PARAMETERS:
-        unit = model.units[name]
-        entry = params[name]
-        path: tuple[str | int, ...] = ("parameters", name)
-        if isinstance(entry, Mapping):
-            sc.keys(entry, path, ("mean", "sd", "ci95", "unit"), required=("mean",))
-            given = entry.get("unit", unit)
-            if given != unit:
-                raise sc.fail(
-                    (*path, "unit"),
-                    f"= {shown(given)}, but model {model.name} needs {name} in {unit!r}",
-                )
-            if "sd" in entry:
-                sc.number(entry["sd"], (*path, "sd"), 0.0, unit=unit)
-            if "ci95" in entry:
-                ci = entry["ci95"]
-                if not isinstance(ci, list) or len(ci) != 2:
-                    raise sc.fail((*path, "ci95"), "must be an array [low, high]")
-                for i, v in enumerate(ci):
-                    sc.number(v, (*path, "ci95", i), unit=unit)
-            path, entry = (*path, "mean"), entry["mean"]
-        values[name] = sc.number(
-            entry,
-            path,
-            0.0,
-            parameter_range(model, name),
-            unit,
-            f" (larger makes a term of over {RANGE_FORCE_N:g} N at 1 mm, 10 mm/s or 1 m/s^2, "
-            "no tissue a forceps meets; docs/formats.md)",
-        )
-    return Tissue(model, **values).validate()
+    sc.keys(params, ("parameters",), _V1_PARAMETERS, required=_V1_PARAMETERS)
+    return law, [
+        _coefficient(sc, t, params[v1], ("parameters", v1))
+        for t, v1 in zip(law.terms, _V1_PARAMETERS, strict=True)
+    ]
 
 
-#: Top-level keys of a parameter file and their JSON types (None: any).
+#: Top-level keys of a parameter file (version 2) and their JSON types (None: any).
 _TOP_LEVEL: dict[str, type | None] = {
     "format": None,
     "version": None,
     "software": None,
-    "model": dict,
-    "parameters": dict,
+    "law": dict,
     "noise": dict,
     "evidence": dict,
     "probabilities": dict,
-    "models": dict,
+    "laws": dict,
     "warnings": list,
     "pinv": dict,
     "data": dict,
+}
+_TOP_LEVEL_V1: dict[str, type | None] = {
+    **{k: v for k, v in _TOP_LEVEL.items() if k not in ("law", "laws")},
+    "model": dict,
+    "parameters": dict,
+    "models": dict,
 }
 
 

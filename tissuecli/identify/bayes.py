@@ -16,9 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import FitError
-from ..core.forms import FORCE_SCALE
 from ..core.session import Session
-from ..core.tissue import PARAMETERS, TissueModel, all_models
+from ..core.terms import Law, MotionScales, paper_laws, parse_law
 from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
 from .design import design, eiv_correction, lstsq_scaled, position_noise_sd
 from .noise import data_weight, residual_tau
@@ -35,25 +34,26 @@ DECISIVE = float(np.log(100.0))
 CUT_THRESHOLD = 1e-3
 
 
-def parse_forms(spec: str | Sequence[str] | None) -> list[TissueModel]:
-    """``"all"``/None, ``"x,xdot"`` or ``["x,xdot", "x^3,xdot"]`` into models."""
+def parse_forms(spec: str | Sequence[str | Law] | None) -> list[Law]:
+    """The candidate laws: ``"all"``/None (the paper's four, with and without an offset),
+    ``"paper"`` (the four alone), one law (``x,xdot`` or ``x+x^3+xdot+offset+xddot``),
+    or a list of them."""
     if spec is None or spec == "all":
-        return all_models()
-    specs = [spec] if isinstance(spec, str) else list(spec)
-    models = []
-    for item in specs:
-        parts = [p.strip() for p in item.split(",")]
-        if len(parts) != 2:
-            raise FitError(f"--forms {item!r}: give f0,f1 such as x,xdot or x^3,xdot^2, or all")
-        models.append(TissueModel.from_names(*parts))
-    return models
+        return paper_laws() + paper_laws("offset")
+    if spec == "paper":
+        return paper_laws()
+    specs = [spec] if isinstance(spec, (str, Law)) else list(spec)
+    laws = [item if isinstance(item, Law) else parse_law(item) for item in specs]
+    if not laws:
+        raise FitError("no law to fit; give --forms all, paper or a law such as x,xdot")
+    return list(dict.fromkeys(laws))
 
 
 @dataclass
 class ModelResult:
-    """The fit of one model form."""
+    """The fit of one law."""
 
-    model: TissueModel
+    model: Law
     ln_evidence: float = float("nan")
     probability: float = float("nan")
     posterior: Posterior | None = None
@@ -64,7 +64,7 @@ class ModelResult:
     cond_scaled: float = float("nan")
     residual_rms: float = float("nan")
     flags: list[str] = field(default_factory=list)
-    gram: Array = field(default_factory=lambda: np.zeros((3, 3)), repr=False)  # A^T A
+    gram: Array = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # A^T A
     correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
     stats: SufficientStats | None = field(default=None, repr=False)
     prior: Prior | None = field(default=None, repr=False)
@@ -75,12 +75,13 @@ class ModelResult:
 
 
 class BayesianFit:
-    """Bayesian identification over model forms with model choice.
+    """Bayesian identification over candidate laws with model choice.
 
     Parameters
     ----------
-    forms : str or list of str
-        ``"all"`` or forms such as ``"x,xdot"``.
+    forms : str, Law or list of them
+        ``"all"`` (the paper's four laws, with and without an offset), ``"paper"``
+        (the four alone), or laws such as ``"x,xdot"`` or ``"x+x^3+xdot+offset+xddot"``.
     sampler : {"auto", "emcee"}
         ``auto`` samples only where the exact posterior does not apply (the
         positivity bound cuts it); ``emcee`` samples every form not skipped,
@@ -88,9 +89,10 @@ class BayesianFit:
     differentiator : str or Differentiator
     eiv : bool
         Correct the errors-in-variables bias from position noise.
-    force_scale : float
-        N. Sets the priors: each term of the law is expected to stay within a
-        few times this force at jaw-scale closure, speed and acceleration.
+    force_scale : float, optional
+        N. Sets the priors: each term of the law is expected to stay within this
+        force at the session's typical closure, speed and acceleration. By default
+        five times the largest force of the session (:func:`session_scales`).
     decisive : float
         ln Bayes factor behind the best beyond which a form is not sampled.
     seed : int
@@ -112,6 +114,8 @@ class BayesianFit:
         Effective independent samples, n / tau.
     sigma_x_ : float
         Position noise SD estimated from its spectrum (m).
+    scales_ : MotionScales
+        The session's typical closure, speed, acceleration and force behind the priors.
     expected_residual_sd_ : float
         Residual SD the best form expects (N): force noise plus position noise
         carried through the law.
@@ -120,13 +124,13 @@ class BayesianFit:
 
     def __init__(
         self,
-        forms: str | Sequence[str] = "all",
+        forms: str | Law | Sequence[str | Law] = "all",
         *,
         sampler: str = "auto",
         differentiator: str | Differentiator = "gaussian",
         eiv: bool = True,
         decisive: float = DECISIVE,
-        force_scale: float = FORCE_SCALE,
+        force_scale: float | None = None,
         seed: int = 0,
         progress: Callable[[str, int, float], None] | None = None,
     ) -> None:
@@ -144,13 +148,14 @@ class BayesianFit:
         return differentiator(d) if isinstance(d, str) else (d or Gaussian())
 
     def fit(self, session: Session) -> BayesianFit:
-        """Fit every form to ``session``; returns self with the fitted attributes set.
+        """Fit every candidate law to ``session``; returns self with the fitted
+        attributes set.
 
         Raises
         ------
         FitError
-            If the session cannot identify anything (too short, constant, far outside
-            the priors); no fitted attribute is set then.
+            If the session cannot identify anything (too short, constant, not finite);
+            no fitted attribute is set then.
         """
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
@@ -159,6 +164,7 @@ class BayesianFit:
         sigma_x = self._position_noise(session) if self.eiv else 0.0
         y = kin.force
         rng = np.random.default_rng(self.seed)
+        scales = session_scales(kin, self.force_scale)
 
         # one pass per form keeps only its sufficient statistics, so memory holds one
         # design matrix at a time whatever the number of forms
@@ -166,13 +172,15 @@ class BayesianFit:
         # residual correlation from the best-fitting form: smoothing makes neighbouring
         # residuals alike, and treating them as independent would overstate certainty
         best_ls = next(m for m in models if m.name == min(firsts, key=lambda k: firsts[k].rss))
-        self._check_prior_conflict(best_ls, firsts[best_ls.name].beta)
+        warnings.extend(_prior_conflict(best_ls, firsts[best_ls.name].beta, scales))
         tau = firsts[best_ls.name].tau
         A = design(best_ls, kin, session.position, sigma_x)
         weight = data_weight(A, y - A @ firsts[best_ls.name].beta, tau)
         del A
 
-        results = [self._exact(m, firsts[m.name], weight, y.size, sigma_x, rng) for m in models]
+        results = [
+            self._exact(m, firsts[m.name], weight, y.size, sigma_x, scales, rng) for m in models
+        ]
         self._sample(results, rng)
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
@@ -196,6 +204,7 @@ class BayesianFit:
         self.session_ = session
         self.kinematics_ = kin
         self.sigma_x_ = sigma_x
+        self.scales_ = scales
         self.tau_ = tau
         self.n_eff_ = y.size * weight
         self.results_ = results
@@ -216,11 +225,12 @@ class BayesianFit:
 
     def _exact(
         self,
-        model: TissueModel,
+        model: Law,
         fp: _FirstPass,
         weight: float,
         n: int,
         sigma_x: float,
+        scales: MotionScales,
         rng: np.random.Generator,
     ) -> ModelResult:
         """The closed-form posterior and evidence of one form."""
@@ -230,7 +240,7 @@ class BayesianFit:
             corr = None  # noise dominates a column: the correction would be meaningless
         G = fp.gram - corr if corr is not None else fp.gram
         st = SufficientStats(weight * G, weight * fp.b, weight * fp.yy, weight * n)
-        prior = Prior(scales=model.prior_scales(self.force_scale))
+        prior = Prior(scales=model.prior_scales(scales), passive=model.passive)
         post = ExactPosterior(st, prior).summary(rng)
         flags = []
         if uncorrected:
@@ -243,7 +253,7 @@ class BayesianFit:
             shift = post.mean - fp.beta
             for j in np.flatnonzero(np.abs(shift) > post.sd):
                 flags.append(
-                    f"{PARAMETERS[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
+                    f"{model.symbols[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
                     f"position-noise correction (noise {sigma_x * 1e6:.3g} um); its "
                     "interval does not include that correction's own uncertainty"
                 )
@@ -304,31 +314,46 @@ class BayesianFit:
         progress, name = self.progress, res.name
         return lambda steps, tau: progress(name, steps, tau)
 
-    def _check_prior_conflict(self, model: TissueModel, beta: Array) -> None:
-        """Refuse data whose best fit lies far outside the priors: a units mistake, or a
-        material the priors were not written for, would otherwise give prior-driven answers."""
-        scales = model.prior_scales(self.force_scale)
-        ratio = np.abs(beta) / scales
-        j = int(np.argmax(ratio))
-        if not np.all(np.isfinite(beta)):
-            raise FitError(
-                "the least-squares fit is not finite; check the session for extreme values"
-            )
-        if ratio[j] > 10:
-            name = PARAMETERS[j]
-            raise FitError(
-                f"the data put {name} at {beta[j]:.3g} {model.units[name]}, {ratio[j]:.0f} times "
-                f"its prior scale ({scales[j]:.3g}) for forces of about {self.force_scale:g} N "
-                "at jaw-scale motion; check that position is in m and force in N, or set "
-                "--force-scale to the forces this material produces"
-            )
-
     def predict(self, result: ModelResult | None = None) -> Array:
         """Filtered force (N) the posterior mean of a form (the best by default) predicts at
         the fitted samples, ``kinematics_.time``; shape (m,)."""
         r = result or self.best_
         A = design(r.model, self.kinematics_, self.session_.position, self.sigma_x_)
         return A @ r.posterior.mean  # type: ignore[union-attr]
+
+
+def session_scales(kin: Kinematics, force_scale: float | None = None) -> MotionScales:
+    """A session's typical closure, speed and acceleration (RMS of the filtered ones) and
+    force scale (five times its largest force, or ``force_scale``): the priors' yardsticks.
+
+    Priors in these physical units let a law of any size be fitted, a 100 kg stage as
+    readily as a liver, while each coefficient stays weakly informed: its term may
+    reach five times the session's largest force at the session's typical motion.
+    """
+
+    def rms(u: Array) -> float:
+        value = float(np.sqrt(np.mean(np.square(u)))) if u.size else 0.0
+        return value if value > 0 and np.isfinite(value) else 1.0
+
+    force = force_scale if force_scale else 5.0 * float(np.max(np.abs(kin.force)))
+    return MotionScales(x=rms(kin.x), v=rms(kin.v), a=rms(kin.a), force=force or 1.0)
+
+
+def _prior_conflict(law: Law, beta: Array, scales: MotionScales) -> list[str]:
+    """A warning when the best least-squares fit lies far outside the priors: a law that
+    explains the data only with terms beyond five times the largest force is suspect."""
+    if not np.all(np.isfinite(beta)):
+        raise FitError("the least-squares fit is not finite; check the session for extreme values")
+    ratio = np.abs(beta) / law.prior_scales(scales)
+    j = int(np.argmax(ratio))
+    if ratio[j] <= 10:
+        return []
+    t = law.terms[j]
+    return [
+        f"the data put {t.symbol} ({t.name}) at {beta[j]:.3g} {t.unit}, {ratio[j]:.0f} prior "
+        f"scales: its term alone would reach {ratio[j] * scales.force:.3g} N; the law "
+        f"{law.name} may not suit this session"
+    ]
 
 
 def _outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str]:
@@ -386,9 +411,7 @@ class _FirstPass:
     correction: Array | None
 
 
-def _first_pass(
-    model: TissueModel, kin: Kinematics, x_full: Array, y: Array, sigma_x: float
-) -> _FirstPass:
+def _first_pass(model: Law, kin: Kinematics, x_full: Array, y: Array, sigma_x: float) -> _FirstPass:
     A = design(model, kin, x_full, sigma_x)
     beta = lstsq_scaled(A, y)
     r = y - A @ beta
@@ -407,26 +430,28 @@ def _first_pass(
 
 
 def _identifiability(r: ModelResult) -> list[str]:
-    """Flags for parameters the data do not pin down."""
+    """Flags for coefficients the data do not pin down."""
     flags = []
     post = r.posterior
-    assert post is not None
-    scales = r.prior.scales if r.prior is not None else r.model.prior_scales()
-    for j, name in enumerate(PARAMETERS):
+    assert post is not None and r.prior is not None
+    scales = r.prior.scales
+    for j, t in enumerate(r.model.terms):
         lo, hi = post.ci95[j]
-        if (
-            post.sd[j] > 0.3 * scales[j]
-            or lo <= 0.02 * max(hi, 1e-300)
-            or post.sd[j] > 0.5 * abs(post.mean[j])
+        vague = post.sd[j] > 0.3 * scales[j]
+        if vague or (
+            t.passive and (lo <= 0.02 * max(hi, 1e-300) or post.sd[j] > 0.5 * abs(post.mean[j]))
         ):
-            what = "too little acceleration content" if name == "M" else "too little excitation"
-            flags.append(
-                f"{name} not identified ({what}): 95 % interval "
-                f"[{lo:.3g}, {hi:.3g}] {r.model.units[name]}"
+            what = (
+                "too little acceleration content"
+                if t.role == "inertia"
+                else "too little excitation"
             )
-        elif post.sd[j] > 0.25 * abs(post.mean[j]):
             flags.append(
-                f"{name} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
+            )
+        elif t.passive and post.sd[j] > 0.25 * abs(post.mean[j]):
+            flags.append(
+                f"{t.symbol} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
                 "of its value"
             )
     return flags

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.tissue import TissueModel
+from ..core.terms import Law, Term
 from .derivatives import Kinematics
 from .spectrum import power_spectrum
 
@@ -20,36 +20,54 @@ def position_noise_sd(x: Array, fs: float) -> float:
     return float(np.sqrt(np.median(top) * fs / 2)) if top.size else 0.0
 
 
-def design(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: float = 0.0) -> Array:
-    """Design matrix (m, 3) consistent with the filtered force.
+def design(law: Law, kin: Kinematics, x_full: Array, sigma_x: float = 0.0) -> Array:
+    """Design matrix (m, p) of a law, consistent with the filtered force.
 
-    The stiffness column filters f0 of the raw position, ``g * f0(x)``, which
-    matches ``g * F`` for any f0; damping uses :meth:`Kinematics.damping_input` (exact for
-    a linear f1) and inertia the filtered acceleration (exact). ``sigma_x`` (m), the
-    position noise, removes the mean that noise adds inside curved forms.
+    A position term filters its function of the raw position, ``g * r(x)``, which
+    matches ``g * F`` for any r; a speed term uses :meth:`Kinematics.damping_input`
+    (exact for a linear r), inertia the filtered acceleration (exact) and an offset
+    ones (the filter keeps a constant). ``sigma_x`` (m), the position noise, removes
+    the mean that noise adds inside curved functions.
     """
     var = sigma_x**2
-    return np.column_stack(
-        [
-            kin.stiffness_input(model.f0, x_full, var),
-            kin.damping_input(model.f1, x_full, var),
-            kin.a,
-        ]
-    )
+    return np.column_stack([_column(t, kin, x_full, var) for t in law.terms])
 
 
-def eiv_correction(model: TissueModel, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
+def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
+    if term.variable == "x":
+        return kin.stiffness_input(term, x_full, var)
+    if term.variable == "v":
+        return kin.damping_input(term, x_full, var)
+    if term.variable == "a":
+        return term(kin.a)
+    return term(np.ones(kin.time.size))
+
+
+def eiv_correction(law: Law, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
     """Expected contribution of position noise to A^T A (errors in variables).
 
     Column j carries noise ``d_j * (k_j * e)`` to first order, with ``d_j`` the
-    form's slope and ``k_j`` its kernel, so ``E[noise_i . noise_j] =
-    sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it removes the
-    attenuation bias that noisy derivatives put on M.
+    term's slope and ``k_j`` its kernel (none for an offset), so
+    ``E[noise_i . noise_j] = sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it
+    removes the attenuation bias that noisy derivatives put on M.
     """
-    d = np.column_stack(
-        [kin.smooth(model.f0.derivative(x_full)), model.f1.derivative(kin.v), np.ones(kin.v.size)]
-    )
-    K = np.array([kin.kernels[0], kin.kernels[1], kin.kernels[2]])
+    m = kin.v.size
+    kernels, slopes = [], []
+    for t in law.terms:
+        if t.variable == "x":
+            kernels.append(kin.kernels[0])
+            slopes.append(kin.smooth(t.derivative(x_full)))
+        elif t.variable == "v":
+            kernels.append(kin.kernels[1])
+            slopes.append(t.derivative(kin.v))
+        elif t.variable == "a":
+            kernels.append(kin.kernels[2])
+            slopes.append(t.derivative(kin.a))
+        else:  # a constant carries no position noise
+            kernels.append(np.zeros_like(kin.kernels[0]))
+            slopes.append(np.zeros(m))
+    d = np.column_stack(slopes)
+    K = np.array(kernels)
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
 
 

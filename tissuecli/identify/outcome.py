@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..core.errors import FitError
-from ..core.forms import FORCE_SCALE
 from ..core.session import Session
 from .bayes import BayesianFit
 from .pinv import WindowedPinv
@@ -102,7 +101,7 @@ def fit_session(
     sampler: str = "auto",
     differentiator: str = "gaussian",
     window_s: float = 1.0,
-    force_scale: float = FORCE_SCALE,
+    force_scale: float | None = None,
     seed: int = 0,
     progress: Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
@@ -115,16 +114,16 @@ def fit_session(
     method : {"bayes", "pinv", "both"}
         Bayesian fit over the forms, the paper's windowed pseudoinverse, or both.
     forms : str
-        ``"all"`` or one form such as ``"x,xdot"`` (pinv needs one; with ``all`` it
-        takes the Bayesian choice, or x,xdot alone).
+        ``"all"``, ``"paper"`` or one law such as ``"x,xdot"`` (pinv needs one; with
+        ``all`` it takes the Bayesian choice, or x,xdot alone).
     sampler : {"auto", "emcee"}
         See :class:`BayesianFit`.
     differentiator : str
         A name in :data:`~tissuecli.identify.derivatives.DIFFERENTIATORS`.
     window_s : float
         Pseudoinverse window, s.
-    force_scale : float
-        Prior scale, N (see :class:`BayesianFit`).
+    force_scale : float, optional
+        Prior scale, N (see :class:`BayesianFit`); by default from the session.
     seed : int
         Seed of the sampler and of the plotted posterior draws.
     progress : callable, optional

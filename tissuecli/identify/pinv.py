@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from ..core.session import Session
-from ..core.tissue import all_models
+from ..core.terms import Law
 from .bayes import parse_forms
 from .derivatives import Differentiator, differentiator
 from .design import design, lstsq_scaled
@@ -24,17 +24,19 @@ class WindowedPinv:
 
     Parameters
     ----------
-    forms : str
-        One form, e.g. ``"x,xdot"``.
+    forms : str or Law
+        One law, e.g. ``"x,xdot"``.
     window_s : float
         Window length in s (n+1 = window_s * rate).
     differentiator : str or Differentiator
 
     Attributes
     ----------
-    params_ : ndarray, shape (3,)
-        (K, S, M) of the window with the smallest residual, SI.
-    windows_ : ndarray, shape (m, 3)
+    params_ : ndarray, shape (p,)
+        The law's coefficients in the window with the smallest residual, SI.
+    model_ : Law
+        The law fitted.
+    windows_ : ndarray, shape (m, p)
         Parameters of every window.
     residuals_ : ndarray, shape (m,)
         RMS residual of each window (N).
@@ -43,13 +45,13 @@ class WindowedPinv:
         What was fitted (see :class:`BayesianFit`).
     cond_, cond_scaled_ : float
         Condition numbers of the best window's design, raw and column-scaled.
-    pooled_ : ndarray, shape (3,)
+    pooled_ : ndarray, shape (p,)
         All windows in one least-squares problem, for comparison.
     """
 
     def __init__(
         self,
-        forms: str = "x,xdot",
+        forms: str | Law = "x,xdot",
         *,
         window_s: float = 1.0,
         differentiator: str | Differentiator = "gaussian",
@@ -60,7 +62,11 @@ class WindowedPinv:
 
     def fit(self, session: Session) -> WindowedPinv:
         """Fit the form to each window of ``session``; returns self."""
-        (model,) = parse_forms(self.forms) if self.forms != "all" else (all_models()[0],)
+        forms = "x,xdot" if self.forms in ("all", "paper") else self.forms
+        models = parse_forms(forms)
+        if len(models) != 1:
+            raise FitError("the pseudoinverse fits one law; give --forms such as x,xdot")
+        (model,) = models
         d = self.differentiator
         session, kin, warnings = prepare(session, differentiator(d) if isinstance(d, str) else d)
         A, y = design(model, kin, session.position), kin.force
@@ -71,7 +77,7 @@ class WindowedPinv:
                 f"session shorter than one {self.window_s:g} s window; "
                 "use a shorter --window or a longer session"
             )
-        params, resid = np.empty((m, 3)), np.empty(m)
+        params, resid = np.empty((m, len(model.terms))), np.empty(m)
         for i in range(m):
             Ai, yi = A[i * n : (i + 1) * n], y[i * n : (i + 1) * n]
             params[i] = lstsq_scaled(Ai, yi)

@@ -38,9 +38,14 @@ LN_2PI = float(np.log(2 * np.pi))
 
 @dataclass(frozen=True)
 class Prior:
-    """Half-normal scales of the coefficients (SI) and the range of the noise SD (N)."""
+    """Scales of the coefficients' priors (SI) and the range of the noise SD (N).
+
+    A passive coefficient (``passive[j]``) is half-normal on ``[0, inf)``, any other
+    normal, both of scale ``scales[j]``.
+    """
 
     scales: Array
+    passive: NDArray[np.bool_] | None = None  # None: every coefficient is passive
     # wide on purpose: the range only adds a constant to every form's ln evidence,
     # and sessions in any physical scale (nN to MN) must fit inside it
     sigma_lo: float = 1e-12
@@ -49,6 +54,13 @@ class Prior:
     @property
     def ln_sigma_range(self) -> float:
         return float(np.log(self.sigma_hi / self.sigma_lo))
+
+    @property
+    def bounded(self) -> NDArray[np.bool_]:
+        """Which coefficients are bounded below by 0, shape (p,)."""
+        if self.passive is None:
+            return np.ones(self.scales.size, bool)
+        return np.asarray(self.passive, bool)
 
 
 @dataclass(frozen=True)
@@ -194,8 +206,13 @@ class ExactPosterior:
         return w, np.array([m for m, _ in parts]), np.array([c for _, c in parts]), idx
 
     def orthant_mass(self) -> float:
-        """Posterior mass of beta >= 0 at the modal sigma (sigma's posterior is narrow)."""
+        """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
+        posterior is narrow)."""
         mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
+        on = self.prior.bounded
+        if not np.any(on):
+            return 1.0
+        mu, cov = mu[on], cov[np.ix_(on, on)]
         sd = np.sqrt(np.diag(cov))
         if np.all(mu > 6 * sd):
             return 1.0
@@ -206,7 +223,9 @@ class ExactPosterior:
         w, mus, covs, idx = self.mixture()
         inside = self.orthant_mass()
         ln_z = (
-            self.ln_z_untruncated + np.log(max(inside, 1e-300)) + self.prior.scales.size * np.log(2)
+            self.ln_z_untruncated
+            + np.log(max(inside, 1e-300))
+            + int(np.sum(self.prior.bounded)) * np.log(2)
         )
         mean = w @ mus
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
@@ -227,7 +246,7 @@ class ExactPosterior:
         z = rng.standard_normal((draws, mean.size))
         beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], z)
         samples = np.column_stack([beta, sig[pick]])
-        samples = samples[np.all(beta >= 0, axis=1)]
+        samples = samples[np.all(beta[:, self.prior.bounded] >= 0, axis=1)]
         return Posterior(
             mean=mean,
             sd=np.sqrt(np.diag(cov)),

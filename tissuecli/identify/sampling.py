@@ -31,7 +31,8 @@ class PowerPosterior:
         self.prior = prior
         self.lo, self.hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
         self._ln_prior_const = float(
-            np.sum(np.log(2) - np.log(self.ws) - 0.5 * LN_2PI) - np.log(prior.ln_sigma_range)
+            np.sum(np.log(2) * prior.bounded - np.log(self.ws) - 0.5 * LN_2PI)
+            - np.log(prior.ln_sigma_range)
         )
 
     def log_likelihood(self, theta: Array) -> Array:
@@ -39,7 +40,7 @@ class PowerPosterior:
 
     def log_prior(self, theta: Array) -> Array:
         g, u = theta[:, :-1], theta[:, -1]
-        ok = np.all(g >= 0, axis=1) & (u >= self.lo) & (u <= self.hi)
+        ok = np.all(g[:, self.prior.bounded] >= 0, axis=1) & (u >= self.lo) & (u <= self.hi)
         lp = self._ln_prior_const - 0.5 * np.sum((g / self.ws) ** 2, axis=1)
         return np.where(ok, lp, -np.inf)
 
@@ -59,10 +60,12 @@ class PowerPosterior:
 def _start(
     exact: ExactPosterior, target: PowerPosterior, walkers: int, rng: np.random.Generator
 ) -> Array:
-    """Walkers around the least-squares solution, reflected into beta >= 0."""
+    """Walkers around the least-squares solution, the bounded coefficients reflected
+    into >= 0."""
     mu, cov = exact.conditional(float(np.exp(exact.u[int(np.argmax(exact.weights))])))
     beta = rng.multivariate_normal(mu, cov, size=walkers, method="eigh")
-    gamma = np.abs(beta * target.d)
+    gamma = beta * target.d
+    gamma[:, exact.prior.bounded] = np.abs(gamma[:, exact.prior.bounded])
     u = exact.u[int(np.argmax(exact.weights))] + 1e-3 * rng.standard_normal(walkers)
     return np.column_stack([gamma, u])
 
@@ -113,7 +116,8 @@ def run_emcee(
     chain = target.to_si(sampler.get_chain(discard=burn, thin=thin, flat=True))
     beta = chain[:, :-1]
     inside = exact.orthant_mass()
-    ln_z = exact.ln_z_untruncated + np.log(max(inside, 1e-300)) + beta.shape[1] * np.log(2)
+    bounded = int(np.sum(prior.bounded))
+    ln_z = exact.ln_z_untruncated + np.log(max(inside, 1e-300)) + bounded * np.log(2)
     return Posterior(
         mean=beta.mean(axis=0),
         sd=beta.std(axis=0, ddof=1),

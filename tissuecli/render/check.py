@@ -29,7 +29,7 @@ GRASP_FORCE_N = 3.4
 MAX_SOFT_FRACTION = 0.5
 #: Closing and opening speed of the jaws a grasp reaches, m/s. A hand, not the tissue,
 #: sets the speed of a grasp: 50 mm/s is the jaw-scale closing speed of the fit's priors
-#: (core.forms.TYPICAL), and on the offline loop the simulated finger (1-2.5 N presses
+#: (core.terms.FORCEPS_SCALES), and on the offline loop the simulated finger (1-2.5 N presses
 #: rising and releasing in 0.25-0.5 s) moves the piston at 30-60 mm/s on liver-like
 #: tissues. The damping must be renderable at that speed, closing and opening.
 GRASP_SPEED_M_S = 0.05
@@ -84,7 +84,7 @@ class CheckResult:
         Softest and stiffest secant stiffness ``F / x`` the display can show at each
         depth, N/m: ``Kp`` (solenoid off) and ``Kp + alpha v_max^2 / x``.
     k_tissue : ndarray
-        The tissue's secant stiffness ``K f0(x) / x`` at each depth, N/m.
+        The tissue's secant stiffness ``E(x) / x`` at each depth, N/m.
     force_limit : float
         Largest static tissue force rendered before the solenoid saturates, N.
     saturation_depth : float
@@ -109,7 +109,7 @@ class CheckResult:
     grasp_speed : float
         Closing and opening speed the damping is judged at, m/s.
     damping_force : float
-        The tissue's damping force ``S f1(v)`` at that speed, N.
+        The tissue's damping force ``D(v)`` at that speed, N.
     closing_saturation_depth : float
         Depth from which closing at ``grasp_speed`` saturates the solenoid, m
         (``inf`` if nowhere within the working depth).
@@ -333,10 +333,10 @@ def _loop(
             "the stroke overflow floating point"
         )
         nan = math.nan
-        return Gains(Cp=nan, Cv=nan, bandwidth_hz=nan, M=max(tissue.M, 0.0)), math.inf, math.inf
-    if gains.M > tissue.M:
+        return Gains(Cp=nan, Cv=nan, bandwidth_hz=nan, M=max(tissue.mass, 0.0)), math.inf, math.inf
+    if gains.M > tissue.mass:
         caveats.append(
-            f"model mass raised from {tissue.M * 1e3:.3g} g to {gains.M * 1e3:.3g} g "
+            f"model mass raised from {tissue.mass * 1e3:.3g} g to {gains.M * 1e3:.3g} g "
             f"({gains.M / profile.Mp:.0%} of the piston's) to keep the {rate_hz:g} Hz loop "
             "stable: the tissue's inertia is felt heavier"
         )
@@ -360,16 +360,16 @@ def _damping(
     """The pull the law asks for at the speed of a grasp, closing and opening.
 
     With the piston at depth ``x`` moving at ``v`` and the model tracking it, the law
-    asks for ``u = K f0(x) - Kp x + S f1(v) - b v``. Closing (``v = speed``) it must
+    asks for ``u = E(x) - Kp x + D(v) - b v``. Closing (``v = speed``) it must
     stay within the solenoid's pull; opening (``v = -speed``) it must not ask for a
     push (``u < 0``), which the solenoid cannot give.
     """
     mm = 1e3
     pull = profile.max_pull
-    damping_force = tissue.S * tissue.model.f1.scalar(speed)
+    damping_force = float(tissue.damping_force(np.array([speed]))[0])
     own = profile.b * speed  # the piston's own damping, which the law subtracts
     grid = np.linspace(0.0, x_eval, 201)[1:] if math.isfinite(x_eval) else np.zeros(0)
-    elastic = tissue.K * tissue.model.f0(grid) - profile.Kp * grid
+    elastic = tissue.static_force(grid) - profile.Kp * grid
     closing = elastic + damping_force - own
     opening = elastic - damping_force + own
     above = np.nonzero(~(closing <= pull))[0]  # NaN counts as saturated
@@ -408,7 +408,7 @@ def _band(tissue: Tissue, profile: DisplayProfile) -> tuple[Array, Array, Array,
     show and the tissue's own (N/m)."""
     depth = np.linspace(profile.stroke / 300, profile.stroke, 300)
     with np.errstate(all="ignore"):
-        k_tissue = tissue.K * tissue.model.f0(depth) / depth
+        k_tissue = tissue.static_force(depth) / depth
     return depth, np.full_like(depth, profile.Kp), profile.Kp + profile.max_pull / depth, k_tissue
 
 
@@ -453,7 +453,7 @@ def _softness(
     between the tissue's depth and the unpowered piston's under the same force, m."""
     grid = np.linspace(0.0, x_eval, 201)[1:]
     with np.errstate(all="ignore"):
-        force = tissue.K * tissue.model.f0(grid)
+        force = tissue.static_force(grid)
     soft = force < profile.Kp * grid
     soft_fraction = float(np.mean(soft)) if grid.size else 1.0
     # under the force that holds the tissue at x, the unpowered piston sits at F / Kp

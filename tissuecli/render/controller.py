@@ -42,7 +42,7 @@ class Controller:
        with ``V_{k-1}`` the voltage the display reported applying; the acceleration
        is a difference of filtered velocities, so its noise telescopes in the model's
        momentum instead of accumulating;
-    3. the tissue model ``M xm'' + S f1(xm') + K f0(xm) = F`` advances over the same
+    3. the tissue model ``M xm'' + D(xm') + E(xm) = F`` advances over the same
        period (semi-implicit Euler, sub-stepped);
     4. :func:`control_voltage` is evaluated at the states predicted ``delay`` ahead,
        which cancels most of the phase the loop delay costs: the voltage acts from the
@@ -160,7 +160,7 @@ class Controller:
         law, m = self.law, self.mass
 
         def accel(t: float, xm: float, vm: float) -> float:
-            return (force - law.S * law.f1(vm) - law.K * law.f0(xm)) / m
+            return (force - law.speed(vm) - law.static(xm)) / m
 
         # x = 0 is where the jaws meet the tissue: the model, like the piston at its top
         # stop, cannot go above it
@@ -183,9 +183,8 @@ class Controller:
         return Step(volts_out, flags, x, v, a, xm, vm, force, pull)
 
     def local_stiffness(self, x: float) -> float:
-        """``K f0'(x) + Cp``, N/m: the error equation's stiffness at depth ``x``."""
-        with np.errstate(all="ignore"):
-            k = self.tissue.K * float(self.tissue.model.f0.derivative(np.array([x]))[0])
+        """``E'(x) + Cp``, N/m: the error equation's stiffness at depth ``x``."""
+        k = float(self.tissue.stiffness(np.array([x]))[0])
         return k + self.gains.Cp
 
 

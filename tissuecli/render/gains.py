@@ -66,7 +66,7 @@ def design_gains(
     mass_floor : float
         Smallest model mass as a fraction of Mp.
     """
-    mass = max(tissue.M, mass_floor * profile.Mp)
+    mass = max(tissue.mass, mass_floor * profile.Mp)
     w = 2 * math.pi * bandwidth_fraction * rate_hz
     sl = local_slopes(tissue, depth)
     cp = max(0.0, min(mass, profile.Mp) * w * w - sl["k_lo"])
@@ -140,8 +140,8 @@ def tissue_radius(tissue: Tissue, mass: float, rate_hz: float, depth: float = 0.
         Linearisation depth, m; the stiffness only sets the frequency, so the
         default (rest) matters only for forms whose slope vanishes there.
     """
-    sl_k = tissue.K * float(tissue.model.f0.derivative(np.array([max(depth, 1e-3)]))[0])
-    sl_s = tissue.S * float(tissue.model.f1.derivative(np.array([0.0]))[0])
+    sl_k = float(tissue.stiffness(np.array([max(depth, 1e-3)]))[0])
+    sl_s = float(tissue.damping(np.array([0.0]))[0])
     roots = np.roots([mass, sl_s, sl_k]) if mass > 0 else np.array([0.0])
     return float(np.max(np.abs(np.exp(roots / rate_hz))))
 

@@ -4,9 +4,11 @@ to any forms, with the solenoid's limits (it only pulls, and only up to v_max).
 The display (paper, eq. 6, with the piston's own damping b) and the tissue are::
 
     Mp xp'' + b xp' + Kp xp + alpha V^2 = F
-    M xm'' + S f1(xm') + K f0(xm) = F
+    M xm'' + D(xm') + E(xm) = F
 
-and :func:`control_voltage` chooses V so that the error e = xp - xm obeys
+with ``E`` the tissue's rendered force at rest (its position terms), ``D`` that of
+speed (damping and friction) and ``M`` its inertia; a sensor offset is not rendered.
+:func:`control_voltage` chooses V so that the error e = xp - xm obeys
 ``M e'' + (s + Cv) e' + (k + Cp) e = (M - Mp) xp''`` (s, k: the law's local slopes).
 Everything is SI: m, m/s, m/s^2, N, kg, V, s.
 """
@@ -59,13 +61,12 @@ class Gains:
 class RenderLaw:
     """Everything :func:`control_voltage` needs: tissue, display constants and gains.
 
-    ``f0`` and ``f1`` are float -> float callables (see :func:`RenderLaw.build`).
+    ``static`` and ``speed`` are float -> float callables: the tissue's rendered force
+    at rest at a closure (N) and of a speed (N), from :meth:`Tissue.scalar_law`.
     """
 
-    K: float
-    S: float
-    f0: Callable[[float], float]
-    f1: Callable[[float], float]
+    static: Callable[[float], float]
+    speed: Callable[[float], float]
     Kp: float
     b: float
     alpha: float
@@ -76,11 +77,10 @@ class RenderLaw:
 
     @classmethod
     def build(cls, tissue: Tissue, profile: DisplayProfile, gains: Gains) -> RenderLaw:
+        static, speed = tissue.scalar_law()
         return cls(
-            K=tissue.K,
-            S=tissue.S,
-            f0=tissue.model.f0.scalar,
-            f1=tissue.model.f1.scalar,
+            static=static,
+            speed=speed,
             Kp=profile.Kp,
             b=profile.b,
             alpha=profile.alpha,
@@ -92,8 +92,8 @@ class RenderLaw:
     def pull(self, xp: float, vp: float, xm: float, vm: float) -> float:
         """The solenoid pull the law asks for, ``alpha V^2`` in N (may be negative or NaN)."""
         return (
-            self.S * self.f1(vp)
-            + self.K * self.f0(xp)
+            self.speed(vp)
+            + self.static(xp)
             - self.Kp * xp
             - self.b * vp
             + self.Cv * (vp - vm)
@@ -104,24 +104,24 @@ class RenderLaw:
 def control_voltage(
     law: RenderLaw, xp: float, vp: float, xm: float, vm: float
 ) -> tuple[float, int]:
-    """The solenoid voltage that renders the tissue: paper eq. 9 for any forms.
+    """The solenoid voltage that renders the tissue: paper eq. 9 for any law.
 
     Derivation. With the pull ``u = alpha V^2`` the display obeys
     ``Mp xp'' + b xp' + Kp xp + u = F`` and the tissue model
-    ``M xm'' + S f1(xm') + K f0(xm) = F`` (the same force F). Choosing::
+    ``M xm'' + D(xm') + E(xm) = F`` (the same force F). Choosing::
 
-        u = S f1(xp') + K f0(xp) - Kp xp - b xp' + Cv e' + Cp e,    e = xp - xm
+        u = D(xp') + E(xp) - Kp xp - b xp' + Cv e' + Cp e,    e = xp - xm
 
     and subtracting the two equations gives::
 
-        M e'' + S (f1(xp') - f1(xm')) + K (f0(xp) - f0(xm)) + Cv e' + Cp e = (M - Mp) xp''
+        M e'' + (D(xp') - D(xm')) + (E(xp) - E(xm)) + Cv e' + Cp e = (M - Mp) xp''
 
-    and, with the local slopes ``k = K f0'(x)`` and ``s = S f1'(x')`` (mean-value
+    and, with the local slopes ``k = E'(x)`` and ``s = D'(x')`` (mean-value
     theorem), the error equation::
 
         M e'' + (s + Cv) e' + (k + Cp) e = (M - Mp) xp''.
 
-    For linear forms this is the paper's result (its Sm xp' + (Km - Kp) xp is
+    For the linear law K x + S x' this is the paper's result (its Sm xp' + (Km - Kp) xp is
     the first line with b = 0). When the error dynamics are at least critically
     damped their impulse response is non-negative, so
     ``|e| <= |M - Mp| max|xp''| / (k + Cp)`` once transients have died out.
@@ -168,9 +168,8 @@ def local_slopes(tissue: Tissue, depth: float, speed: float = TYPICAL_SPEED) -> 
     """Smallest and largest local stiffness and damping (N/m, N s/m) over the working range."""
     x = np.linspace(0.0, max(depth, 0.0), 101)
     v = np.linspace(-speed, speed, 101)
-    with np.errstate(all="ignore"):
-        k = tissue.K * tissue.model.f0.derivative(x)
-        s = tissue.S * tissue.model.f1.derivative(v)
+    k = tissue.stiffness(x)
+    s = tissue.damping(v)
     return {
         "k_lo": float(k.min()),
         "k_hi": float(k.max()),
@@ -180,7 +179,6 @@ def local_slopes(tissue: Tissue, depth: float, speed: float = TYPICAL_SPEED) -> 
 
 
 def static_force(tissue: Tissue, x: float) -> float:
-    """The tissue's force at rest at depth ``x``, ``K f0(x)`` in N (inf or NaN, never an
-    exception, where f0 overflows)."""
-    with np.errstate(all="ignore"):
-        return tissue.K * float(tissue.model.f0(np.array([x]))[0])
+    """The tissue's rendered force at rest at depth ``x``, N (inf or NaN, never an
+    exception, where a term overflows)."""
+    return float(tissue.static_force(np.array([x]))[0])

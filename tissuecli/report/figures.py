@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator, ScalarFormatter
 from numpy.typing import NDArray
 
-from ..core.tissue import PARAMETERS, TissueModel
+from ..core.terms import Law
 from ..identify.bayes import ModelResult
 from ..identify.outcome import FitOutcome
 from ..identify.pinv import WindowedPinv
@@ -55,7 +55,7 @@ class Series:
     force: Array
     fitted: Array
     x: Array
-    model: TissueModel
+    model: Law
     source: str
     sigma: float | None
     expected_sd: float | None
@@ -276,17 +276,16 @@ def tidy_axis(axis: Any) -> None:
     axis.set_major_formatter(fmt)
 
 
-def corner_figure(draws: Array, model: TissueModel, mean: Array, ci: Array) -> Figure:
+def corner_figure(draws: Array, model: Law, mean: Array, ci: Array) -> Figure:
     """Corner plot: 1-D histograms on the diagonal, 2-D scatter of pairs below it."""
-    p = len(PARAMETERS)
-    units = model.units
+    p = len(model.terms)
     scaled, labels = [], []
-    for j, name in enumerate(PARAMETERS):
+    for j, t in enumerate(model.terms):
         factor, prefix = axis_scale(draws[:, j])
         scaled.append(factor)
-        labels.append(f"{name} ({prefix}{unit_tex(units[name])})")
+        labels.append(f"{t.symbol} ({prefix}{unit_tex(t.unit)})")
     v = draws[:, :p] * np.array(scaled)
-    fig = new_figure(7.6, 7.0)
+    fig = new_figure(2.5 * p + 0.1, 2.3 * p + 0.1)
     axes = fig.subplots(p, p, squeeze=False, sharex="col")
     for i in range(p):
         for j in range(p):
@@ -345,15 +344,16 @@ def windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
     m = pinv.windows_.shape[0]
     centre = np.array([t[min(i * n + n // 2, t.size - 1)] for i in range(m)])
     best = pinv.best_window_
-    units = pinv.model_.units
-    fig = new_figure(9.5, 5.6)
-    axes = fig.subplots(2, 2, sharex=True).ravel()
-    panels = [
-        (name, pinv.windows_[:, j], unit_tex(units[name])) for j, name in enumerate(PARAMETERS)
-    ]
+    terms = pinv.model_.terms
+    rows = (len(terms) + 2) // 2
+    fig = new_figure(9.5, 2.8 * rows)
+    axes = fig.subplots(rows, 2, sharex=True).ravel()
+    panels = [(t.symbol, pinv.windows_[:, j], unit_tex(t.unit)) for j, t in enumerate(terms)]
     panels.append(("residual RMS", pinv.residuals_ * 1e3, "mN"))
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
     post = band.posterior if band is not None else None
-    for k, (ax, (name, values, unit)) in enumerate(zip(axes, panels, strict=True)):
+    for k, (ax, (name, values, unit)) in enumerate(zip(axes, panels, strict=False)):
         factor, prefix = axis_scale(values)
         ax.plot(
             centre,
@@ -372,7 +372,7 @@ def windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
             ms=15,
             label=f"chosen window (index {best})",
         )
-        if k < 3:
+        if k < len(terms):
             ax.axhline(
                 pinv.pooled_[k] * factor, color="k", lw=0.9, ls=":", label="all windows pooled"
             )
@@ -389,7 +389,7 @@ def windows_figure(pinv: WindowedPinv, band: ModelResult | None) -> Figure:
         ax.set_ylabel(f"{name} ({prefix}{unit})")
         ax.grid(alpha=0.3)
         tidy_axis(ax.yaxis)
-        if k >= 2:
+        if k >= len(panels) - 2:
             ax.set_xlabel("window centre time (s)")
     axes[0].legend(fontsize=7, loc="best")
     return fig

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._version import __version__
-from ..core.tissue import PARAMETERS, TissueModel
+from ..core.terms import Law, Term
 from ..identify.bayes import DECISIVE, BayesianFit, ModelResult
 from ..identify.outcome import FitOutcome
 from ..identify.pinv import WindowedPinv
@@ -37,7 +37,13 @@ Array = NDArray[np.float64]
 SOFTWARE = f"tissuecli {__version__}"
 
 
-ROLE = {"K": "stiffness", "S": "damping", "M": "moving mass"}
+ROLE = {
+    "stiffness": "stiffness",
+    "damping": "damping",
+    "friction": "dry friction",
+    "inertia": "moving mass",
+    "offset": "offset",
+}
 
 
 CSS = """
@@ -89,21 +95,30 @@ def meta_table(items: Sequence[tuple[str, str]]) -> str:
     return f'<table class="meta">{rows}</table>'
 
 
-def term_labels(model: TissueModel) -> dict[str, str]:
-    return {"K": model.f0.label, "S": model.f1.label, "M": "ẍ"}
-
-
-def formula(model: TissueModel, values: Sequence[str]) -> str:
-    labels = term_labels(model)
-    terms = " + ".join(
-        f"{v}&#8201;{esc(labels[n])}" for n, v in zip(PARAMETERS, values, strict=True)
+def term_cell(t: Term) -> str:
+    """A coefficient's row label: its symbol, its term and its role."""
+    return (
+        f"<b>{esc(t.symbol)}</b> · {esc(t.label)} <span class='small'>"
+        f"({esc(ROLE.get(t.role, t.role))})</span>"
     )
-    units = model.units
+
+
+def law_text(law: Law) -> str:
+    """The law in symbols: ``K x + S ẋ + M ẍ``."""
+    return " + ".join(
+        t.symbol if t.role == "offset" else f"{t.symbol} {t.label}" for t in law.terms
+    )
+
+
+def formula(model: Law, values: Sequence[str]) -> str:
+    terms = " + ".join(
+        v if t.role == "offset" else f"{v}&#8201;{esc(t.label)}"
+        for t, v in zip(model.terms, values, strict=True)
+    )
+    units = ", ".join(f"{esc(t.symbol)} in {esc(unit_html(t.unit))}" for t in model.terms)
     return (
         f'<div class="formula">F = {terms}</div>'
-        f'<p class="units">F in N, x in m, ẋ in m/s, ẍ in m/s²; '
-        f"K in {esc(unit_html(units['K']))}, S in {esc(unit_html(units['S']))}, "
-        f"M in {esc(unit_html(units['M']))}.</p>"
+        f'<p class="units">F in N, x in m, ẋ in m/s, ẍ in m/s²; {units}.</p>'
     )
 
 
@@ -111,11 +126,11 @@ def header(outcome: FitOutcome, s: Series) -> str:
     session = outcome.session
     if outcome.bayes is not None and outcome.pinv is not None:
         how = (
-            f"Bayesian model choice over {len(outcome.bayes.results_)} form(s), and the "
+            f"Bayesian model choice over {len(outcome.bayes.results_)} law(s), and the "
             "windowed pseudoinverse"
         )
     elif outcome.bayes is not None:
-        how = f"Bayesian model choice over {len(outcome.bayes.results_)} form(s)"
+        how = f"Bayesian model choice over {len(outcome.bayes.results_)} law(s)"
     else:
         how = "windowed pseudoinverse (point estimates, no uncertainty)"
     x_mm = session.position * 1e3
@@ -139,9 +154,9 @@ def header(outcome: FitOutcome, s: Series) -> str:
         best = outcome.bayes.best_
         post = best.posterior
         assert post is not None
-        values = [with_sd(post.mean[j], post.sd[j]) for j in range(len(PARAMETERS))]
+        values = [with_sd(post.mean[j], post.sd[j]) for j in range(len(best.model.terms))]
         chosen = (
-            f"<p>Chosen form: <b>{esc(best.name)}</b> "
+            f"<p>Chosen law: <b>{esc(best.name)}</b> "
             f"(posterior probability {probability(ln_probabilities(outcome.bayes)[0])}), "
             "posterior means:</p>"
         )
@@ -158,7 +173,7 @@ def header(outcome: FitOutcome, s: Series) -> str:
 
 
 def ln_probabilities(est: BayesianFit) -> Array:
-    """ln posterior probability of each form (equal prior odds), in ``results_`` order."""
+    """ln posterior probability of each law (equal prior odds), in ``results_`` order."""
     ln_z = np.array([r.ln_evidence for r in est.results_])
     top = ln_z.max()
     return ln_z - (top + np.log(np.sum(np.exp(ln_z - top))))
@@ -175,7 +190,7 @@ def warnings_box(outcome: FitOutcome) -> str:
         return f'<div class="box warn"><b>Note</b><ul>{items}</ul></div>'
     if not warnings:
         return (
-            '<div class="box ok"><b>No warnings.</b> Every parameter of the chosen form is '
+            '<div class="box ok"><b>No warnings.</b> Every coefficient of the chosen law is '
             "identified: its 95 % interval stays clear of zero and its SD is below 25 % "
             "of its value.</div>"
         )
@@ -187,16 +202,14 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
     best = est.best_
     post = best.posterior
     assert post is not None
-    units = best.model.units
-    labels = term_labels(best.model)
     rows = []
-    for j, name in enumerate(PARAMETERS):
+    for j, t in enumerate(best.model.terms):
         mean, sd = float(post.mean[j]), float(post.sd[j])
         lo, hi = (float(q) for q in post.ci95[j])
         digit = place(sd)
-        conv = convenient(mean, units[name])
+        conv = convenient(mean, t.unit)
         if conv is not None:
-            cname, factor = CONVENIENT[units[name]]
+            cname, factor = CONVENIENT[t.unit]
             cplace = digit + round(math.log10(factor))
             conv_cell = (
                 f"{at_place(mean * factor, cplace)} "
@@ -208,12 +221,11 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
         rel = f"{100 * sd / abs(mean):.2g} %" if mean != 0 else "—"
         rows.append(
             [
-                f"<b>{name}</b> · {esc(labels[name])} <span class='small'>"
-                f"({esc(ROLE[name])})</span>",
+                term_cell(t),
                 with_sd(mean, sd),
                 sig(sd, 2),
                 f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
-                esc(unit_html(units[name])),
+                esc(unit_html(t.unit)),
                 rel,
                 conv_cell,
             ]
@@ -263,22 +275,19 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
 
 
 def parameters_pinv(pinv: WindowedPinv) -> str:
-    units = pinv.model_.units
-    labels = term_labels(pinv.model_)
     rows = []
-    for j, name in enumerate(PARAMETERS):
+    for j, t in enumerate(pinv.model_.terms):
         w = pinv.windows_[:, j]
         spread = float(np.std(w, ddof=1)) if w.size > 1 else float("nan")
-        conv = convenient(float(pinv.params_[j]), units[name])
+        conv = convenient(float(pinv.params_[j]), t.unit)
         rows.append(
             [
-                f"<b>{name}</b> · {esc(labels[name])} <span class='small'>"
-                f"({esc(ROLE[name])})</span>",
+                term_cell(t),
                 sig(float(pinv.params_[j]), 4),
                 sig(float(pinv.pooled_[j]), 4),
                 sig(float(np.mean(w)), 4),
                 sig(spread, 2),
-                esc(unit_html(units[name])),
+                esc(unit_html(t.unit)),
                 f"{sig(conv[1], 4)} {esc(conv[0])}" if conv else "—",
             ]
         )
@@ -302,7 +311,7 @@ def comparison(est: BayesianFit) -> str:
     top = results[0].ln_evidence
     ln_p = ln_probabilities(est)
     sampler = any(r.ln_evidence_sampler is not None for r in results)
-    head = ["form", "law", "ln evidence (exact)"]
+    head = ["law", "in symbols", "ln evidence (exact)"]
     if sampler:
         head += ["ln evidence (stepping-stone)", "sampler − exact"]
     head += [
@@ -319,8 +328,7 @@ def comparison(est: BayesianFit) -> str:
     rows, classes = [], []
     for r, lp in zip(results, ln_p, strict=True):
         lbf = top - r.ln_evidence
-        labels = term_labels(r.model)
-        law = esc(f"K {labels['K']} + S {labels['S']} + M ẍ")
+        law = esc(law_text(r.model))
         row = [f"<b>{esc(r.name)}</b>", law, fixed(r.ln_evidence)]
         if sampler:
             if r.ln_evidence_sampler is None:
@@ -359,8 +367,8 @@ def comparison(est: BayesianFit) -> str:
     )
     explain = (
         "<p class='small'>Forms are ranked by their evidence (marginal likelihood), with "
-        "equal prior probability for each form. The Bayes factor (BF) against the best is "
-        "Z<sub>best</sub> / Z<sub>form</sub>; on Jeffreys' scale a ln BF above "
+        "equal prior probability for each law. The Bayes factor (BF) against the best is "
+        "Z<sub>best</sub> / Z<sub>law</sub>; on Jeffreys' scale a ln BF above "
         f"{DECISIVE:.1f} (100 : 1) is decisive. <i>exact</i>: closed-form posterior; "
         "<i>emcee</i>: sampled because the positivity bound cuts the closed form, or on "
         "request; <i>skipped</i>: decisively behind, so not sampled (its evidence is still "
@@ -376,19 +384,18 @@ def comparison(est: BayesianFit) -> str:
 
 
 def pinv_table(pinv: WindowedPinv, est: BayesianFit | None) -> str:
-    """The pseudoinverse against the Bayesian posterior of the same form."""
-    units = pinv.model_.units
+    """The pseudoinverse against the Bayesian posterior of the same law."""
     match = matching(pinv, est)
     head = ["parameter", "best window", "all windows pooled", "unit (SI)"]
     if match is not None:
         head += ["Bayesian mean ± SD", "best window − Bayesian mean (in SD)"]
     rows = []
-    for j, name in enumerate(PARAMETERS):
+    for j, t in enumerate(pinv.model_.terms):
         row = [
-            f"<b>{name}</b>",
+            f"<b>{esc(t.symbol)}</b>",
             sig(float(pinv.params_[j]), 4),
             sig(float(pinv.pooled_[j]), 4),
-            esc(unit_html(units[name])),
+            esc(unit_html(t.unit)),
         ]
         if match is not None and match.posterior is not None:
             mu, sd = float(match.posterior.mean[j]), float(match.posterior.sd[j])
@@ -411,7 +418,7 @@ def pinv_info(pinv: WindowedPinv) -> str:
 
 
 def matching(pinv: WindowedPinv, est: BayesianFit | None) -> ModelResult | None:
-    """The Bayesian result of the pseudoinverse's form, if that form was fitted."""
+    """The Bayesian result of the pseudoinverse's law, if that law was fitted."""
     if est is None:
         return None
     for r in est.results_:
@@ -468,7 +475,7 @@ def diagnostics(outcome: FitOutcome) -> str:
             (
                 "Pseudoinverse",
                 esc(
-                    f"form {pinv.model_.name}, window {pinv.window_s:g} s "
+                    f"law {pinv.model_.name}, window {pinv.window_s:g} s "
                     f"({pinv.window_samples_} samples), "
                     f"{pinv.windows_.shape[0]} windows"
                 ),
@@ -508,7 +515,7 @@ def diagnostics(outcome: FitOutcome) -> str:
                 )
             out += "<h3>Sampler (emcee)</h3>" + table(
                 [
-                    "form",
+                    "law",
                     "steps",
                     "walkers",
                     "autocorrelation time τ (steps)",
@@ -521,7 +528,7 @@ def diagnostics(outcome: FitOutcome) -> str:
             )
         else:
             out += (
-                "<p class='small'>No form needed sampling: every posterior in this report "
+                "<p class='small'>No law needed sampling: every posterior in this report "
                 "is closed-form, so there are no chain diagnostics.</p>"
             )
     return out
@@ -529,15 +536,16 @@ def diagnostics(outcome: FitOutcome) -> str:
 
 def how_to_read(outcome: FitOutcome) -> str:
     law = (
-        "<p>The tissue law is <i>F = K f0(x) + S f1(ẋ) + M ẍ</i>: a stiffness term in jaw "
-        "closure x, a damping term in closing speed ẋ and an inertia term in acceleration "
-        "ẍ. "
+        "<p>The tissue law is a sum of terms, each a coefficient times a function of jaw "
+        "closure x, closing speed ẋ or acceleration ẍ: the paper's <i>F = K f0(x) + S f1(ẋ) + "
+        "M ẍ</i>, and terms real tissue and sensors need beyond it (hardening x³, dry friction "
+        "sign(ẋ), a force offset). "
     )
     if outcome.bayes is not None:
         body = (
-            "Each candidate form (a stiffness law f0 with a damping law f1, such as x³ with ẋ) "
-            "is fitted to the whole session; its evidence weighs how well it fits against how "
-            "flexible it is, and the chosen form is the one with the highest evidence. "
+            "Each candidate law (a set of terms, such as x³ with ẋ and ẍ) is fitted to the "
+            "whole session; its evidence weighs how well it fits against how flexible it is, "
+            "and the chosen law is the one with the highest evidence. "
             "The parameter table gives posterior means with their SD and 95 % intervals; a "
             "parameter is trustworthy when its interval is narrow and well away from zero and "
             "no warning names it. The plots should show the fitted force on top of the measured "

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...core.errors import FitError
-from ...core.forms import Form
+from ...core.terms import Term
 from ..spectrum import convolve_valid, power_spectrum
 
 Array = NDArray[np.float64]
@@ -73,38 +73,38 @@ class Kinematics:
         return u if self.rows is None else u[self.rows]
 
     def smooth(self, u: Array) -> Array:
-        """Filter an untrimmed series of the same session like x (for f0(x) columns)."""
+        """Filter an untrimmed series of the same session like x (for position columns)."""
         return self._rows(convolve_valid(u, self.kernels[0]))
 
-    def stiffness_input(self, f0: Form, x_full: Array, noise_var: float = 0.0) -> Array:
-        """The stiffness column ``g * f0(x)`` from the untrimmed raw position.
+    def stiffness_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
+        """The column ``g * r(x)`` of a position term from the untrimmed raw position.
 
-        Position noise of variance ``noise_var`` (m^2) inside a curved f0 adds
-        ``f0'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
+        Position noise of variance ``noise_var`` (m^2) inside a curved r adds
+        ``r'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
         taken off, so the column matches ``g * F`` to second order.
         """
-        u = f0(x_full)
+        u = term(x_full)
         if noise_var > 0:
-            u = u - 0.5 * f0.curvature(x_full) * noise_var
+            u = u - 0.5 * term.curvature(x_full) * noise_var
         return self.smooth(u)
 
-    def damping_input(self, f1: Form, x_full: Array, noise_var: float = 0.0) -> Array:
-        """The damping column ``~ g * f1(v)`` from the untrimmed position.
+    def damping_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
+        """The column ``~ g * r(v)`` of a speed term from the untrimmed position.
 
-        With half kernels ``g_h * [f1(v_h) + f1''(v_h) (s^2 a_h^2 - n_v) / 2]``, where
+        With half kernels ``g_h * [r(v_h) + r''(v_h) (s^2 a_h^2 - n_v) / 2]``, where
         ``v_h = g_h' * x``, ``a_h = g_h'' * x``, ``s`` is g_h's SD and ``n_v`` the
         variance position noise of ``noise_var`` (m^2) gives v_h: the smoothing
         term is the second-order effect of smoothing inside the nonlinearity
-        (``g_h * f1(v) = f1(g_h * v) + f1'' Var / 2``) and the noise term removes
-        the same effect of noise. Exact for a linear f1. Without half kernels: ``f1(v)``.
+        (``g_h * r(v) = r(g_h * v) + r'' Var / 2``) and the noise term removes
+        the same effect of noise. Exact for a linear r. Without half kernels: ``r(v)``.
         """
         if self.half is None:
-            return f1(self.v)
+            return term(self.v)
         gh, gh1, gh2, s2 = self.half
         v = convolve_valid(x_full, gh1)
         a = convolve_valid(x_full, gh2)
         n_v = noise_var * float(gh1 @ gh1)
-        col = convolve_valid(f1(v) + 0.5 * f1.curvature(v) * (s2 * a * a - n_v), gh)
+        col = convolve_valid(term(v) + 0.5 * term.curvature(v) * (s2 * a * a - n_v), gh)
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
 
