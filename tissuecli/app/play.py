@@ -43,6 +43,92 @@ if TYPE_CHECKING:
 #: then the host sends 0 V until frames return.
 HOLD_PERIODS = 3
 
+#: When a play is faulty (docs/rendering.md, "When a play is faulty"): the loop rate more
+#: than this fraction off nominal (on an idle machine it stays within 0.2 %) ...
+MAX_RATE_ERROR = 0.02
+#: ... more periods without a frame, or frames lost or corrupt on the line, than this
+#: fraction of the frames (each missed period is bridged with a stale voltage; normal
+#: plays on a 2-core machine running the simulated display miss 0.1-1.1 %) ...
+MAX_MISSED_FRACTION = 0.05
+#: ... the tracking error above its bound plus the check's soft gap (where the tissue is
+#: softer than the display's spring) by more than this, m: the bound holds for an
+#: unclamped law in steady state, and touch-down transients, the estimator's lag and
+#: frames where the solenoid is clamped added up to 0.27 mm at most over 197 random
+#: tissues the check accepts, on the offline loop ...
+TRACKING_ALLOWANCE_M = 4e-4
+#: ... or more saturated or unrenderable frames than a tissue the check accepts shows
+#: on the offline loop (at most 0.9 % and 11 % of all frames over 197 accepted tissues:
+#: docs/rendering.md).
+MAX_SATURATED_FRACTION = 0.05
+MAX_UNRENDERABLE_FRACTION = 0.3
+
+
+class PlayFaults(RenderError):
+    """The play ran, but not as the check promised (see :func:`play_faults`); raised by
+    :func:`play_file` after the summary and the log are written. ``summary`` holds them."""
+
+    def __init__(self, message: str, summary: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.summary = summary
+
+
+def play_faults(summary: Mapping[str, Any], rate_hz: float) -> list[str]:
+    """What went wrong in a play, one short sentence each (empty if nothing did).
+
+    A play is faulty when the display's watchdog cut the solenoid (watchdog frames
+    > 0), the loop ran more than :data:`MAX_RATE_ERROR` off ``rate_hz``, more than
+    :data:`MAX_MISSED_FRACTION` of the periods went without a frame or frames were lost
+    or corrupt on the line, the controller met a non-finite value, the tracking error
+    exceeded its bound (plus the check's ``soft_gap_m``) by more than
+    :data:`TRACKING_ALLOWANCE_M`, or the solenoid was saturated or unable to follow on
+    more frames than :data:`MAX_SATURATED_FRACTION` and :data:`MAX_UNRENDERABLE_FRACTION`.
+    """
+
+    def num(key: str) -> float:
+        value = summary.get(key)
+        return float(value) if isinstance(value, (int, float)) and value == value else 0.0
+
+    faults = []
+    frames = max(num("frames"), 1.0)
+    if num("watchdog_frames") > 0:
+        faults.append(
+            f"the display's watchdog cut the solenoid on {num('watchdog_frames'):.0f} frame(s): "
+            "the host stopped answering for 5 periods"
+        )
+    rate = num("loop_rate_hz")
+    if num("frames") > 1 and abs(rate - rate_hz) > MAX_RATE_ERROR * rate_hz:
+        faults.append(
+            f"the loop ran at {rate:.1f} Hz, {100 * abs(rate / rate_hz - 1):.1f} % off "
+            f"{rate_hz:g} Hz (p99 period {num('period_p99_ms'):.2f} ms)"
+        )
+    if num("missed_periods") > MAX_MISSED_FRACTION * frames:
+        faults.append(
+            f"{num('missed_periods'):.0f} periods passed without a frame "
+            f"({100 * num('missed_periods') / frames:.1f} % of {frames:.0f})"
+        )
+    lost = num("frames_lost") + num("frames_bad")
+    if lost > MAX_MISSED_FRACTION * frames:
+        faults.append(f"{lost:.0f} frame(s) lost or corrupt on the line")
+    if num("nonfinite_frames") > 0:
+        faults.append(f"{num('nonfinite_frames'):.0f} frame(s) with non-finite values")
+    err, bound = num("tracking_max_m"), summary.get("tracking_bound_m")
+    check = summary.get("check")
+    gap = check.get("soft_gap_m") if isinstance(check, Mapping) else None
+    gap = float(gap) if isinstance(gap, (int, float)) else 0.0
+    if isinstance(bound, (int, float)) and err > bound + gap + TRACKING_ALLOWANCE_M:
+        faults.append(
+            f"tracking error reached {err * 1e3:.3g} mm, above its bound {bound * 1e3:.3g} mm"
+            + (f" + soft gap {gap * 1e3:.3g} mm" if gap else "")
+            + f" + {TRACKING_ALLOWANCE_M * 1e3:g} mm"
+        )
+    for key, limit, what in (
+        ("saturated_fraction", MAX_SATURATED_FRACTION, "saturated"),
+        ("unrenderable_fraction", MAX_UNRENDERABLE_FRACTION, "unrenderable (a push asked)"),
+    ):
+        if num(key) > limit:
+            faults.append(f"{100 * num(key):.1f} % of frames {what}, more than {100 * limit:g} %")
+    return faults
+
 
 def check_file(
     params: str | os.PathLike[str],
@@ -77,7 +163,14 @@ def play_file(
 ) -> dict[str, Any]:
     """``play``: render the tissue of a parameter file (see :func:`play` for ``options``);
     writes the summary as JSON to ``summary`` if given. Outputs are checked before the
-    display is opened: ``summary`` replaces a file only with ``force``, never an input."""
+    display is opened: ``summary`` replaces a file only with ``force``, never an input.
+
+    Raises
+    ------
+    PlayFaults
+        After the summary and the log are written, when the play was faulty (its
+        ``faults`` are not empty; see :func:`play_faults`): the command exits 1.
+    """
     log = options.get("log")
     check_outputs(
         [
@@ -93,6 +186,18 @@ def play_file(
     )
     if summary is not None:
         write_json(summary, result)
+    if result["faults"]:
+        kept = [
+            f"{what} {path}"
+            for what, path in (("summary", summary), ("log", result.get("log", {}).get("path")))
+            if path
+        ]
+        raise PlayFaults(
+            "the play was faulty: "
+            + "; ".join(result["faults"])
+            + (f" ({' and '.join(kept)} written)" if kept else ""),
+            result,
+        )
     return result
 
 
@@ -149,7 +254,9 @@ def play(
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``commands_sent``,
-        ``actuator_work_j``, ``check`` and more.
+        ``actuator_work_j``, ``check`` and more; ``faults`` (what went wrong, see
+        :func:`play_faults`; empty for a good play) and ``verdict`` (``"as checked"``
+        or ``"faulty"``).
 
     Raises
     ------
@@ -227,6 +334,8 @@ def play(
     summary["check"] = verdict.as_dict()
     summary["tissue"] = tissue.describe()
     summary = _jsonable(summary)
+    summary["faults"] = play_faults(summary, rate_hz)
+    summary["verdict"] = "faulty" if summary["faults"] else "as checked"
     if log_file is not None:
         summary["log"] = {"path": str(log), "group": log_file.group}
         log_file.close(complete=True, **{k: v for k, v in summary.items() if k != "log"})
@@ -509,4 +618,8 @@ def summary_lines(summary: Mapping[str, Any]) -> list[str]:
     log = summary.get("log")
     if log:
         lines.append(f"log: {log['path']}, group {log['group']}")
+    faults = summary.get("faults") or []
+    lines.extend(f"FAULT: {f}" for f in faults)
+    if faults:
+        lines.append("the display did not render the tissue as checked (docs/rendering.md)")
     return lines

@@ -68,13 +68,19 @@ def play(
     refused with the reason. Ctrl-C, SIGTERM, a lost display or any error leave
     the solenoid at 0 V.
 
+    Exit status 1 also after a faulty play: the summary and log are written, then
+    "Error: the play was faulty: ..." says why (the display's watchdog fired, the
+    loop rate more than 2 % off, over 5 % of periods missed or frames lost, the
+    tracking error beyond its bound by over 0.4 mm, over 5 % of frames saturated or
+    30 % unrenderable; docs/rendering.md).
+
     \b
     Examples:
         tissuecli simulate display --link /tmp/display &
         tissuecli play liver.json --port /tmp/display --duration 20 --log plays.h5
         tissuecli play liver.json --check        # the band and the verdict only
     """
-    from ..app.play import check_file, play_file, summary_lines
+    from ..app.play import PlayFaults, check_file, play_file, summary_lines
     from ..hw.realtime import StopFlag
 
     if check_only:
@@ -88,6 +94,7 @@ def play(
         return
     if port is None:
         raise InputError("give the display's port with --port (or use --check)")
+    faulty: PlayFaults | None = None
     try:
         summary = play_file(
             params_file,
@@ -101,7 +108,11 @@ def play(
             stop=StopFlag().install(),
             on_status=_status_line,
         )
+    except PlayFaults as exc:  # the figures first, then the one-line error
+        summary, faulty = exc.summary, exc
     finally:
         end_live_line()
     for line in summary_lines(summary):
         click.echo(line)
+    if faulty is not None:
+        raise faulty
