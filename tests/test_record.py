@@ -64,11 +64,17 @@ def test_corrupt_and_dropped_frames_are_counted_and_recording_resumes(forceps, t
     assert np.all(np.diff(seq) > 0)
 
 
-def test_clock_drift_is_recovered_by_regression(forceps, tmp_path):
+def test_clock_drift_is_estimated_from_the_arrivals(forceps, tmp_path):
     sim = forceps("--drift-ppm", "500")
     res = record(str(sim.link), tmp_path / "g.h5", "drift", duration_s=4.0)
     assert res.clock_map is not None
     assert abs(res.clock_map.drift_ppm - 500) < 100
+    # 4 s cannot resolve a drift to 50 ppm with arrivals in 1 ms batches: time stays put
+    assert res.time_rescaled == res.clock_map.resolved
+    s = formats.read_session(tmp_path / "g.h5", "drift")
+    assert s.meta["clock_map"]["time_rescaled"] == res.time_rescaled
+    if not res.time_rescaled:
+        np.testing.assert_allclose(s.time, np.arange(len(s)) * 1e-3, atol=1e-12)
 
 
 def test_existing_session_is_refused_and_file_untouched(forceps, tmp_path):

@@ -1,3 +1,9 @@
-from .cli import main
+import sys
+
+try:
+    from .cli import main
+except KeyboardInterrupt:  # Ctrl-C while the command line loads: nothing has started
+    sys.stderr.write("aborted\n")
+    sys.exit(1)
 
 main()

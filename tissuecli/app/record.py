@@ -3,10 +3,11 @@ losing nothing."""
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -15,13 +16,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.calibration import Calibration, calibration_from_dict
-from ..core.clock import ClockMap, TickUnwrapper, fit_clock_map
+from ..core.clock import ClockFaults, ClockMap, Stamped, TimeBase, fit_clock_map
 from ..core.errors import DeviceError, DeviceLost, InputError
 from ..core.session import check_name
 from ..formats.outputs import Output, check_outputs
 from ..formats.sessions import check_new_session, session_writer
 from ..formats.writer import SeriesWriter
-from ..hw.link import DEFAULT_BAUD, Link, open_device
+from ..hw.link import DEFAULT_BAUD, Link, calibration_problem, open_device
 from ..hw.protocol import Sample
 from ..hw.realtime import StopFlag
 from ..hw.stream import Stream
@@ -37,11 +38,18 @@ class RecordStatus:
     bad_frames: int = 0
     lost_frames: int = 0
     file_bytes: int = 0
+    faults: ClockFaults = field(default_factory=ClockFaults)
 
 
 @dataclass
 class RecordResult:
-    """Summary of a finished recording."""
+    """Summary of a finished recording.
+
+    ``faults`` holds what the time base check found (clock jumps and steps, sequence
+    restarts, rejected frames, clock wraps); ``clock_map`` the device-to-host map and
+    ``time_rescaled`` whether the stored time was put on host seconds by it (only when
+    its drift is resolved, see :attr:`ClockMap.resolved`).
+    """
 
     path: str
     session: str
@@ -53,6 +61,8 @@ class RecordResult:
     stop_reason: str
     clock_map: ClockMap | None
     meta: dict[str, Any] = field(default_factory=dict)
+    faults: ClockFaults = field(default_factory=ClockFaults)
+    time_rescaled: bool = False
 
 
 def record(
@@ -73,6 +83,12 @@ def record(
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
+    The device is not trusted: its Info is checked field by field, and every frame's
+    clock stamp and sequence number against what the last good frames predict
+    (:class:`~tissuecli.core.clock.TimeBase`), so stored time is strictly increasing
+    whatever the device sends. The session is created when the first sample is kept;
+    a recording that keeps none leaves nothing behind.
+
     Parameters
     ----------
     url : str
@@ -82,7 +98,8 @@ def record(
     session : str
         Name of the new session; refused if the file already has it.
     duration_s : float, optional
-        Stop after this much device time (s); otherwise run until ``stop``.
+        Stop after this much device time (s, on the repaired time base); otherwise run
+        until ``stop``.
     tissue, note : str
         Stored with the session.
     calibration : Calibration, optional
@@ -96,50 +113,72 @@ def record(
     flush_interval_s : float
         Longest time received samples stay only in memory, s.
     idle_timeout_s : float
-        A device that sends no sample for this long is taken as lost.
+        A device that sends no sample, or none that can be kept, for this long is
+        taken as lost.
 
     Raises
     ------
+    DeviceError
+        If the device reports an unusable Info, or the recording is stopped before
+        any sample was kept (nothing is written then).
     DeviceLost
-        If the device vanishes; everything received until then is saved first.
+        If the device vanishes; everything kept until then is saved first.
     """
     if duration_s is not None and not duration_s > 0:
         raise InputError("--duration must be a positive number of seconds")
     check_name(session, "session")
+    stop = stop if stop is not None else StopFlag()
     out = Path(out)
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
+    _check_not_stopped(stop, url)
     link, info = open_device(
         url,
         "forceps",
         baudrate=baudrate,
         require_info=calibration is None,
         no_info_hint="; for a forceps that streams without identifying, give --calibration FILE",
+        uses_calibration=calibration is None,
     )
     try:
-        cal = calibration or _device_calibration(info, url)
-        clock_hz = float((info or {}).get("clock_hz", 1e6))
+        _check_not_stopped(stop, url)
+        cal = calibration or calibration_from_dict((info or {})["calibration"])
+        if calibration is not None:
+            _check_calibration(calibration, (info or {}).get("adc_bits", 16))
+        clock_hz = float((info or {}).get("clock_hz", DEFAULT_CLOCK_HZ))
+        rate_hz = float((info or {}).get("rate_hz", math.nan))
         meta = {
             "tissue": tissue,
             "note": note,
             "start_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
             "source": f"serial:{url}",
             "device": info or {},
-            "rate_hz": float((info or {}).get("rate_hz", float("nan"))),
+            "rate_hz": rate_hz,
             "clock_hz": clock_hz,
         }
-        writer = session_writer(
-            out, session, meta=meta, calibration=cal.as_dict(), flush_interval_s=flush_interval_s
+
+        def open_writer() -> SeriesWriter:
+            return session_writer(
+                out,
+                session,
+                meta=meta,
+                calibration=cal.as_dict(),
+                flush_interval_s=flush_interval_s,
+            )
+
+        timebase: TimeBase[Sample] = TimeBase(
+            clock_hz / rate_hz if math.isfinite(rate_hz) else None,
+            limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
-        recording = _Recording(link, writer, cal, clock_hz, out, session, meta)
+        recording = _Recording(link, open_writer, timebase, cal, clock_hz, out, session, meta)
         return recording.run(
-            duration_s,
             Stream(
                 link,
                 Sample,
-                stop=stop if stop is not None else StopFlag(),
+                stop=stop,
                 idle_timeout_s=idle_timeout_s,
                 status_interval_s=status_interval_s,
+                track_sequence=False,  # the time base counts losses among kept frames
             ),
             on_status,
         )
@@ -147,68 +186,90 @@ def record(
         link.close()
 
 
-def _device_calibration(info: dict[str, Any] | None, url: str) -> Calibration:
-    if info is None or "calibration" not in info:
-        raise DeviceError(f"{url} reports no calibration; give --calibration FILE")
-    return calibration_from_dict(info["calibration"])
+#: device clock rate of protocol version 1, for a forceps that does not identify, Hz
+DEFAULT_CLOCK_HZ = 1e6
+
+
+def _check_not_stopped(stop: StopFlag, url: str) -> None:
+    if stop:
+        raise DeviceError(
+            f"stopped by signal before recording from {url} began; nothing was recorded"
+        )
+
+
+def _check_calibration(cal: Calibration, bits: object) -> None:
+    """Refuse a user's calibration that maps the ADC range to infinite or absurd values."""
+    problem = calibration_problem(cal.as_dict(), bits if isinstance(bits, int) else 16)
+    if problem is not None:
+        name, value, must = problem
+        raise InputError(
+            f"--calibration {name.removeprefix('calibration.')} = {value}; it must be {must}"
+        )
 
 
 class _Recording:
-    """One session being recorded: samples to SI, to the writer, and the clock map at the end."""
+    """One session being recorded: frames checked and stamped, samples to SI, to the
+    writer (created with the first kept sample), and the clock map at the end."""
 
     def __init__(
         self,
         link: Link,
-        writer: SeriesWriter,
+        open_writer: Callable[[], SeriesWriter],
+        timebase: TimeBase[Sample],
         cal: Calibration,
         clock_hz: float,
         out: Path,
         session: str,
         meta: dict[str, Any],
     ) -> None:
-        self.link, self.writer, self.cal, self.clock_hz = link, writer, cal, clock_hz
+        self.link, self.open_writer, self.timebase = link, open_writer, timebase
+        self.cal, self.clock_hz = cal, clock_hz
         self.out, self.session, self.meta = out, session, meta
-        self.unwrap = TickUnwrapper()
-        self.tick0: int | None = None
+        self.writer: SeriesWriter | None = None
         self.samples = 0
         self.duration_s = 0.0
+        self.last_kept = math.nan  # monotonic time a sample was last kept, s
+        self.time_rescaled = False
         self.host_times: list[NDArray[np.float64]] = []
         self.device_times: list[NDArray[np.float64]] = []
 
-    def run(
-        self,
-        duration_s: float | None,
-        stream: Stream,
-        on_status: Callable[[RecordStatus], None] | None,
-    ) -> RecordResult:
+    def run(self, stream: Stream, on_status: Callable[[RecordStatus], None] | None) -> RecordResult:
         """The acquisition loop; the writer is closed with final counters however it ends."""
         lost: DeviceLost | None = None
+        clock_map: ClockMap | None = None
         try:
             with stream:
+                self.last_kept = stream.t_start
                 while stream.running():
                     batch = stream.poll()
                     now = time.monotonic()
                     if batch:
-                        if self._take(batch, now - stream.t_start, duration_s):
+                        self._take(batch, now - stream.t_start)
+                        if self.timebase.done:
                             break
+                        self._check_usable(now, stream)
                     else:
                         stream.check_idle(now)
                     if stream.status_due(now):
-                        self.writer.set_attrs(
-                            frames_bad=self.link.decoder.bad_frames, frames_lost=stream.seqs.lost
-                        )
+                        if self.writer is not None:
+                            self.writer.set_attrs(**self._counters())
                         if on_status is not None:
-                            on_status(self._status(now - stream.t_start, stream))
+                            on_status(self._status(now - stream.t_start))
         except DeviceLost as exc:
             lost = exc
         finally:
             clock_map = self._close(stream)
         if on_status is not None:
-            on_status(self._status(time.monotonic() - stream.t_start, stream))
+            on_status(self._status(time.monotonic() - stream.t_start))
+        where = f"in {self.out}, session {self.session!r}"
         if lost is not None:
-            raise DeviceLost(
-                f"{lost}; the {self.samples} samples received are saved in {self.out}, "
-                f"session {self.session!r}"
+            if not self.samples:
+                raise DeviceLost(f"{lost}; nothing was recorded")
+            raise DeviceLost(f"{lost}; the {self.samples} samples received are saved {where}")
+        if not self.samples:
+            raise DeviceError(
+                f"{stream.reason} before any sample arrived from {self.link.url}; "
+                "nothing was recorded"
             )
         duration = self.duration_s
         return RecordResult(
@@ -218,48 +279,94 @@ class _Recording:
             duration_s=duration,
             rate_hz=(self.samples - 1) / duration if duration > 0 else 0.0,
             bad_frames=self.link.decoder.bad_frames,
-            lost_frames=stream.seqs.lost,
+            lost_frames=self.timebase.faults.frames_lost,
             stop_reason=stream.reason,
             clock_map=clock_map,
             meta=self.meta,
+            faults=replace(self.timebase.faults),
+            time_rescaled=self.time_rescaled,
         )
 
-    def _take(self, batch: list[Any], host_s: float, duration_s: float | None) -> bool:
-        """Convert and append one batch; True once ``duration_s`` of device time is in."""
-        raw = np.array([(m.seq, m.clock, m.force, m.position) for m in batch], dtype=np.int64)
-        ticks = self.unwrap(raw[:, 1])
-        if self.tick0 is None:
-            self.tick0 = int(ticks[0])
-        t_dev = (ticks - self.tick0) / self.clock_hz
-        keep, done = slice(None), False
-        if duration_s is not None and t_dev[-1] >= duration_s:
-            # keep the samples taken before the duration: exactly duration * rate
-            keep, done = slice(0, int(np.searchsorted(t_dev, duration_s))), True
-        counts = raw[keep, 2:4].astype(np.int16)
-        t_host = np.full(counts.shape[0], host_s)
+    def _check_usable(self, now: float, stream: Stream) -> None:
+        """Frames keep arriving but none can be kept: as good as a silent device."""
+        if now - self.last_kept > stream.idle_timeout_s:
+            timeout = stream.idle_timeout_s
+            span = f"{timeout * 1e3:g} ms" if timeout < 1 else f"{timeout:g} s"
+            faults = self.timebase.faults
+            period = self.timebase.period_ticks
+            steady = f" of {period:g} clock ticks per sample" if period is not None else ""
+            raise DeviceLost(
+                f"no usable Sample frame from {self.link.url} for {span}: "
+                f"{faults.frames_rejected + self.timebase.waiting} frames carried sequence "
+                f"numbers and clock stamps that fit no steady stream{steady}"
+            )
+
+    def _take(self, batch: list[Any], host_s: float) -> None:
+        """Check and stamp one batch, then convert and append what is kept."""
+        kept = self.timebase.feed([(m.seq, m.clock, m, host_s) for m in batch])
+        self._append(kept)
+
+    def _append(self, kept: list[Stamped[Sample]]) -> None:
+        if not kept:
+            return
+        self.last_kept = time.monotonic()
+        raw = np.array(
+            [(s.payload.seq, s.payload.force, s.payload.position) for s in kept], dtype=np.int64
+        )
+        t_dev = np.array([s.ticks for s in kept]) / self.clock_hz
+        t_host = np.array([s.host_s for s in kept])
+        counts = raw[:, 1:3].astype(np.int16)
+        if self.writer is None:
+            self.writer = self.open_writer()
         self.writer.append(
             {
-                "time": t_dev[keep],
+                "time": t_dev,
                 "force": self.cal.force.to_si(counts[:, 0]),
                 "position": self.cal.position.to_si(counts[:, 1]),
                 "raw/counts": counts,
-                "raw/sequence": raw[keep, 0].astype(np.uint32),
-                "raw/device_clock": ticks[keep],
+                "raw/sequence": raw[:, 0].astype(np.uint32),
+                "raw/device_clock": np.array([s.device_clock for s in kept], dtype=np.int64),
                 "raw/host_time": t_host,
             }
         )
         self.samples += counts.shape[0]
         self.host_times.append(t_host)
-        self.device_times.append(t_dev[keep])
-        return done
+        self.device_times.append(t_dev)
+
+    def _counters(self) -> dict[str, Any]:
+        return {
+            "frames_good": self.samples,
+            "frames_bad": self.link.decoder.bad_frames,
+            **self.timebase.faults.as_dict(),
+        }
 
     def _close(self, stream: Stream) -> ClockMap | None:
-        """Map device time to host seconds, store the final counters, mark the session done."""
-        device = np.concatenate(self.device_times) if self.device_times else np.empty(0)
-        host = np.concatenate(self.host_times) if self.host_times else np.empty(0)
-        self.duration_s = float(device[-1]) if device.size else 0.0
+        """Decide the frames still waiting, map device time to host seconds, store the
+        final counters and mark the session done; nothing if no sample was kept."""
+        self.time_rescaled = False
+        if not self.timebase.done:
+            self._append(self.timebase.finish())
+        if self.writer is None:
+            return None
+        device = np.concatenate(self.device_times)
+        host = np.concatenate(self.host_times)
+        self.duration_s = float(device[-1])
         clock_map = fit_clock_map(device, host)
+        stored: dict[str, Any] = {}
         if clock_map is not None:
+            self.time_rescaled = clock_map.resolved
+            stored = {
+                **clock_map.as_dict(),
+                "time_rescaled": self.time_rescaled,
+                "time_base": (
+                    "device clock, repaired and rescaled to host seconds by slope"
+                    if self.time_rescaled
+                    else "device clock, repaired; not rescaled: drift not resolved "
+                    f"({clock_map.drift_ppm:+.1f} +- {clock_map.drift_uncertainty_ppm:.1f} ppm)"
+                ),
+            }
+        if self.time_rescaled:
+            assert clock_map is not None
             # time was written on the device clock; put it on the host's seconds
             self.writer.rewrite(
                 "time",
@@ -267,25 +374,24 @@ class _Recording:
                 clock="device clock, drift-corrected to host seconds by clock_map",
             )
         self.writer.close(
-            frames_good=self.samples,
-            frames_bad=self.link.decoder.bad_frames,
-            frames_lost=stream.seqs.lost,
-            sequence_restarts=stream.seqs.restarts,
+            **self._counters(),
             stop_reason=stream.reason,
-            clock_map=clock_map.as_dict() if clock_map else {},
+            clock_map=stored,
         )
         return clock_map
 
-    def _status(self, elapsed: float, stream: Stream) -> RecordStatus:
+    def _status(self, elapsed: float) -> RecordStatus:
         try:
-            size = self.out.stat().st_size
+            size = self.out.stat().st_size if self.writer is not None else 0
         except OSError:
             size = 0
+        faults = self.timebase.faults
         return RecordStatus(
             elapsed_s=elapsed,
             samples=self.samples,
             rate_hz=self.samples / elapsed if elapsed > 0 else 0.0,
             bad_frames=self.link.decoder.bad_frames,
-            lost_frames=stream.seqs.lost,
+            lost_frames=faults.frames_lost,
             file_bytes=size,
+            faults=replace(faults),
         )

@@ -13,13 +13,45 @@ from .options import duration_option, h5_out_option, label_options
 
 def _status_line(session: str) -> Any:
     def show(s: Any) -> None:
+        faults = s.faults
+        clock = (
+            f"  clock jumps {faults.clock_jumps}  steps {faults.clock_steps}  "
+            f"restarts {faults.sequence_restarts}  rejected {faults.frames_rejected}"
+            if faults.any
+            else ""
+        )
         live_line(
             f"recording {session}: {s.elapsed_s:7.1f} s  {s.samples:>9,d} samples  "
             f"{s.rate_hz:7.1f} Hz  bad {s.bad_frames}  lost {s.lost_frames}  "
-            f"{s.file_bytes / 1e6:6.2f} MB"
+            f"{s.file_bytes / 1e6:6.2f} MB{clock}"
         )
 
     return show
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def _summary(result: Any) -> str:
+    """The line printed after a recording: what was saved, every fault count, the clock."""
+    f = result.faults
+    clock = ""
+    if result.clock_map is not None:
+        m = result.clock_map
+        drift = f"clock drift {m.drift_ppm:+.1f} +- {m.drift_uncertainty_ppm:.1f} ppm"
+        clock = (
+            f"; {drift}, time rescaled to host seconds"
+            if result.time_rescaled
+            else f"; {drift} (not resolved: time kept on the device clock)"
+        )
+    return (
+        f"saved {result.samples} samples ({result.duration_s:.3f} s at {result.rate_hz:.1f} Hz) "
+        f"to {result.path} session {result.session!r}: {result.bad_frames} bad, "
+        f"{result.lost_frames} lost, {f.frames_rejected} rejected frames, "
+        f"{_plural(f.clock_jumps, 'clock jump')}, {_plural(f.clock_steps, 'clock step')}, "
+        f"{_plural(f.sequence_restarts, 'sequence restart')}{clock}; {result.stop_reason}"
+    )
 
 
 @cli.command()
@@ -56,17 +88,23 @@ def record(
     Everything received is flushed to disk at least every 0.25 s, so a crash
     or power cut loses at most that; Ctrl-C and SIGTERM stop cleanly and lose
     nothing. A device that vanishes ends the recording with the data saved and
-    exit code 1.
+    exit code 1; a recording stopped before any sample arrived writes nothing and
+    exits 1. Frames whose clock or sequence number is absurd are repaired or
+    rejected and counted (docs/recording.md).
 
     \b
     Example:
         tissuecli record --port /tmp/forceps --out grasp.h5 --duration 10 --session liver-1
     """
+    from ..hw.realtime import StopFlag
+
+    # first, so that Ctrl-C while the rest loads stops cleanly instead of raising
+    stop = StopFlag().install()
+
     from datetime import datetime, timezone
 
     from ..app.record import record as run
     from ..formats.params import read_calibration
-    from ..hw.realtime import StopFlag
 
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     status = None if quiet else _status_line(name)
@@ -81,15 +119,10 @@ def record(
             note=note,
             calibration=read_calibration(calibration) if calibration else None,
             baudrate=baud,
-            stop=StopFlag().install(),
+            stop=stop,
             on_status=status,
         )
     finally:
         if status is not None:
             end_live_line()
-    drift = f", clock drift {result.clock_map.drift_ppm:+.0f} ppm" if result.clock_map else ""
-    click.echo(
-        f"saved {result.samples} samples ({result.duration_s:.3f} s at {result.rate_hz:.1f} Hz) "
-        f"to {result.path} session {result.session!r}: {result.bad_frames} bad, "
-        f"{result.lost_frames} lost frames{drift}; {result.stop_reason}"
-    )
+    click.echo(_summary(result))

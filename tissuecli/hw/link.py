@@ -9,6 +9,7 @@ speaks this protocol and is the kind of device expected.
 
 from __future__ import annotations
 
+import math
 import os
 import stat
 import time
@@ -147,8 +148,9 @@ def open_device(
     timeout: float = 0.05,
     require_info: bool = True,
     no_info_hint: str = "",
+    uses_calibration: bool = True,
 ) -> tuple[Link, dict[str, Any] | None]:
-    """Open ``url``, stop and drain it, identify it and check what it is.
+    """Open ``url``, stop and drain it, identify it and check what it reports.
 
     Parameters
     ----------
@@ -163,19 +165,23 @@ def open_device(
         for its Info (a forceps that streams without identifying, given a calibration).
     no_info_hint : str
         Added to the refusal of a silent device (how else to proceed).
+    uses_calibration : bool
+        Whether the host will use the calibration in the Info (a forceps' is then
+        checked; see :func:`check_info`).
 
     Returns
     -------
     link : Link
         Open, with the device stopped and its input drained.
     info : dict or None
-        What the device answered to IDENTIFY.
+        What the device answered to IDENTIFY, checked.
 
     Raises
     ------
     DeviceError
         If the port cannot be opened, the device is silent (and ``require_info``),
-        speaks another protocol version or is another kind of device.
+        speaks another protocol version, is another kind of device, or reports an
+        Info field the host uses that is missing, of the wrong type or implausible.
     """
     link = Link(url, baudrate=baudrate, timeout=timeout, kind=kind)
     try:
@@ -192,6 +198,7 @@ def open_device(
                 )
             return link, None
         check_identity(info, url, kind)
+        check_info(info, url, kind, uses_calibration=uses_calibration)
         return link, info
     except BaseException:
         link.close()
@@ -201,14 +208,140 @@ def open_device(
 def check_identity(info: dict[str, Any], url: str, kind: str) -> None:
     """Refuse a device of another protocol version or another kind than ``kind``."""
     version = info.get("protocol")
-    if version != PROTOCOL_VERSION:
+    if type(version) is not int or version != PROTOCOL_VERSION:
         raise DeviceError(
-            f"{url} speaks protocol version {version}; this tissuecli speaks "
+            f"{url} speaks protocol version {_show(version)}; this tissuecli speaks "
             f"{PROTOCOL_VERSION}. Update tissuecli or the {kind} firmware"
         )
     device = info.get("device", kind)
     if device != kind:
-        raise DeviceError(f"{url} is a {device!r}, not a {kind}; {ROLES.get(kind, '')}")
+        raise DeviceError(f"{url} is a {_show(device)}, not a {kind}; {ROLES.get(kind, '')}")
+
+
+#: Plausible values of the Info fields a host uses (docs/protocol.md, section 6).
+RATE_HZ_RANGE = (1.0, 1e6)
+CLOCK_HZ_RANGE = (1e3, 1e10)
+#: device clock ticks per sample: enough to tell samples apart, far below the 2**32 wrap
+TICKS_PER_SAMPLE_RANGE = (10.0, float(1 << 24))
+ADC_BITS_RANGE = (8, 16)
+#: largest magnitude at either ADC end (N, m) and smallest span of the ADC range
+SI_END_LIMIT = {"force": 1e4, "position": 1.0}
+SI_SPAN_MIN = {"force": 1e-6, "position": 1e-6}
+SI_UNITS = {"force": "N", "position": "m"}
+
+
+def check_info(info: dict[str, Any], url: str, kind: str, *, uses_calibration: bool = True) -> None:
+    """Check every Info field the host uses: present, of the right type, plausible.
+
+    A forceps must report ``rate_hz``, ``clock_hz`` and ``adc_bits``, and, if
+    ``uses_calibration``, a ``calibration`` whose SI values at both ADC ends are
+    finite and plausible. A display's ``rate_hz`` and ``clock_hz`` are checked when
+    present (the host has defaults for them).
+
+    Raises
+    ------
+    DeviceError
+        One line naming the field, its value (shortened) and what it must be.
+    """
+    forceps = kind == "forceps"
+
+    def refuse(name: str, value: object, must: str, hint: str = "") -> DeviceError:
+        said = f"no Info {name}" if value is _MISSING else f"Info {name} = {_show(value)}"
+        return DeviceError(
+            f"{url} reports {said}; it must be {must}. Check the {kind} firmware{hint}"
+        )
+
+    for name, (lo, hi) in (("rate_hz", RATE_HZ_RANGE), ("clock_hz", CLOCK_HZ_RANGE)):
+        if name not in info and not forceps:
+            continue
+        value = _number(info.get(name))
+        if value is None or not lo <= value <= hi:
+            raise refuse(name, info.get(name, _MISSING), f"a number of Hz in [{lo:g}, {hi:g}]")
+    rate, clock = _number(info.get("rate_hz")), _number(info.get("clock_hz"))
+    if rate is not None and clock is not None:
+        lo, hi = TICKS_PER_SAMPLE_RANGE
+        if not lo <= clock / rate <= hi:
+            raise refuse(
+                "clock_hz / rate_hz",
+                clock / rate,
+                f"between {lo:g} and {hi:g} clock ticks per sample",
+            )
+    if not forceps:
+        return
+    bits = info.get("adc_bits", _MISSING)
+    lo_bits, hi_bits = ADC_BITS_RANGE
+    if type(bits) is not int or not lo_bits <= bits <= hi_bits:
+        raise refuse("adc_bits", bits, f"an integer in [{lo_bits}, {hi_bits}]")
+    if uses_calibration:
+        problem = calibration_problem(info.get("calibration", _MISSING), bits)
+        if problem is not None:
+            name, value, must = problem
+            raise refuse(name, value, must, ", or give --calibration FILE")
+
+
+def calibration_problem(calibration: object, bits: int) -> tuple[str, object, str] | None:
+    """What is wrong with a forceps calibration object read through a ``bits``-bit ADC:
+    ``(field, value, what it must be)``, or ``None`` if nothing is.
+
+    Gains must be finite and non-zero, offsets finite (0 if absent), units SI, the SI
+    values at both ADC ends within :data:`SI_END_LIMIT` and their span at least
+    :data:`SI_SPAN_MIN`."""
+    if not isinstance(calibration, dict):
+        return "calibration", calibration, 'an object {"force": {...}, "position": {...}}'
+    for channel in ("force", "position"):
+        entry = calibration.get(channel, _MISSING)
+        name = f"calibration.{channel}"
+        if not isinstance(entry, dict):
+            return name, entry, 'an object {"gain": ..., "offset": ..., "unit": ...}'
+        gain, offset = _number(entry.get("gain")), _number(entry.get("offset", 0.0))
+        if gain is None or gain == 0:
+            return f"{name}.gain", entry.get("gain", _MISSING), "a finite non-zero number"
+        if offset is None:
+            return f"{name}.offset", entry.get("offset"), "a finite number"
+        unit = entry.get("unit", SI_UNITS[channel])
+        if unit != SI_UNITS[channel]:
+            return f"{name}.unit", unit, f'"{SI_UNITS[channel]}"'
+        lo, hi = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+        ends = (offset + gain * lo, offset + gain * hi)
+        limit, span = SI_END_LIMIT[channel], SI_SPAN_MIN[channel]
+        unit = SI_UNITS[channel]
+        if not all(math.isfinite(e) and abs(e) <= limit for e in ends):
+            return (
+                f"{name} (gain, offset)",
+                (gain, offset),
+                f"such that both ADC ends map within +-{limit:g} {unit} "
+                f"(they map to {ends[0]:.3g} and {ends[1]:.3g} {unit})",
+            )
+        if abs(ends[1] - ends[0]) < span:
+            return (
+                f"{name}.gain",
+                gain,
+                f"large enough for the ADC range to span at least {span:g} {unit}",
+            )
+    return None
+
+
+_MISSING = object()  # a field the device did not send
+
+
+def _number(value: object) -> float | None:
+    """``value`` as a finite float if it is a JSON number (not a boolean), else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        out = float(value)
+    except OverflowError:  # an integer beyond the range of a double
+        return None
+    return out if math.isfinite(out) else None
+
+
+def _show(value: object, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters: devices may send anything."""
+    try:
+        text = repr(value)
+    except ValueError:  # an integer too long to print
+        text = "a huge number"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _reason(exc: BaseException) -> str:

@@ -50,11 +50,14 @@ class Stream:
         Cadence of :meth:`status_due`, s.
     before_stop : callable, optional
         Run before the final STOP (e.g. switch the solenoid off).
+    track_sequence : bool
+        Count losses in :attr:`seqs` for every frame received; an owner that checks
+        frames itself and keeps only some (the recorder) counts its own.
 
     Attributes
     ----------
     seqs : SequenceTracker
-        Frames lost and sequence restarts so far.
+        Frames lost and sequence restarts so far (if ``track_sequence``).
     reason : str
         Why the stream ended: ``"duration reached"`` unless the stop flag or a
         lost device ended it (or the owner says otherwise).
@@ -71,6 +74,7 @@ class Stream:
         idle_timeout_s: float,
         status_interval_s: float = math.inf,
         before_stop: Callable[[], None] | None = None,
+        track_sequence: bool = True,
     ) -> None:
         self.link = link
         self.frame_type = frame_type
@@ -78,6 +82,7 @@ class Stream:
         self.idle_timeout_s = idle_timeout_s
         self.status_interval_s = status_interval_s
         self.before_stop = before_stop
+        self.track_sequence = track_sequence
         self.seqs = SequenceTracker()
         self.reason = "duration reached"
         self.t_start = self.last_frame = self.next_status = math.nan
@@ -96,11 +101,13 @@ class Stream:
         return True
 
     def poll(self) -> list[Message]:
-        """The frames of the stream's type that have arrived, sequence numbers tracked."""
+        """The frames of the stream's type that have arrived (sequence numbers tracked if
+        ``track_sequence``)."""
         frames = [m for m in self.link.poll() if isinstance(m, self.frame_type)]
         if frames:
-            for m in frames:
-                self.seqs.update(m.seq)  # type: ignore[attr-defined]
+            if self.track_sequence:
+                for m in frames:
+                    self.seqs.update(m.seq)  # type: ignore[attr-defined]
             self.last_frame = time.monotonic()
         return frames
 
