@@ -261,20 +261,40 @@ def test_high_rates_pick_a_kernel_from_the_motion_not_the_quantisation(rate):
     assert abs(est.best_.posterior.mean[1] / 3.0 - 1) < 0.02
 
 
-def test_lost_frames_leave_out_only_the_filtered_samples_beside_them():
+def test_gaps_leave_out_only_the_filtered_samples_beside_them():
     s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
     keep = np.ones(len(s), bool)
-    keep[[1500, 1501, 4000]] = False  # three lost frames, two gaps
+    keep[1500:1505] = keep[4000:4003] = False  # two gaps, longer than a bridge
     gappy = Session(s.time[keep], s.force[keep], s.position[keep], meta=s.meta, adc=s.adc)
     est = BayesianFit(forms="x,xdot").fit(gappy)
-    assert any("2 gap(s) (3 lost frame(s))" in w for w in est.warnings_), est.warnings_
+    assert any("2 gap(s) (8 missing sample(s))" in w for w in est.warnings_), est.warnings_
     kin, h = est.kinematics_, est.kinematics_.window // 2
     # both sides of each gap are fitted, and no filter window reaches a lost sample
     assert kin.time[0] < 0.5 and kin.time[-1] > 5.5
-    lost_t = s.time[[1500, 1501, 4000]]
+    lost_t = s.time[~keep]
     assert np.min(np.abs(kin.time[:, None] - lost_t[None, :])) > (h - 0.5) * 1e-3
-    assert kin.time.size == len(s) - 2 * h - (2 * h + 2) - (2 * h + 1)
+    assert kin.time.size == len(s) - 2 * h - (2 * h + 5) - (2 * h + 3)
     assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3
+
+
+def test_scattered_lost_samples_are_bridged_and_count_for_less():
+    s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
+    keep = np.ones(len(s), bool)
+    keep[np.arange(100, len(s) - 100, 20)] = False  # 5 %, one at a time
+    keep[3001] = False  # and one run of two
+    gappy = s.replace(s.time[keep], s.force[keep], s.position[keep])
+    full = BayesianFit(forms="x,xdot").fit(s)
+    est = BayesianFit(forms="x,xdot").fit(gappy)
+    assert any("bridged by linear interpolation" in w for w in est.warnings_), est.warnings_
+    # every filtered sample is fitted, as in the whole session...
+    assert est.kinematics_.time.size == full.kinematics_.time.size
+    # ...but with the information of the measured samples alone: n_eff scales by 95 %
+    lost = np.count_nonzero(~keep) / len(s)
+    assert est.n_eff_ / full.n_eff_ == pytest.approx(1 - lost, rel=0.1)
+    assert est.n_eff_ < full.n_eff_
+    # the interpolation error (h^2 x''/8, under a micrometre) moves K by far less than its SD
+    sd = full.best_.posterior.sd[0]
+    assert abs(est.best_.posterior.mean[0] - full.best_.posterior.mean[0]) < 0.5 * sd
 
 
 def test_clipped_samples_are_left_out_not_fitted():
@@ -296,11 +316,23 @@ def test_clipped_samples_are_left_out_not_fitted():
     assert abs(blind.mean[0] - stiff.K) > 50 * post.sd[0]
 
 
-def test_a_gap_longer_than_the_data_falls_back_to_the_longest_stretch():
+def test_a_long_pause_is_a_hole_and_both_sides_are_fitted():
     s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
     t = s.time.copy()
-    t[2000:] += 20.0  # the device paused for 20 s: more grid would be missing than recorded
+    t[2000:] += 20.0  # the device paused for 20 s: more grid is missing than recorded
+    est = BayesianFit(forms="x,xdot").fit(Session(t, s.force, s.position, meta=s.meta, adc=s.adc))
+    assert any("1 gap(s) (20000 missing sample(s))" in w for w in est.warnings_), est.warnings_
+    kin = est.kinematics_
+    assert kin.time[0] < 2.0 and kin.time[-1] > 20.0  # both sides of the pause
+    assert not np.any((kin.time > 2.0) & (kin.time < 20.0))  # and nothing inside it
+    assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3
+
+
+def test_a_pause_far_longer_than_the_data_falls_back_to_the_longest_stretch():
+    s = session_for(DEFAULT_TISSUE, 1000.0, 2, duration=6.0)
+    t = s.time.copy()
+    t[2000:] += 200.0  # a grid 30 times the samples is not built
     est = BayesianFit(forms="x,xdot").fit(Session(t, s.force, s.position, meta=s.meta, adc=s.adc))
     assert any("longest gap-free stretch" in w for w in est.warnings_), est.warnings_
-    assert est.kinematics_.time[0] > 20.0  # the longer part, after the pause
+    assert est.kinematics_.time[0] > 200.0  # the longer part, after the pause
     assert abs(est.best_.posterior.mean[0] / 350 - 1) < 1e-3

@@ -57,6 +57,32 @@ def write_report(path: str | os.PathLike[str], outcome: FitOutcome) -> None:
     write_text_atomic(path, render_report(outcome))
 
 
+#: grasps listed one per line in the summary; more are counted
+LISTED_GRASPS = 12
+
+
+def grasp_lines(outcome: FitOutcome) -> list[str]:
+    """The grasps found, one line each (none for a session in contact throughout)."""
+    contact = outcome.contact
+    if contact.all_contact:
+        return []
+    fitted = set(outcome.fitted_grasps)
+    lines = [
+        f"{len(contact.grasps)} grasp(s) against a free-jaw baseline of "
+        f"{contact.baseline_n:.4g} N; fitted: "
+        + (", ".join(map(str, sorted(fitted))) if fitted else "every sample (--grasps none)")
+    ]
+    for i, g in enumerate(contact.grasps[:LISTED_GRASPS], 1):
+        mark = "*" if i in fitted else " "
+        lines.append(
+            f" {mark}{i:3d}  {g.start_s:9.3f}-{g.end_s:.3f} s  ({g.duration_s:.2f} s, "
+            f"peak {g.peak_force_n:.3g} N)"
+        )
+    if len(contact.grasps) > LISTED_GRASPS:
+        lines.append(f"  ... and {len(contact.grasps) - LISTED_GRASPS} more")
+    return lines
+
+
 def summary_lines(outcome: FitOutcome) -> list[str]:
     """A short terminal summary."""
     lines = []
@@ -64,6 +90,7 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
     lines.append(
         f"session {s.name!r}: {len(s)} samples, {s.duration_s:.2f} s at {s.rate_hz:.0f} Hz"
     )
+    lines.extend(grasp_lines(outcome))
     est = outcome.bayes
     if est is not None:
         width = max(len(r.name) for r in est.results_)

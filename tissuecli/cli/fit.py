@@ -27,6 +27,16 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
     return show
 
 
+def _grasps(text: str) -> str | list[int]:
+    """``all``, ``none`` or a list of grasp numbers."""
+    if text in ("all", "none"):
+        return text
+    try:
+        return [int(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise click.BadParameter("give all, none or grasp numbers such as 1,3") from None
+
+
 @cli.command()
 @file_argument()
 @session_option("Session to fit [default: the only one].")
@@ -86,6 +96,15 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
     help="Prior scale in N: the force each term may reach at jaw-scale motion (5 mm, "
     "50 mm/s, 10 m/s^2). Raise it for stiff materials.",
 )
+@click.option(
+    "--grasps",
+    default="all",
+    show_default=True,
+    help="Where grasps alternate with free jaw motion: fit every grasp (all), every sample "
+    "(none), or the grasps numbered, e.g. 1,3.",
+)
+@click.option("--start", type=float, default=None, help="Fit from this time on, s.")
+@click.option("--end", type=float, default=None, help="Fit up to this time, s.")
 @seed_option("Seed of the sampler.")
 @force_option()
 def fit(
@@ -99,6 +118,9 @@ def fit(
     differentiator: str,
     window: float,
     force_scale: float,
+    grasps: str,
+    start: float | None,
+    end: float | None,
     seed: int,
     force: bool,
 ) -> None:
@@ -118,6 +140,9 @@ def fit(
         out=out,
         report=report,
         force=force,
+        grasps=_grasps(grasps),
+        start_s=start,
+        end_s=end,
         method=method,
         forms=forms,
         sampler=sampler,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .session import Session
+from .units import dimension_of
 
 #: beyond these a forceps session is implausible (jaws open at most a few cm; liver
 #: grasps reach 3.4 N, and no laparoscopic grasp 200 N; loggers sample 10 Hz to 100 kHz)
@@ -15,11 +16,16 @@ MAX_FORCE_N = 200.0
 RATE_RANGE_HZ = (5.0, 1e6)
 
 
-def unit_warnings(session: Session, *, position_given: bool = True) -> list[str]:
+def unit_warnings(session: Session, *, position_given: bool | None = None) -> list[str]:
     """Warnings that name the likely unit mistake when a session is implausible for a
     forceps; empty when it is plausible. ``position_given`` False says the closure was
-    converted from an angle (so its span is not a unit question)."""
+    converted from an angle (so its span is not a unit question); by default it is
+    read from the units the session was imported with."""
     out: list[str] = []
+    if position_given is None:
+        units = session.meta.get("import_units")
+        unit = str(units.get("position", "m")) if isinstance(units, dict) else "m"
+        position_given = dimension_of(unit.split(" ")[0]) != "angle"
     if len(session) < 2:
         return out
     span = float(np.ptp(session.position))

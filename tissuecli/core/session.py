@@ -123,6 +123,26 @@ class Session:
         """The same session (name, meta, ADC) with other samples: a part of it, or a grid."""
         return Session(time, force, position, name=self.name, meta=dict(self.meta), adc=self.adc)
 
+    def window(self, start_s: float | None = None, end_s: float | None = None) -> Session:
+        """The samples with ``start_s <= time <= end_s`` (s, on the session's clock).
+
+        Raises
+        ------
+        InputError
+            If the bounds are not finite, are reversed, or hold fewer than 2 samples.
+        """
+        lo = -np.inf if start_s is None else float(start_s)
+        hi = np.inf if end_s is None else float(end_s)
+        if np.isnan(lo) or np.isnan(hi) or lo >= hi:
+            raise InputError(f"--start {start_s} and --end {end_s}: give start < end, in s")
+        keep = (self.time >= lo) & (self.time <= hi)
+        if np.count_nonzero(keep) < 2:
+            raise InputError(
+                f"no samples between {lo:g} s and {hi:g} s; the session runs from "
+                f"{self.time[0]:.3f} s to {self.time[-1]:.3f} s"
+            )
+        return self.replace(self.time[keep], self.force[keep], self.position[keep])
+
     def validate(self, min_samples: int = 2) -> Session:
         """Check shapes, finiteness and monotonic time; raise :class:`InputError` if wrong."""
         n = len(self)

@@ -90,6 +90,40 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
         regular clock explains; the message names the line.
     """
     t = np.asarray(t, dtype=float)
+    where = lines if lines is not None else np.arange(1, t.size + 1)
+    numbers, clock, base = sample_clock(t, where)
+    if numbers is not None:
+        steps = np.diff(t)
+        # stamps already on the clock (to a millionth of a period) are kept exactly
+        exact = base.residual_max_s <= 1e-6 / base.rate_hz and bool(np.all(steps > 0))
+        return (t if exact else clock), base
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0])
+        verb = "repeats" if t[i + 1] == t[i] else "goes back"
+        raise InputError(
+            f"time {verb} at line {where[i + 1]} ({t[i]:.9g} s then {t[i + 1]:.9g} s), and "
+            "the stamps do not follow a regular clock that would explain it; sort or "
+            "repair the time column"
+        )
+    return t, base
+
+
+def sample_clock(
+    t: Array, lines: NDArray[np.int64] | None = None
+) -> tuple[NDArray[np.int64] | None, Array, TimeBase]:
+    """The regular clock behind stamps ``t``, if there is one.
+
+    Returns
+    -------
+    numbers : ndarray of int, shape (n,), or None
+        Sample number of each stamp on the clock (lost samples skip numbers); None
+        when the stamps follow no regular clock.
+    clock : ndarray, shape (n,)
+        The clock's time of each sample, s (the stamps themselves if irregular).
+    base : TimeBase
+    """
+    t = np.asarray(t, dtype=float)
     n = t.size
     where = lines if lines is not None else np.arange(1, n + 1)
     if n < 3:
@@ -106,6 +140,7 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
     ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
     dt = float(np.mean(ordinary)) if ordinary.size and np.mean(ordinary) > 0 else typical
     q = resolution(t)
+    resid = np.zeros(n)
     for counting in (_step_counts, _locked_counts):  # the fast way, then the careful one
         period = dt
         for _ in range(3):  # count with the period, refit the period, count again
@@ -116,32 +151,29 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
             period = slope
         worst = float(np.max(np.abs(resid)))
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
-            # stamps already on the clock (to a millionth of a period) are kept exactly
-            exact = worst <= 1e-6 * slope and bool(np.all(steps > 0))
-            return t if exact else offset + slope * k, TimeBase(
-                regular=True,
-                rate_hz=1.0 / slope,
-                residual_rms_s=float(np.sqrt(np.mean(resid**2))),
-                residual_max_s=worst,
-                lost=int(k[-1] + 1 - n),
-                repaired=int(np.count_nonzero(steps <= 0)),
+            return (
+                k,
+                offset + slope * k,
+                TimeBase(
+                    regular=True,
+                    rate_hz=1.0 / slope,
+                    residual_rms_s=float(np.sqrt(np.mean(resid**2))),
+                    residual_max_s=worst,
+                    lost=int(k[-1] + 1 - n),
+                    repaired=int(np.count_nonzero(steps <= 0)),
+                ),
             )
-    back = np.flatnonzero(steps <= 0)
-    if back.size:
-        i = int(back[0])
-        verb = "repeats" if steps[i] == 0 else "goes back"
-        raise InputError(
-            f"time {verb} at line {where[i + 1]} ({t[i]:.9g} s then {t[i + 1]:.9g} s), and "
-            "the stamps do not follow a regular clock that would explain it; sort or "
-            "repair the time column"
-        )
-    return t, TimeBase(
-        regular=False,
-        rate_hz=1.0 / typical,
-        residual_rms_s=float(np.sqrt(np.mean(resid**2))),
-        residual_max_s=worst,
-        lost=0,
-        repaired=0,
+    return (
+        None,
+        t,
+        TimeBase(
+            regular=False,
+            rate_hz=1.0 / typical,
+            residual_rms_s=float(np.sqrt(np.mean(resid**2))),
+            residual_max_s=float(np.max(np.abs(resid))),
+            lost=0,
+            repaired=0,
+        ),
     )
 
 

@@ -102,6 +102,16 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
         "rate_hz": session.rate_hz,
         **recording_state(session),
     }
+    contact = outcome.contact
+    if not contact.all_contact:
+        data["grasps"] = {
+            "baseline_N": contact.baseline_n,
+            "found": [
+                {"start_s": g.start_s, "end_s": g.end_s, "peak_force_N": g.peak_force_n}
+                for g in contact.grasps
+            ],
+            "fitted": outcome.fitted_grasps,
+        }
     if est is not None:
         best = est.best_
         kin = est.kinematics_

@@ -96,6 +96,9 @@ class BayesianFit:
     decisive : float
         ln Bayes factor behind the best beyond which a form is not sampled.
     seed : int
+    grasps : {"all", "none"} or list of int
+        Where the session alternates grasps with free motion: fit every grasp, every
+        sample, or the grasps numbered (from 1).
     progress : callable, optional
         ``progress(form, steps, tau)`` while sampling.
 
@@ -116,6 +119,8 @@ class BayesianFit:
         Position noise SD estimated from its spectrum (m).
     scales_ : MotionScales
         The session's typical closure, speed, acceleration and force behind the priors.
+    contact_ : Contact
+        The grasps found in the session.
     expected_residual_sd_ : float
         Residual SD the best form expects (N): force noise plus position noise
         carried through the law.
@@ -132,9 +137,11 @@ class BayesianFit:
         decisive: float = DECISIVE,
         force_scale: float | None = None,
         seed: int = 0,
+        grasps: str | Sequence[int] = "all",
         progress: Callable[[str, int, float], None] | None = None,
     ) -> None:
         self.forms = forms
+        self.grasps = grasps
         self.force_scale = force_scale
         self.sampler = sampler
         self.differentiator = differentiator
@@ -160,7 +167,13 @@ class BayesianFit:
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
-        session, kin, warnings = prepare(session, self._diff())
+        ready = prepare(session, self._diff(), self.grasps)
+        session, kin, warnings, contact = (
+            ready.session,
+            ready.kinematics,
+            ready.warnings,
+            ready.contact,
+        )
         sigma_x = self._position_noise(session) if self.eiv else 0.0
         y = kin.force
         rng = np.random.default_rng(self.seed)
@@ -175,7 +188,8 @@ class BayesianFit:
         warnings.extend(_prior_conflict(best_ls, firsts[best_ls.name].beta, scales))
         tau = firsts[best_ls.name].tau
         A = design(best_ls, kin, session.position, sigma_x)
-        weight = data_weight(A, y - A @ firsts[best_ls.name].beta, tau)
+        # bridged stand-ins are not measurements: each fitted sample counts for less
+        weight = data_weight(A, y - A @ firsts[best_ls.name].beta, tau) * ready.measured_fraction
         del A
 
         results = [
@@ -205,6 +219,7 @@ class BayesianFit:
         self.kinematics_ = kin
         self.sigma_x_ = sigma_x
         self.scales_ = scales
+        self.contact_ = contact
         self.tau_ = tau
         self.n_eff_ = y.size * weight
         self.results_ = results

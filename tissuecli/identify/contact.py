@@ -2,7 +2,9 @@
 
 A forceps session alternates grasps with free motion, during which the force
 sensor reads its own offset (the baseline) plus noise. The baseline is the level
-of the lowest long, flat stretch of the smoothed force; a sample is in contact when
+of the lowest long, flat stretch of the smoothed force during which the force does not
+follow the jaw closure (near the tightest closure of a grasp the force also rests low,
+but rises and falls with the closure); a sample is in contact when
 the smoothed force stands above the baseline by more than 6 noise SDs (entering) and
 until it falls below 3 (leaving). Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
@@ -29,6 +31,9 @@ ENTER_SD, LEAVE_SD = 6.0, 3.0
 SMOOTH_S = 0.02
 #: the free stretches must cover this much of a session for it to have any
 MIN_FREE_FRACTION = 0.05
+#: a stretch whose force follows the closure with more than this fraction of the
+#: session's overall force-closure slope, significantly, is contact resting low
+FOLLOW_FRACTION = 0.02
 
 
 @dataclass(frozen=True)
@@ -91,7 +96,8 @@ def find_contact(session: Session) -> Contact:
     dt = float(np.median(np.diff(session.time))) if n > 1 else 1.0
     noise = _noise_sd(f)
     smooth = _moving_mean(f, max(1, int(round(SMOOTH_S / dt))))
-    baseline, free = _baseline(smooth, noise, dt)
+    closure = _moving_mean(session.position, max(1, int(round(SMOOTH_S / dt))))
+    baseline, free = _baseline(smooth, closure, noise, dt)
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -142,19 +148,35 @@ def _moving_mean(f: Array, width: int) -> Array:
     return np.convolve(padded, kernel, mode="valid")
 
 
-def _baseline(smooth: Array, noise: float, dt: float) -> tuple[float, float]:
+def _baseline(smooth: Array, closure: Array, noise: float, dt: float) -> tuple[float, float]:
     """The lowest level the smoothed force rests at for long stretches (free jaws), and
     the fraction of the session spent within a few noise SDs of it."""
     floor = float(np.percentile(smooth, 2))
     band = max(ENTER_SD * noise, 1e-12 * max(abs(floor), 1.0))
     near = smooth <= floor + band
+    overall = _slope(closure, smooth)[0]
     long_free = np.zeros_like(near)
     for start, stop in _runs(near):
-        if (stop - start) * dt >= MIN_GRASP_S:
-            long_free[start:stop] = True
+        if (stop - start) * dt < MIN_GRASP_S:
+            continue
+        slope, se = _slope(closure[start:stop], smooth[start:stop])
+        if slope > max(FOLLOW_FRACTION * overall, 4.0 * se):
+            continue  # the force follows the closure: a grasp at its loosest
+        long_free[start:stop] = True
     if not np.any(long_free):
         return floor, 0.0
     return float(np.median(smooth[long_free])), float(np.mean(long_free))
+
+
+def _slope(x: Array, y: Array) -> tuple[float, float]:
+    """Least-squares slope of ``y`` on ``x`` and its standard error (0, inf if x is flat)."""
+    dx = x - x.mean()
+    sxx = float(dx @ dx)
+    if x.size < 3 or sxx <= 0:
+        return 0.0, float("inf")
+    slope = float(dx @ (y - y.mean())) / sxx
+    resid = y - y.mean() - slope * dx
+    return slope, float(np.sqrt(resid @ resid / (x.size - 2) / sxx))
 
 
 def _hysteresis(signal: Array, enter: float, leave: float) -> NDArray[np.bool_]:

@@ -3,13 +3,14 @@ both, as :func:`fit_session` runs them and :class:`FitOutcome` holds them."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from ..core.errors import FitError
 from ..core.session import Session
 from .bayes import BayesianFit
+from .contact import Contact
 from .pinv import WindowedPinv
 
 METHODS = ("bayes", "pinv", "both")
@@ -27,11 +28,14 @@ class FitOutcome:
         The fitted Bayesian estimator (methods ``bayes`` and ``both``).
     pinv : WindowedPinv or None
         The fitted pseudoinverse (methods ``pinv`` and ``both``).
+    grasps : {"all", "none"} or list of int
+        The grasps asked for.
     """
 
     session: Session
     bayes: BayesianFit | None
     pinv: WindowedPinv | None
+    grasps: str | Sequence[int] = "all"
 
     @property
     def warnings(self) -> list[str]:
@@ -46,6 +50,24 @@ class FitOutcome:
             else []
         )
         return session_warnings(self.session) + list(fit)
+
+    @property
+    def contact(self) -> Contact:
+        """The grasps found in the fitted part of the session."""
+        fitted = self.bayes if self.bayes is not None else self.pinv
+        assert fitted is not None
+        return fitted.contact_
+
+    @property
+    def fitted_grasps(self) -> list[int]:
+        """Numbers (from 1) of the grasps the fit used; empty for a session in contact
+        throughout or fitted with ``grasps="none"``."""
+        contact = self.contact
+        if contact.all_contact or self.grasps == "none":
+            return []
+        if self.grasps == "all":
+            return list(range(1, len(contact.grasps) + 1))
+        return sorted(set(self.grasps))
 
 
 def recording_state(session: Session) -> dict[str, Any]:
@@ -103,6 +125,9 @@ def fit_session(
     window_s: float = 1.0,
     force_scale: float | None = None,
     seed: int = 0,
+    grasps: str | Sequence[int] = "all",
+    start_s: float | None = None,
+    end_s: float | None = None,
     progress: Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
     """Identify the tissue in a session.
@@ -126,11 +151,16 @@ def fit_session(
         Prior scale, N (see :class:`BayesianFit`); by default from the session.
     seed : int
         Seed of the sampler and of the plotted posterior draws.
+    grasps : {"all", "none"} or list of int
+        Which grasps to fit (see :class:`BayesianFit`).
+    start_s, end_s : float, optional
+        Fit only the samples between these times, s (the session's own clock).
     progress : callable, optional
         ``progress(form, steps, tau)`` while sampling.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose bayes, pinv or both")
+    part = session.window(start_s, end_s) if start_s is not None or end_s is not None else session
     est = pinv = None
     if method in ("bayes", "both"):
         est = BayesianFit(
@@ -139,13 +169,14 @@ def fit_session(
             differentiator=differentiator,
             force_scale=force_scale,
             seed=seed,
+            grasps=grasps,
             progress=progress,
-        ).fit(session)
+        ).fit(part)
     if method in ("pinv", "both"):
         pinv_forms = (
             forms if forms != "all" else (est.best_.model.name if est is not None else "x,xdot")
         )
-        pinv = WindowedPinv(pinv_forms, window_s=window_s, differentiator=differentiator).fit(
-            session
-        )
-    return FitOutcome(session, est, pinv)
+        pinv = WindowedPinv(
+            pinv_forms, window_s=window_s, differentiator=differentiator, grasps=grasps
+        ).fit(part)
+    return FitOutcome(session, est, pinv, grasps)

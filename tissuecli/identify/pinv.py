@@ -3,6 +3,7 @@ keeping the window of smallest residual (paper, section 4)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,8 @@ class WindowedPinv:
     window_s : float
         Window length in s (n+1 = window_s * rate).
     differentiator : str or Differentiator
+    grasps : {"all", "none"} or list of int
+        As :class:`~tissuecli.identify.bayes.BayesianFit`.
 
     Attributes
     ----------
@@ -55,10 +58,12 @@ class WindowedPinv:
         *,
         window_s: float = 1.0,
         differentiator: str | Differentiator = "gaussian",
+        grasps: str | Sequence[int] = "all",
     ) -> None:
         self.forms = forms
         self.window_s = window_s
         self.differentiator = differentiator
+        self.grasps = grasps
 
     def fit(self, session: Session) -> WindowedPinv:
         """Fit the form to each window of ``session``; returns self."""
@@ -68,7 +73,13 @@ class WindowedPinv:
             raise FitError("the pseudoinverse fits one law; give --forms such as x,xdot")
         (model,) = models
         d = self.differentiator
-        session, kin, warnings = prepare(session, differentiator(d) if isinstance(d, str) else d)
+        ready = prepare(session, differentiator(d) if isinstance(d, str) else d, self.grasps)
+        session, kin, warnings, contact = (
+            ready.session,
+            ready.kinematics,
+            ready.warnings,
+            ready.contact,
+        )
         A, y = design(model, kin, session.position), kin.force
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
         m = A.shape[0] // n
@@ -85,6 +96,7 @@ class WindowedPinv:
         best = int(np.argmin(resid))
         Ab = A[best * n : (best + 1) * n]
         self.session_ = session
+        self.contact_ = contact
         self.warnings_ = warnings
         self.model_ = model
         self.kinematics_ = kin

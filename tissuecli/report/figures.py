@@ -117,6 +117,16 @@ def envelope(t: Array, y: Array, max_points: int = MAX_POINTS) -> tuple[Array, A
     return t[idx], y[idx]
 
 
+def broken(t: Array, y: Array) -> tuple[Array, Array]:
+    """``t, y`` with a NaN wherever the time jumps by more than three typical steps, so
+    that a line is not drawn across a gap (between grasps, over a hole)."""
+    if t.size < 3:
+        return t, y
+    steps = np.diff(t)
+    cut = np.flatnonzero(steps > 3 * np.median(steps)) + 1
+    return np.insert(t.astype(float), cut, np.nan), np.insert(y.astype(float), cut, np.nan)
+
+
 def stride(n: int, max_points: int = MAX_POINTS) -> Array:
     """Evenly spaced indices, at most ``max_points`` of them (for smooth paths)."""
     return np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(int))
@@ -149,12 +159,17 @@ def new_figure(w: float, h: float) -> Figure:
 def time_figure(s: Series) -> Figure:
     fig = new_figure(9.5, 4.6)
     ax, bx = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-    ax.plot(*envelope(s.time, s.raw), color=COLOURS["raw"], lw=0.7, label="raw (unfiltered)")
     ax.plot(
-        *envelope(s.time, s.force), color=COLOURS["measured"], lw=1.3, label="measured (filtered)"
+        *broken(*envelope(s.time, s.raw)), color=COLOURS["raw"], lw=0.7, label="raw (unfiltered)"
     )
     ax.plot(
-        *envelope(s.time, s.fitted),
+        *broken(*envelope(s.time, s.force)),
+        color=COLOURS["measured"],
+        lw=1.3,
+        label="measured (filtered)",
+    )
+    ax.plot(
+        *broken(*envelope(s.time, s.fitted)),
         color=COLOURS["fitted"],
         lw=1.1,
         ls="--",
@@ -165,7 +180,7 @@ def time_figure(s: Series) -> Figure:
     ax.legend(loc="upper right", fontsize=8, ncols=3, framealpha=0.9)
     lo, hi = float(np.min(s.raw)), float(np.max(s.raw))
     ax.set_ylim(lo - 0.05 * (hi - lo), hi + 0.22 * (hi - lo))  # room for the legend
-    bx.plot(*envelope(s.time, s.x * 1e3), color="#444444", lw=1.0)
+    bx.plot(*broken(*envelope(s.time, s.x * 1e3)), color="#444444", lw=1.0)
     bx.set_ylabel("closure x (mm)")
     bx.set_xlabel("time (s)")
     bx.grid(alpha=0.3)
@@ -209,7 +224,7 @@ def residual_figure(s: Series) -> Figure:
     hx = fig.add_subplot(gs[1])
     rms = float(np.sqrt(np.mean(r**2)))
     ax.plot(
-        *envelope(s.time, r),
+        *broken(*envelope(s.time, r)),
         color=COLOURS["measured"],
         lw=0.7,
         label=f"residual, RMS {rms:.3g} mN",

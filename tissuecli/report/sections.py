@@ -435,7 +435,12 @@ def diagnostics(outcome: FitOutcome) -> str:
     trimmed = (kin.window - 1) // 2
     holes = grid - 2 * trimmed - kin.time.size  # beside lost or clipped samples
     used = f"{kin.time.size:,} of {n:,} ({trimmed:,} trimmed at each edge, where the filter "
-    used += f"is one-sided; {holes:,} beside lost or clipped samples)" if holes else "is one-sided)"
+    beside = (
+        "outside the fitted grasps or beside lost or clipped samples"
+        if outcome.fitted_grasps
+        else "beside lost or clipped samples"
+    )
+    used += f"is one-sided; {holes:,} {beside})" if holes else "is one-sided)"
     g = kin.noise_gain
     items = [
         ("Differentiator", f"<code>{esc(kin.method)}</code>"),
@@ -481,7 +486,7 @@ def diagnostics(outcome: FitOutcome) -> str:
                 ),
             )
         )
-    out = meta_table(items)
+    out = meta_table(items) + grasps_table(outcome)
     if est is not None:
         out += (
             "<p class='small'>Why the effective sample count is smaller than the sample "
@@ -495,8 +500,9 @@ def diagnostics(outcome: FitOutcome) -> str:
             for r in sampled:
                 d = r.posterior.diagnostics  # type: ignore[union-attr]
                 tau = list(d.get("tau", []))
+                labels = [t.symbol for t in r.model.terms] + ["σ"]
                 tau_text = ", ".join(
-                    f"{lab} {sig(t, 3)}" for lab, t in zip(("K", "S", "M", "σ"), tau, strict=False)
+                    f"{lab} {sig(t, 3)}" for lab, t in zip(labels, tau, strict=False)
                 )
                 steps = int(d.get("steps", 0))
                 need = 50 * max(tau) if tau else float("nan")
@@ -532,6 +538,44 @@ def diagnostics(outcome: FitOutcome) -> str:
                 "is closed-form, so there are no chain diagnostics.</p>"
             )
     return out
+
+
+def grasps_table(outcome: FitOutcome) -> str:
+    """The grasps found against the free-jaw baseline, and which were fitted ("" for a
+    session in contact throughout)."""
+    contact = outcome.contact
+    if contact.all_contact:
+        return ""
+    fitted = set(outcome.fitted_grasps)
+    rows = [
+        [
+            str(i),
+            fixed(g.start_s, 3),
+            fixed(g.end_s, 3),
+            fixed(g.duration_s, 2),
+            sig(g.peak_force_n, 3),
+            "yes" if i in fitted else "no",
+        ]
+        for i, g in enumerate(contact.grasps, 1)
+    ]
+    return (
+        f"<h3>Grasps</h3><p>{esc(contact.describe())}. A sample is in contact while the "
+        "smoothed force stands above the free-jaw baseline (the force sensor's offset) by "
+        "more than a few noise SDs; only filtered samples whose whole window lies in a "
+        "fitted grasp are fitted (<code>--grasps</code> chooses).</p>"
+        + table(
+            [
+                "grasp",
+                "start (s)",
+                "end (s)",
+                "duration (s)",
+                "peak force above baseline (N)",
+                "fitted",
+            ],
+            rows,
+            [True, True, True, True, True, False],
+        )
+    )
 
 
 def how_to_read(outcome: FitOutcome) -> str:

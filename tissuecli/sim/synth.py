@@ -68,6 +68,49 @@ class Operator:
 
 
 @dataclass(frozen=True)
+class GraspingOperator:
+    """Grasps separated by free jaw motion, as a surgeon works.
+
+    The session opens with ``free_s`` of free motion, the jaws ``open_m`` short of
+    the tissue (closure ``-open_m``, no force); then each grasp closes onto the
+    tissue over ``ramp_s`` (a raised cosine), squeezes it as ``squeeze`` does for
+    ``grasp_s - 2 ramp_s``, and releases over ``ramp_s``; and so on.
+    """
+
+    squeeze: Operator = field(default_factory=Operator)
+    grasp_s: float = 3.0
+    free_s: float = 1.0
+    ramp_s: float = 0.3
+    open_m: float = 2e-3
+
+    def window(self, t: Array) -> tuple[Array, Array, Array]:
+        """The grasp window ``w`` (1 in a grasp, 0 free) and its first two derivatives."""
+        u = np.mod(t, self.free_s + self.grasp_s) - self.free_s  # time into the grasp
+        r, g = self.ramp_s, self.grasp_s
+        w, w1, w2 = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
+        for lo, hi, sign in ((0.0, r, 1.0), (g - r, g, -1.0)):
+            inside = (u >= lo) & (u < hi)
+            phase = np.pi * (u[inside] - lo) / r
+            w[inside] = (1 - sign * np.cos(phase)) / 2
+            w1[inside] = sign * np.pi / (2 * r) * np.sin(phase)
+            w2[inside] = sign * np.pi**2 / (2 * r**2) * np.cos(phase)
+        w[(u >= r) & (u < g - r)] = 1.0
+        return w, w1, w2
+
+    def kinematics(self, t: ArrayLike) -> tuple[Array, Array, Array]:
+        """Exact jaw closure (m), velocity (m/s) and acceleration (m/s^2) at times ``t`` (s)."""
+        t = np.asarray(t, dtype=float)
+        x0, v0, a0 = self.squeeze.kinematics(t)
+        w, w1, w2 = self.window(t)
+        lift = x0 + self.open_m  # from the open jaws to the squeeze
+        return (
+            w * lift - self.open_m,
+            w1 * lift + w * v0,
+            w2 * lift + 2 * w1 * v0 + w * a0,
+        )
+
+
+@dataclass(frozen=True)
 class Sensors:
     """Strain-gauge force sensor and optical jaw sensor, read by one ADC.
 
@@ -80,6 +123,7 @@ class Sensors:
     position_noise_m: float = 5e-6
     force_range_n: tuple[float, float] = (-1.0, 5.0)
     position_range_m: tuple[float, float] = (-0.5e-3, 15e-3)
+    force_offset_n: float = 0.0  # what the force sensor reads with nothing in the jaws
 
     @property
     def calibration(self) -> Calibration:
@@ -91,7 +135,7 @@ class Sensors:
     def read(self, force: Array, position: Array, rng: np.random.Generator) -> NDArray[np.int16]:
         """Raw counts, shape (n, 2): columns force and position."""
         cal = self.calibration
-        f = force + rng.normal(0.0, self.force_noise_n, force.shape)
+        f = force + self.force_offset_n + rng.normal(0.0, self.force_noise_n, force.shape)
         x = position + rng.normal(0.0, self.position_noise_m, position.shape)
         return np.column_stack(
             [cal.force.to_counts(f, self.bits), cal.position.to_counts(x, self.bits)]
@@ -108,7 +152,7 @@ class ForcepsModel:
     """
 
     tissue: Tissue = DEFAULT_TISSUE
-    operator: Operator = field(default_factory=Operator)
+    operator: Operator | GraspingOperator = field(default_factory=Operator)
     sensors: Sensors = field(default_factory=Sensors)
     rate_hz: float = 1000.0
     drift_ppm: float = 0.0
@@ -126,9 +170,10 @@ class ForcepsModel:
         return np.rint(np.asarray(k, dtype=float) * (CLOCK_HZ / self.rate_hz)).astype(np.int64)
 
     def truth(self, k: ArrayLike) -> tuple[Array, Array, Array, Array]:
-        """True x (m), xdot (m/s), xddot (m/s^2) and F (N) at samples ``k``."""
+        """True x (m), xdot (m/s), xddot (m/s^2) and F (N) at samples ``k``; the jaws
+        touch the tissue at closure 0, so there is no force below it."""
         x, v, a = self.operator.kinematics(self.true_time(k))
-        return x, v, a, self.tissue.force(x, v, a)
+        return x, v, a, np.where(x > 0, self.tissue.force(x, v, a), 0.0)
 
     def samples(self, k0: int, k1: int) -> tuple[NDArray[np.int64], NDArray[np.int16]]:
         """Device ticks (n,) and raw counts (n, 2) of samples ``k0 .. k1-1``, noise included.
