@@ -86,7 +86,8 @@ ROWS = [(i * 1e-3, 1.0 + i, 1e-3 * i) for i in range(50)]
     [
         ("a,b,c", ROWS, "no column for time"),
         ("time,force,position", ROWS[:20] + [(0.001, 1, 1)] + ROWS[20:], "goes back at line 22"),
-        ("time,force,position", [("abc", 1, 1)] * 50, "no rows of numbers"),
+        ("time,force,position", [("abc", 1, 1)] * 50, "holds text, not numbers"),
+        ("time,force,position", [("abc", "x", 1)] * 50, "no rows of numbers"),
         ("time,force,position", ROWS[:2], "too few"),
         ("time,force,position", ROWS[:20] + [("x", "y", "z")] * 30, "do not parse"),
     ],

@@ -121,5 +121,7 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
             f"pinv ({p.model_.name}, best of {p.windows_.shape[0]} windows of "
             f"{p.window_samples_} samples): {vals}; cond {p.cond_:.3g}, scaled {p.cond_scaled_:.3g}"
         )
+    if outcome.validation is not None:
+        lines.append(outcome.validation.describe())
     lines.extend(f"warning: {w}" for w in outcome.warnings)
     return lines

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from ..core.errors import InputError
 from ..core.session import Session
@@ -16,7 +17,7 @@ from ..formats.sessions import check_new_session, read_session, write_session
 def import_recording(
     source: str | os.PathLike[str],
     out: str | os.PathLike[str],
-    session: str,
+    session: str | None = None,
     *,
     columns: str | None = None,
     units: str | None = None,
@@ -27,7 +28,8 @@ def import_recording(
 ) -> tuple[Session, ImportReport]:
     """Read a recording (text table, .mat or .npz; see
     :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
-    file ``out`` (created if missing; other sessions are never touched).
+    file ``out`` (created if missing; other sessions are never touched), named
+    ``session`` or else after the source file (its name without the extension).
 
     Returns
     -------
@@ -37,6 +39,8 @@ def import_recording(
         Columns and units used, what was repaired or skipped, and unit warnings.
     """
     check_outputs([Output(out, "--out", appends=True)], [source])
+    if session is None:
+        session = Path(source).stem
     check_new_session(out, session)
     s, report = read_recording(
         source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,

@@ -52,7 +52,7 @@ def sessions(file: str, as_json: bool) -> None:
 @cli.command("import")
 @file_argument("source")
 @h5_out_option()
-@session_option("Name of the new session.", required=True)
+@session_option("Name of the new session [default: the name of SOURCE without its extension].")
 @click.option(
     "--columns",
     default=None,
@@ -80,7 +80,7 @@ def sessions(file: str, as_json: bool) -> None:
 def import_(
     source: str,
     out: str,
-    session: str,
+    session: str | None,
     columns: str | None,
     units: str | None,
     jaw_length: str | None,
@@ -121,7 +121,7 @@ def import_(
         click.echo(line)
     click.echo(
         f"imported {len(s)} samples ({s.duration_s:.3f} s at {s.rate_hz:.1f} Hz) "
-        f"into {out} session {session!r}"
+        f"into {out} session {s.name!r}"
     )
 
 

@@ -64,7 +64,9 @@ def _grasps(text: str) -> str | list[int]:
     "--forms",
     default="all",
     show_default=True,
-    help="'all' to choose among x|x^3 and xdot|xdot^2, or one form such as x,xdot.",
+    help="Candidate laws: 'all' (x or x^3 with xdot or xdot|xdot|, each with and without a "
+    "force offset), 'paper' (the paper's four), or one law: x,xdot or terms joined by +, "
+    "e.g. x+x^3+xdot+sign(xdot)+offset.",
 )
 @click.option(
     "--sampler",
@@ -91,10 +93,9 @@ def _grasps(text: str) -> str | list[int]:
 @click.option(
     "--force-scale",
     type=click.FloatRange(min=0, min_open=True),
-    default=20.0,
-    show_default=True,
-    help="Prior scale in N: the force each term may reach at jaw-scale motion (5 mm, "
-    "50 mm/s, 10 m/s^2). Raise it for stiff materials.",
+    default=None,
+    help="Prior scale in N: the force each term may reach at the session's typical motion "
+    "[default: five times the session's largest force].",
 )
 @click.option(
     "--grasps",
@@ -102,6 +103,13 @@ def _grasps(text: str) -> str | list[int]:
     show_default=True,
     help="Where grasps alternate with free jaw motion: fit every grasp (all), every sample "
     "(none), or the grasps numbered, e.g. 1,3.",
+)
+@click.option(
+    "--hold-out",
+    type=click.FloatRange(0.0, 1.0, max_open=True),
+    default=0.0,
+    help="Keep this fraction of the session, at its end, out of the fit and report how "
+    "well the fit predicts it, e.g. 0.3.",
 )
 @click.option("--start", type=float, default=None, help="Fit from this time on, s.")
 @click.option("--end", type=float, default=None, help="Fit up to this time, s.")
@@ -117,20 +125,27 @@ def fit(
     sampler: str,
     differentiator: str,
     window: float,
-    force_scale: float,
+    force_scale: float | None,
     grasps: str,
+    hold_out: float,
     start: float | None,
     end: float | None,
     seed: int,
     force: bool,
 ) -> None:
-    """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F from a session.
+    """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F (and laws beyond it:
+    offset, friction) from a session, choosing among the candidate laws by evidence.
+
+    Where grasps alternate with free jaw motion, the grasps are found against the
+    free-jaw force and fitted alone.
 
     \b
     Examples:
         tissuecli fit grasp.h5 --session liver-1 --out liver.json --report liver.html
         tissuecli fit grasp.h5 --method pinv          # the paper's method alone
-        tissuecli fit grasp.h5 --forms x,xdot         # one form, no model choice
+        tissuecli fit grasp.h5 --forms x,xdot         # one law, no model choice
+        tissuecli fit grasp.h5 --grasps 2,3 --hold-out 0.3
+        tissuecli fit grasp.h5 --start 12.5 --end 40
     """
     from ..app.fit import fit_file, summary_lines
 
@@ -143,6 +158,7 @@ def fit(
         grasps=_grasps(grasps),
         start_s=start,
         end_s=end,
+        hold_out=hold_out,
         method=method,
         forms=forms,
         sampler=sampler,

@@ -39,21 +39,24 @@ UNITS: dict[str, dict[str, float]] = {
 COLUMN_DIMENSION = {q.name: q.dimension for q in QUANTITIES}
 ALTERNATIVES = {"position": ("angle",), "force": ("torque",)}
 
-#: a unit, optionally scaled: ``mm``, ``0.0007670*rad`` (one ADC count), ``3.98e-5Nm``
-_SCALED = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)?\s*\*?\s*(\S+?)\s*")
+#: a unit, optionally scaled: ``mm``, ``0.0007670*rad`` (one ADC count), ``3.98e-5Nm``,
+#: or signed: ``-deg`` (a sensor that reads the other way)
+_SCALED = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+])?\s*\*?\s*(\S+?)\s*")
 
 
 def unit_factor(unit: str) -> tuple[str, float] | None:
-    """The dimension and SI factor of a unit, optionally scaled (``0.5*mm``); None if unknown
-    or the scale is not a finite positive number."""
+    """The dimension and SI factor of a unit, optionally scaled (``0.5*mm``) or signed
+    (``-deg``: the column grows the other way); None if unknown or the scale is not a
+    finite non-zero number."""
     match = _SCALED.fullmatch(unit or "")
     if match is None:
         return None
     dim = next((d for d, table in UNITS.items() if match.group(2) in table), None)
     if dim is None:
         return None
-    scale = float(match.group(1)) if match.group(1) else 1.0
-    if not (math.isfinite(scale) and scale > 0):
+    sign = {"-": "-1", "+": "1", None: "1"}.get(match.group(1), match.group(1))
+    scale = float(sign)
+    if not (math.isfinite(scale) and scale != 0):
         return None
     return dim, scale * UNITS[dim][match.group(2)]
 
@@ -149,8 +152,10 @@ def _check_unit(column: str, unit: str) -> None:
         known = ", ".join(u for table in UNITS.values() for u in table)
         raise InputError(
             f"unknown unit {unit[:20]!r} in --units; use any of: {known}, optionally scaled "
-            "as 0.5*mm"
+            "as 0.5*mm or signed as -deg"
         )
+    if column == "time" and (unit_factor(unit) or ("", 1.0))[1] < 0:
+        raise InputError(f"--units time={unit}: a time unit cannot be negative")
     if column and (dim == COLUMN_DIMENSION[column] or dim in ALTERNATIVES.get(column, ())):
         return
     where = f"for {column}" if column else "for any column"

@@ -112,6 +112,16 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
             ],
             "fitted": outcome.fitted_grasps,
         }
+    if outcome.validation is not None:
+        v = outcome.validation
+        doc["validation"] = {
+            "split_s": v.split_s,
+            "r2_fitted": v.r2_fitted,
+            "r2_held_out": v.r2_held_out,
+            "rms_N": v.rms_n,
+            "force_sd_N": v.force_sd_n,
+            "samples": v.samples,
+        }
     if est is not None:
         best = est.best_
         kin = est.kinematics_

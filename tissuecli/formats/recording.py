@@ -28,7 +28,7 @@ from ..core.session import COLUMNS, Session
 from ..core.timebase import regularise
 from ..core.units import ColumnUnits, dimension_of, parse_units, unit_in_header
 from .arrays import read_arrays
-from .tables import Table, read_table
+from .tables import Table, clock_seconds, read_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
 SYNONYMS = {
@@ -39,6 +39,8 @@ SYNONYMS = {
         "indentation", "stroke", "opening", "angle", "jawangle", "theta", "jawposition",
     ),
 }  # fmt: skip
+#: position headers that name the opening between the jaws: closure is their negative
+OPENINGS = ("gap", "opening")
 ARRAY_SUFFIXES = (".mat", ".npz")
 
 
@@ -104,7 +106,19 @@ def read_recording(
         index = chosen.get(quantity)
         if index is None:
             continue
-        unit, origin = _unit(quantity, table.names[index], units_given, table.header)
+        clock = (
+            clock_seconds(table.text[index]) if quantity == "time" and index in table.text else None
+        )
+        if clock is not None:
+            table.data[:, index] = clock  # clock times are read in s, whatever --units says
+            unit, origin = "s", " (clock times)"
+        elif np.all(np.isnan(table.data[:, index])):
+            raise InputError(
+                f"{path}: column {table.names[index]!r} holds text, not numbers; choose "
+                f"another with --columns {quantity}=NAME"
+            )
+        else:
+            unit, origin = _unit(quantity, table.names[index], units_given, table.header)
         picked[quantity] = (index, unit)
         report.columns[quantity] = table.names[index]
         report.units[quantity] = unit + origin
@@ -112,6 +126,12 @@ def read_recording(
     data = table.data
     force = _force(data[:, picked["force"][0]], picked["force"][1], jaw_length_m, path)
     position = _closure(data[:, picked["position"][0]], picked["position"][1], jaw_length_m, path)
+    if _normal(table.names[picked["position"][0]]) in OPENINGS:
+        position = -position
+        report.notes.append(
+            f"position: {table.names[picked['position'][0]]!r} grows as the jaws open; "
+            "closure is its negative"
+        )
     if "time" in picked:
         stamps = data[:, picked["time"][0]] * ColumnUnits(time=picked["time"][1]).factor("time")
         time, base = regularise(stamps, table.lines)
@@ -196,7 +216,9 @@ def _choose_columns(
         hits = [
             i
             for i, n in enumerate(names)
-            if i not in chosen.values() and _normal(n) in SYNONYMS[quantity]
+            if i not in chosen.values()
+            and _normal(n) in SYNONYMS[quantity]
+            and (quantity == "time" or not np.all(np.isnan(table.data[:, i])))
         ]
         if len(hits) > 1:
             raise InputError(

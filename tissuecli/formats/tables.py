@@ -44,6 +44,9 @@ class Table:
         Line numbers of lines that are neither data, header, comment nor blank.
     header : bool
         Whether the names came from the file.
+    text : dict of int to list of str
+        The fields of each text column (NaN in ``data``), one per row: a clock time
+        (``12:03:04.125``) may be a time column.
     """
 
     names: list[str]
@@ -53,6 +56,7 @@ class Table:
     notes: list[str] = field(default_factory=list)
     junk: list[int] = field(default_factory=list)
     header: bool = True
+    text: dict[int, list[str]] = field(default_factory=dict)
 
 
 def decode(raw: bytes, path: Path) -> tuple[str, str]:
@@ -114,18 +118,21 @@ def read_table(path: str | os.PathLike[str]) -> Table:
             f"{path} holds no rows of numbers (no line parses as two or more numbers "
             "separated by commas, tabs, semicolons, bars or spaces)"
         )
-    delimiter, width, decimal_comma = sniffed
+    delimiter, width, decimal_comma, numeric = sniffed
     rows: list[list[float]] = []
     lines: list[int] = []
     header: list[str] | None = None
     before: list[tuple[int, list[str]]] = []  # lines before the first data row
     junk: list[int] = []
+    text: dict[int, list[str]] = {i: [] for i in range(width) if not numeric[i]}
     for number, line in numbered:
         fields = _split(line, delimiter)
-        values = _numbers(fields, decimal_comma) if len(fields) == width else None
+        values = _numbers(fields, decimal_comma, numeric) if len(fields) == width else None
         if values is not None:
             rows.append(values)
             lines.append(number)
+            for i, column in text.items():
+                column.append(fields[i].strip().strip('"'))
         elif rows:
             junk.append(number)
         else:
@@ -152,6 +159,7 @@ def read_table(path: str | os.PathLike[str]) -> Table:
             f"numbers (first at line {junk[0]}); check the delimiter and the columns"
         )
     names = header if header is not None else [str(i + 1) for i in range(width)]
+    text_columns = [names[i] for i in range(width) if not numeric[i]]
     shown = {"\t": "tab", " ": "whitespace", ";": "semicolon", ",": "comma", "|": "bar"}
     notes = [
         f"{shown[delimiter]}-separated, {encoding}"
@@ -160,6 +168,8 @@ def read_table(path: str | os.PathLike[str]) -> Table:
         + (f", {len(preamble)} preamble line(s)" if preamble else "")
         + (f", {marks} line(s) of punctuation alone" if marks else "")
     ]
+    if text_columns:
+        notes.append("text column(s), not numbers: " + ", ".join(repr(n) for n in text_columns))
     if junk:
         where = ", ".join(str(j) for j in junk[:5]) + (" ..." if len(junk) > 5 else "")
         notes.append(f"{len(junk)} junk line(s) skipped (line {where})")
@@ -171,6 +181,7 @@ def read_table(path: str | os.PathLike[str]) -> Table:
         notes=notes,
         junk=junk,
         header=header is not None,
+        text=text,
     )
 
 
@@ -178,44 +189,105 @@ def _split(line: str, delimiter: str) -> list[str]:
     return _WHITESPACE.split(line.strip()) if delimiter == " " else line.split(delimiter)
 
 
-def _sniff(sample: list[str]) -> tuple[str, int, bool] | None:
-    """The separator, field count and decimal mark that parse most sample lines as numbers;
-    None if no line parses as two or more numbers."""
+def _sniff(sample: list[str]) -> tuple[str, int, bool, list[bool]] | None:
+    """The separator, field count and decimal mark that parse most sample lines as rows of
+    numbers, and which columns hold numbers (a logger may add a text column: a status,
+    a label); None if no line holds two or more numbers."""
     best: tuple[int, int, int] | None = None
-    choice = (",", 1, False)
+    choice: tuple[str, int, bool, list[bool]] = (",", 1, False, [True])
     for rank, delim in enumerate(DELIMITERS):
-        widths = Counter(len(_split(line, delim)) for line in sample)
+        split = [_split(line, delim) for line in sample]
+        widths = Counter(len(f) for f in split)
         width, _ = widths.most_common(1)[0]
         if width < 2:
             continue
+        rows = [f for f in split if len(f) == width]
         for decimal_comma in (False, True):
             if decimal_comma and delim == ",":
                 continue
-            numeric = sum(
-                1
-                for line in sample
-                if len(f := _split(line, delim)) == width and _numbers(f, decimal_comma)
-            )
-            key = (numeric, width if numeric else 0, -rank)
+            # a column holds numbers when most rows with numbers in them parse there
+            parsed = np.array([[_number(v, decimal_comma) is not None for v in f] for f in rows])
+            parsed = parsed[parsed.sum(axis=1) >= 2]
+            if not parsed.size:
+                continue
+            numeric = list(parsed.mean(axis=0) >= 0.5)
+            if sum(numeric) < 2:
+                continue
+            count = sum(1 for f in rows if _numbers(f, decimal_comma, numeric) is not None)
+            key = (count, sum(numeric) if count else 0, -rank)
             if best is None or key > best:
-                best, choice = key, (delim, width, decimal_comma)
+                best, choice = key, (delim, width, decimal_comma, numeric)
     if best is None or best[0] == 0:
         return None
     return choice
 
 
-def _numbers(fields: list[str], decimal_comma: bool) -> list[float] | None:
-    """The fields as finite floats, or None if any is not one."""
+def _number(field: str, decimal_comma: bool) -> float | None:
+    """A field as a finite float, or None."""
+    f = field.strip().strip('"')
+    if decimal_comma:
+        f = f.replace(",", ".")
+    try:
+        value = float(f)
+    except ValueError:
+        return None
+    return value if np.isfinite(value) else None
+
+
+def _numbers(
+    fields: list[str], decimal_comma: bool, numeric: list[bool] | None = None
+) -> list[float] | None:
+    """The fields as finite floats (NaN in text columns, ``numeric`` False), or None if a
+    numeric field is not one."""
     out = []
-    for f in fields:
-        f = f.strip().strip('"')
-        if decimal_comma:
-            f = f.replace(",", ".")
-        try:
-            value = float(f)
-        except ValueError:
-            return None
-        if value != value or value in (float("inf"), float("-inf")):
+    for i, f in enumerate(fields):
+        if numeric is not None and not numeric[i]:
+            out.append(float("nan"))
+            continue
+        value = _number(f, decimal_comma)
+        if value is None:
             return None
         out.append(value)
     return out
+
+
+#: a clock time: optional date, hours, minutes and seconds (or minutes and seconds)
+_CLOCK = re.compile(
+    r"(?:(\d{4})[-/](\d{1,2})[-/](\d{1,2})[T ])?"
+    r"(\d{1,2}):(\d{2}(?:[.,]\d+)?)(?::(\d{2}(?:[.,]\d+)?))?"
+)
+
+
+def clock_seconds(fields: list[str]) -> NDArray[np.float64] | None:
+    """Seconds from the first of a column of clock times (``12:03:04.125``, ``03:04.5`` as
+    minutes and seconds, ``2021-04-14 18:24:01.123``, ``2021-04-14T18:24:01Z``); a
+    time of day that goes back by more than 12 hours has passed midnight. None if a
+    field is not a clock time."""
+    import datetime as dt
+
+    out = np.empty(len(fields))
+    day = 0.0
+    first_day: int | None = None
+    for i, f in enumerate(fields):
+        m = _CLOCK.fullmatch(f.strip().removesuffix("Z"))
+        if m is None:
+            return None
+        year, month, mday, a, b, c = m.groups()
+        if c is None:  # mm:ss.s
+            seconds = int(a) * 60.0 + float(b.replace(",", "."))
+        elif "." in b or "," in b:
+            return None
+        else:
+            seconds = int(a) * 3600.0 + int(b) * 60.0 + float(c.replace(",", "."))
+        if year:
+            try:
+                ordinal = dt.date(int(year), int(month), int(mday)).toordinal()
+            except ValueError:
+                return None
+            first_day = ordinal if first_day is None else first_day
+            # days counted from the first, so that milliseconds keep their precision
+            seconds += (ordinal - first_day) * 86400.0
+        elif i and seconds + day < out[i - 1] - 43200.0:
+            day += 86400.0
+        out[i] = seconds + day
+    return out - out[0] if out.size else out

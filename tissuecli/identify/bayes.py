@@ -18,17 +18,20 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.session import Session
 from ..core.terms import Law, MotionScales, paper_laws, parse_law
-from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
+from .derivatives import Differentiator, Kinematics
 from .design import design, eiv_correction, lstsq_scaled, position_noise_sd
+from .estimator import Estimator
 from .noise import data_weight, residual_tau
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
-from .prepare import prepare
 
 Array = NDArray[np.float64]
 
 #: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
 DECISIVE = float(np.log(100.0))
 
+
+#: a residual SD below this fraction of the force range is rounding, not sensor noise
+NOISE_FREE = 1e-6
 
 #: posterior mass beyond the positivity bounds above which the posterior is sampled
 CUT_THRESHOLD = 1e-3
@@ -74,7 +77,7 @@ class ModelResult:
         return self.model.name
 
 
-class BayesianFit:
+class BayesianFit(Estimator):
     """Bayesian identification over candidate laws with model choice.
 
     Parameters
@@ -150,10 +153,6 @@ class BayesianFit:
         self.seed = seed
         self.progress = progress
 
-    def _diff(self) -> Differentiator:
-        d = self.differentiator
-        return differentiator(d) if isinstance(d, str) else (d or Gaussian())
-
     def fit(self, session: Session) -> BayesianFit:
         """Fit every candidate law to ``session``; returns self with the fitted
         attributes set.
@@ -167,7 +166,7 @@ class BayesianFit:
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
-        ready = prepare(session, self._diff(), self.grasps)
+        ready = self.prepare(session)
         session, kin, warnings, contact = (
             ready.session,
             ready.kinematics,
@@ -205,12 +204,13 @@ class BayesianFit:
         results.sort(key=lambda r: -r.ln_evidence)
         best = results[0]
         warnings.extend(f"{best.name}: {f}" for f in best.flags)
-        floor = best.prior.sigma_lo if best.prior is not None else 0.0
-        if best.posterior.sigma_mean < 10 * floor:  # type: ignore[union-attr]
+        span = float(np.ptp(y))
+        if best.posterior.sigma_mean < NOISE_FREE * span:  # type: ignore[union-attr]
+            # no sensor resolves a millionth of its range: this is rounding, not noise
             warnings.append(
-                f"the force residual is at the {floor:g} N floor of the noise prior: the "
-                "session looks noise-free (synthetic?), so its intervals reflect rounding, "
-                "not measurement noise"
+                f"the force residual ({best.posterior.sigma_mean:.3g} N) is below a millionth "  # type: ignore[union-attr]
+                f"of the force range ({span:.3g} N): the session looks noise-free "
+                "(synthetic?), so its intervals reflect rounding, not measurement noise"
             )
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(_outlier_warnings(kin, fitted))
@@ -250,7 +250,7 @@ class BayesianFit:
     ) -> ModelResult:
         """The closed-form posterior and evidence of one form."""
         corr = fp.correction
-        uncorrected = corr is not None and np.any(np.linalg.eigvalsh(fp.gram - corr) <= 0)
+        uncorrected = corr is not None and not _correctable(fp, corr)
         if uncorrected:
             corr = None  # noise dominates a column: the correction would be meaningless
         G = fp.gram - corr if corr is not None else fp.gram
@@ -329,12 +329,13 @@ class BayesianFit:
         progress, name = self.progress, res.name
         return lambda steps, tau: progress(name, steps, tau)
 
-    def predict(self, result: ModelResult | None = None) -> Array:
-        """Filtered force (N) the posterior mean of a form (the best by default) predicts at
-        the fitted samples, ``kinematics_.time``; shape (m,)."""
-        r = result or self.best_
-        A = design(r.model, self.kinematics_, self.session_.position, self.sigma_x_)
-        return A @ r.posterior.mean  # type: ignore[union-attr]
+    def _coefficients(self) -> tuple[Law, Array]:
+        post = self.best_.posterior
+        assert post is not None
+        return self.best_.model, post.mean
+
+    def _position_noise_sd(self) -> float:
+        return self.sigma_x_
 
 
 def session_scales(kin: Kinematics, force_scale: float | None = None) -> MotionScales:
@@ -424,6 +425,18 @@ class _FirstPass:
     cond: float
     cond_scaled: float
     correction: Array | None
+
+
+def _correctable(fp: _FirstPass, corr: Array) -> bool:
+    """Whether the errors-in-variables correction leaves a proper regression: ``A^T A - C``
+    positive definite, and a corrected residual of at least a tenth of the raw one (the
+    correction takes off what position noise adds to the residual; taking off nearly
+    all of it, or more, says the noise is as large as the motion)."""
+    G = fp.gram - corr
+    if np.any(np.linalg.eigvalsh(G) <= 0):
+        return False
+    beta = np.linalg.lstsq(G, fp.b, rcond=None)[0]
+    return bool(fp.yy - beta @ fp.b > 0.1 * fp.rss)
 
 
 def _first_pass(model: Law, kin: Kinematics, x_full: Array, y: Array, sigma_x: float) -> _FirstPass:

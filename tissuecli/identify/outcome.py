@@ -7,13 +7,72 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from ..core.errors import FitError
 from ..core.session import Session
 from .bayes import BayesianFit
 from .contact import Contact
+from .estimator import Estimator
 from .pinv import WindowedPinv
 
 METHODS = ("bayes", "pinv", "both")
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """How well the fit predicts samples it did not see.
+
+    Attributes
+    ----------
+    split_s : float
+        The fit used the samples before this time; the score, those after, s.
+    r2_fitted, r2_held_out : float
+        Coefficient of determination of the filtered force on the fitted and on the
+        held-out samples.
+    rms_n : float
+        RMS error of the predicted filtered force on the held-out samples, N.
+    force_sd_n : float
+        SD of the held-out filtered force, N (what predicting its mean would leave).
+    samples : int
+        Filtered samples scored.
+    """
+
+    split_s: float
+    r2_fitted: float
+    r2_held_out: float
+    rms_n: float
+    force_sd_n: float
+    samples: int
+
+    def describe(self) -> str:
+        return (
+            f"held out after {self.split_s:.3f} s: prediction error {self.rms_n:.4g} N RMS "
+            f"against a force SD of {self.force_sd_n:.4g} N (R^2 {self.r2_held_out:.3f}; "
+            f"{self.r2_fitted:.3f} on the fitted part), {self.samples} samples"
+        )
+
+
+def held_out(est: Estimator, rest: Session, split_s: float) -> HeldOut:
+    """Score a fitted estimator on ``rest``, samples it did not see (after ``split_s``)."""
+    try:
+        kin = est.prepare(rest).kinematics
+    except FitError as e:
+        reason = str(e).split(";")[0]
+        raise FitError(
+            f"the held-out part after {split_s:.3f} s cannot be scored ({reason}); hold out "
+            "a larger fraction with --hold-out"
+        ) from None
+    predicted = est.predict(rest)
+    resid = kin.force - predicted
+    return HeldOut(
+        split_s=split_s,
+        r2_fitted=est.score(),
+        r2_held_out=est.score(rest),
+        rms_n=float(np.sqrt(np.mean(resid**2))),
+        force_sd_n=float(np.std(kin.force)),
+        samples=int(kin.force.size),
+    )
 
 
 @dataclass
@@ -30,12 +89,15 @@ class FitOutcome:
         The fitted pseudoinverse (methods ``pinv`` and ``both``).
     grasps : {"all", "none"} or list of int
         The grasps asked for.
+    validation : HeldOut or None
+        The prediction error on held-out samples, when some were held out.
     """
 
     session: Session
     bayes: BayesianFit | None
     pinv: WindowedPinv | None
     grasps: str | Sequence[int] = "all"
+    validation: HeldOut | None = None
 
     @property
     def warnings(self) -> list[str]:
@@ -128,6 +190,7 @@ def fit_session(
     grasps: str | Sequence[int] = "all",
     start_s: float | None = None,
     end_s: float | None = None,
+    hold_out: float = 0.0,
     progress: Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
     """Identify the tissue in a session.
@@ -155,12 +218,25 @@ def fit_session(
         Which grasps to fit (see :class:`BayesianFit`).
     start_s, end_s : float, optional
         Fit only the samples between these times, s (the session's own clock).
+    hold_out : float
+        Fraction of the (windowed) session, at its end, kept out of the fit and
+        predicted to score it (:class:`HeldOut`); 0 holds nothing out.
     progress : callable, optional
         ``progress(form, steps, tau)`` while sampling.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose bayes, pinv or both")
     part = session.window(start_s, end_s) if start_s is not None or end_s is not None else session
+    rest = None
+    if hold_out:
+        if not 0.0 < hold_out < 1.0:
+            raise FitError(f"--hold-out {hold_out:g}: give a fraction between 0 and 1, e.g. 0.3")
+        t = part.time
+        i = int(np.searchsorted(t, t[0] + (1.0 - hold_out) * (t[-1] - t[0])))
+        part, rest = (
+            part.replace(t[:i], part.force[:i], part.position[:i]),
+            part.replace(t[i:], part.force[i:], part.position[i:]),
+        )
     est = pinv = None
     if method in ("bayes", "both"):
         est = BayesianFit(
@@ -179,4 +255,7 @@ def fit_session(
         pinv = WindowedPinv(
             pinv_forms, window_s=window_s, differentiator=differentiator, grasps=grasps
         ).fit(part)
-    return FitOutcome(session, est, pinv, grasps)
+    fitted = est if est is not None else pinv
+    assert fitted is not None
+    validation = held_out(fitted, rest, float(rest.time[0])) if rest is not None else None
+    return FitOutcome(session, est, pinv, grasps, validation)

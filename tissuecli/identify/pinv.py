@@ -13,14 +13,14 @@ from ..core.errors import FitError
 from ..core.session import Session
 from ..core.terms import Law
 from .bayes import parse_forms
-from .derivatives import Differentiator, differentiator
+from .derivatives import Differentiator
 from .design import design, lstsq_scaled
-from .prepare import prepare
+from .estimator import Estimator
 
 Array = NDArray[np.float64]
 
 
-class WindowedPinv:
+class WindowedPinv(Estimator):
     """The paper's identification: pseudoinverse on m windows of n+1 samples.
 
     Parameters
@@ -72,8 +72,7 @@ class WindowedPinv:
         if len(models) != 1:
             raise FitError("the pseudoinverse fits one law; give --forms such as x,xdot")
         (model,) = models
-        d = self.differentiator
-        ready = prepare(session, differentiator(d) if isinstance(d, str) else d, self.grasps)
+        ready = self.prepare(session)
         session, kin, warnings, contact = (
             ready.session,
             ready.kinematics,
@@ -109,10 +108,8 @@ class WindowedPinv:
         self.window_samples_ = n
         return self
 
-    def predict(self) -> Array:
-        """Filtered force (N) the best window's parameters predict at the fitted samples,
-        ``kinematics_.time``; shape (m,)."""
-        return design(self.model_, self.kinematics_, self.session_.position) @ self.params_
+    def _coefficients(self) -> tuple[Law, Array]:
+        return self.model_, self.params_
 
     def summary(self) -> dict[str, Any]:
         return {

@@ -143,7 +143,10 @@ class ExactPosterior:
         Gw = s.G * np.outer(self.ws, self.ws)
         lam, self.Q = np.linalg.eigh(Gw)
         self.lam = np.clip(lam, 0.0, None)
-        self.c = self.Q.T @ (self.ws * s.b)
+        # rounding can leave a null direction of G with a sliver of b: the data say
+        # nothing there, and c^2 / lam would blow the evidence up as sigma -> 0
+        null = self.lam <= 1e-13 * max(float(self.lam.max()), 1e-300)
+        self.c = np.where(null, 0.0, self.Q.T @ (self.ws * s.b))
         self.s = s
         lo, hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
         # the least-squares noise level may lie outside the prior's range (a noise-free

@@ -15,6 +15,7 @@ from ..core.session import Session
 from ..core.timebase import sample_clock
 from .contact import Contact, find_contact
 from .derivatives import Differentiator, Kinematics
+from .spectrum import convolve_valid
 
 MIN_SAMPLES = 200
 
@@ -165,8 +166,10 @@ def prepare(
             "not measurements, so the fit leaves out the filtered samples whose window holds "
             "one; grasp more gently or widen the sensor range"
         )
-    full = len(session) - kin.window + 1
-    if (lost or clipped) and kin.time.size < full:
+    # filtered samples inside the fitted grasps, had nothing been lost or clipped
+    fitted = chosen if not contact.all_contact and grasps != "none" else np.ones_like(valid)
+    full = int(np.count_nonzero(convolve_valid((~fitted).astype(float), np.ones(kin.window)) < 0.5))
+    if (lost or clipped) and 0 < kin.time.size < full:
         warnings.append(
             f"{100 * (full - kin.time.size) / full:.1f} % of the filtered samples were left "
             "out for lost or clipped samples in their window"

@@ -63,11 +63,24 @@ def _start(
     """Walkers around the least-squares solution, the bounded coefficients reflected
     into >= 0."""
     mu, cov = exact.conditional(float(np.exp(exact.u[int(np.argmax(exact.weights))])))
-    beta = rng.multivariate_normal(mu, cov, size=walkers, method="eigh")
-    gamma = beta * target.d
+    gamma = _spread(mu * target.d, cov * np.outer(target.d, target.d), walkers, rng)
     gamma[:, exact.prior.bounded] = np.abs(gamma[:, exact.prior.bounded])
     u = exact.u[int(np.argmax(exact.weights))] + 1e-3 * rng.standard_normal(walkers)
+    # a noise level piled against the prior's end must not start walkers beyond it
+    # (they would start at -inf, and emcee's moves subtract -inf from -inf)
+    u = np.clip(u, target.lo + 1e-9, target.hi - 1e-9)
     return np.column_stack([gamma, u])
+
+
+def _spread(mean: Array, cov: Array, walkers: int, rng: np.random.Generator) -> Array:
+    """Gaussian draws (walkers, p) around ``mean`` with ``cov`` (unit-norm coefficients),
+    its eigenvalues floored so that a near-singular covariance still spreads the walkers
+    in every direction (an ensemble on a line cannot leave it)."""
+    sym = 0.5 * (cov + cov.T)
+    lam, vec = np.linalg.eigh(sym)
+    floor = 1e-12 * max(float(np.max(np.abs(np.diag(sym)))), 1e-300)
+    z = rng.standard_normal((walkers, mean.size))
+    return mean + (z * np.sqrt(np.clip(lam, floor, None))) @ vec.T
 
 
 def _ensemble(

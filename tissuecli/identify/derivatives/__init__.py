@@ -6,6 +6,7 @@ from . import gaussian, gradient, savgol  # noqa: F401  (each registers itself)
 from .base import (
     DIFFERENTIATORS,
     Differentiator,
+    Frozen,
     Kinematics,
     differentiator,
     register,
@@ -20,6 +21,7 @@ __all__ = [
     "DIFFERENTIATORS",
     "Differentiator",
     "FiniteDifference",
+    "Frozen",
     "Gaussian",
     "Kinematics",
     "SavitzkyGolay",

@@ -150,8 +150,9 @@ class Differentiator(ABC):
             rows = np.flatnonzero(bad < 0.5)
             if rows.size < k0.size:
                 raise FitError(
-                    f"only {rows.size} filtered samples have a window free of lost or clipped "
-                    f"samples ({k0.size} needed); record a cleaner session"
+                    f"only {rows.size} filtered samples have a window free of lost, clipped "
+                    f"or out-of-contact samples ({k0.size} needed); record a cleaner "
+                    "session, or fit every sample with --grasps none"
                 )
             keep = rows + h
 
@@ -176,6 +177,32 @@ class Differentiator(ABC):
             method=method,
             rows=rows,
         )
+
+
+class Frozen(Differentiator):
+    """The filter a fit chose, kept to differentiate other samples alike (to predict
+    them with the fitted law, whose inputs must be filtered as the fitted ones were).
+
+    Not registered: it is made from a :class:`Kinematics`, not chosen by name.
+    """
+
+    name = "frozen"
+
+    def __init__(self, fitted: Kinematics) -> None:
+        self.fitted = fitted
+        self.dt = float(np.median(np.diff(fitted.time)))
+
+    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+        if abs(dt / self.dt - 1.0) > 1e-3:
+            raise FitError(
+                f"these samples come every {dt * 1e3:.4g} ms, the fitted ones every "
+                f"{self.dt * 1e3:.4g} ms: the fitted filter does not apply; resample them"
+            )
+        k = self.fitted
+        return k.kernels, k.cutoff_hz, k.method
+
+    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+        return self.fitted.half
 
 
 def sample_interval(time: Array) -> float:
