@@ -236,3 +236,58 @@ def test_any_bytes_give_a_session_or_one_clean_error(tmp_path: Path, data: bytes
     else:
         session.validate()
         assert all(math.isfinite(v) for v in session.time)
+
+
+WORDS = st.text(alphabet="ABCDEFGHIJKLMNOPQRSTUVWXYZ_-", min_size=1, max_size=8)
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    sep=st.sampled_from([",", "\t", ";"]),
+    where=st.lists(st.integers(0, 3), min_size=1, max_size=2),
+    word=WORDS,
+    clock=st.booleans(),
+)
+def test_text_columns_are_named_and_clock_times_read(
+    tmp_path: Path, sep: str, where: list[int], word: str, clock: bool
+) -> None:
+    """A logger's status or label columns are kept out of the numbers; a time column of
+    clock times (crossing midnight) is read in seconds."""
+    start = 23 * 3600 + 59 * 60 + 59.8  # 0.2 s before midnight
+    stamps = [
+        f"{int(s // 3600) % 24:02d}:{int(s % 3600 // 60):02d}:{s % 60:06.3f}" for s in start + T
+    ]
+    names = ["time", "force", "position"]
+    cols: list[list[str]] = [
+        stamps if clock else [repr(float(v)) for v in T],
+        [repr(float(v)) for v in F],
+        [repr(float(v)) for v in X],
+    ]
+    for k, i in enumerate(sorted(where)):
+        names.insert(i + k, f"note{k}")
+        cols.insert(i + k, [word] * N)
+    lines = [sep.join(names)] + [sep.join(c[r] for c in cols) for r in range(N)]
+    (tmp_path / "t.txt").write_text("\n".join(lines))
+    session, report = read_recording(tmp_path / "t.txt")
+    _check(session)
+    assert any("text column(s)" in note and "note0" in note for note in report.notes)
+    with pytest.raises(InputError, match="holds text"):
+        read_recording(tmp_path / "t.txt", columns="force=note0")
+
+
+def test_a_column_that_grows_the_other_way_takes_a_signed_unit(tmp_path: Path) -> None:
+    path = _table(tmp_path / "s.csv", "time,force,position", np.c_[T, F, -X * 1e3])
+    session, _ = read_recording(path, units="position=-mm")
+    _check(session)
+    with pytest.raises(InputError, match="cannot be negative"):
+        read_recording(path, units="time=-s")
+
+
+@pytest.mark.parametrize("name", ["gap", "opening", "jaw gap (m)"])
+def test_an_opening_is_turned_into_closure(tmp_path: Path, name: str) -> None:
+    path = _table(tmp_path / "g.csv", f"time,force,{name}", np.c_[T, F, -X])
+    session, report = read_recording(path)
+    _check(session)
+    assert any("grows as the jaws open" in note for note in report.notes)

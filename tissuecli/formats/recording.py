@@ -37,10 +37,11 @@ SYNONYMS = {
     "position": (
         "position", "pos", "closure", "x", "displacement", "disp", "jaw", "gap", "depth",
         "indentation", "stroke", "opening", "angle", "jawangle", "theta", "jawposition",
+        "jawgap", "jawopening",
     ),
 }  # fmt: skip
 #: position headers that name the opening between the jaws: closure is their negative
-OPENINGS = ("gap", "opening")
+OPENINGS = ("gap", "opening", "jawgap", "jawopening")
 ARRAY_SUFFIXES = (".mat", ".npz")
 
 
