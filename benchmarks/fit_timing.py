@@ -41,7 +41,7 @@ def main() -> None:
             report = timed(lambda o=outcome: write_report(Path(tmp) / "r.html", o), repeat=3)
         emcee = timed(lambda s=s: fit_session(s, sampler="emcee"), repeat=1)
         print(
-            f"{duration:4.0f} s at {rate:5.0f} Hz ({len(s):>7} samples): all four forms exact "
+            f"{duration:4.0f} s at {rate:5.0f} Hz ({len(s):>7} samples): all eight laws exact "
             f"{exact:.3f} s; pinv {pinv:.3f} s; report {report:.3f} s; "
             f"--sampler emcee (+ stepping-stone) {emcee:.1f} s"
         )

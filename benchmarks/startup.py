@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 from tissuecli.core.tissue import DEFAULT_TISSUE
-from tissuecli.formats.params import tissue_to_dict
 from tissuecli.formats.sessions import write_session
 from tissuecli.sim.synth import ForcepsModel, synthesize
 
@@ -65,7 +64,19 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
         session, _ = synthesize(ForcepsModel(seed=1), 10.0)
         session.name = "bench"
         write_session(work / "grasp.h5", session)
-        (work / "tissue.json").write_text(json.dumps(tissue_to_dict(DEFAULT_TISSUE)))
+        # the version 1 layout, which every tissuecli reads (an older checkout too)
+        k, c, m = DEFAULT_TISSUE.coef
+        v1 = {
+            "format": "tissuecli-parameters",
+            "version": 1,
+            "model": {"f0": "x", "f1": "xdot"},
+            "parameters": {
+                "K": {"mean": k, "unit": "N/m"},
+                "S": {"mean": c, "unit": "N s/m"},
+                "M": {"mean": m, "unit": "kg"},
+            },
+        }
+        (work / "tissue.json").write_text(json.dumps(v1))
         tasks = {
             "fit (10 s at 1 kHz, no report)": ["fit", str(work / "grasp.h5")],
             "sessions": ["sessions", str(work / "grasp.h5")],

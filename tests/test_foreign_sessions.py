@@ -254,3 +254,19 @@ def test_position_noise_as_large_as_the_motion_gives_a_proper_posterior() -> Non
         est = _fit(s, "all")
     assert all(np.isfinite(r.ln_evidence) and r.ln_evidence < 1e6 for r in est.results_)
     assert any("position noise dominates" in f for r in est.results_ for f in r.flags)
+
+
+def test_a_parameter_file_with_grasps_and_a_hold_out_plays(tmp_path) -> None:
+    """Everything fit writes is read back: the file is the input of play and simulate."""
+    grasps, _ = _grasping(2)
+    path, out = tmp_path / "g.h5", tmp_path / "p.json"
+    formats.write_session(path, grasps)
+    runner = CliRunner()
+    r = runner.invoke(cli, ["fit", str(path), "--out", str(out), "--hold-out", "0.3"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    assert doc["validation"]["r2_held_out"] > 0.99 and doc["data"]["grasps"]["found"]
+    tissue = formats.read_tissue(out)
+    assert tissue.law.name == doc["law"]["name"]
+    check = runner.invoke(cli, ["play", str(out), "--check"])
+    assert check.exit_code in (0, 1) and "renderable" in check.output, check.output

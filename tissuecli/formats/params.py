@@ -406,10 +406,11 @@ _TOP_LEVEL: dict[str, type | None] = {
     "laws": dict,
     "warnings": list,
     "pinv": dict,
+    "validation": dict,
     "data": dict,
 }
 _TOP_LEVEL_V1: dict[str, type | None] = {
-    **{k: v for k, v in _TOP_LEVEL.items() if k not in ("law", "laws")},
+    **{k: v for k, v in _TOP_LEVEL.items() if k not in ("law", "laws", "validation")},
     "model": dict,
     "parameters": dict,
     "models": dict,

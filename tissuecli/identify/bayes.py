@@ -19,7 +19,7 @@ from ..core.errors import FitError
 from ..core.session import Session
 from ..core.terms import Law, MotionScales, paper_laws, parse_law
 from .derivatives import Differentiator, Kinematics
-from .design import design, eiv_correction, lstsq_scaled, position_noise_sd
+from .design import design, eiv_correction, lstsq_scaled_cond, position_noise_sd
 from .estimator import Estimator
 from .noise import data_weight, residual_tau
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
@@ -178,18 +178,22 @@ class BayesianFit(Estimator):
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
 
-        # one pass per form keeps only its sufficient statistics, so memory holds one
-        # design matrix at a time whatever the number of forms
-        firsts = {m.name: _first_pass(m, kin, session.position, y, sigma_x) for m in models}
-        # residual correlation from the best-fitting form: smoothing makes neighbouring
+        # one pass per law keeps only its sufficient statistics; the terms' columns are
+        # computed once and shared by every law that has them
+        columns: dict[str, Array] = {}
+        firsts = {
+            m.name: _first_pass(m, kin, session.position, y, sigma_x, columns) for m in models
+        }
+        # residual correlation from the best-fitting law: smoothing makes neighbouring
         # residuals alike, and treating them as independent would overstate certainty
         best_ls = next(m for m in models if m.name == min(firsts, key=lambda k: firsts[k].rss))
         warnings.extend(_prior_conflict(best_ls, firsts[best_ls.name].beta, scales))
-        tau = firsts[best_ls.name].tau
-        A = design(best_ls, kin, session.position, sigma_x)
+        A = design(best_ls, kin, session.position, sigma_x, columns)
+        residual = y - A @ firsts[best_ls.name].beta
+        tau = residual_tau(residual)
         # bridged stand-ins are not measurements: each fitted sample counts for less
-        weight = data_weight(A, y - A @ firsts[best_ls.name].beta, tau) * ready.measured_fraction
-        del A
+        weight = data_weight(A, residual, tau) * ready.measured_fraction
+        del A, columns
 
         results = [
             self._exact(m, firsts[m.name], weight, y.size, sigma_x, scales, rng) for m in models
@@ -421,7 +425,6 @@ class _FirstPass:
     yy: float
     beta: Array
     rss: float
-    tau: float
     cond: float
     cond_scaled: float
     correction: Array | None
@@ -439,20 +442,30 @@ def _correctable(fp: _FirstPass, corr: Array) -> bool:
     return bool(fp.yy - beta @ fp.b > 0.1 * fp.rss)
 
 
-def _first_pass(model: Law, kin: Kinematics, x_full: Array, y: Array, sigma_x: float) -> _FirstPass:
-    A = design(model, kin, x_full, sigma_x)
-    beta = lstsq_scaled(A, y)
+def _first_pass(
+    model: Law,
+    kin: Kinematics,
+    x_full: Array,
+    y: Array,
+    sigma_x: float,
+    columns: dict[str, Array] | None = None,
+) -> _FirstPass:
+    A = design(model, kin, x_full, sigma_x, columns)
+    beta, cond_scaled = lstsq_scaled_cond(A, y)
     r = y - A @ beta
-    norms = np.linalg.norm(A, axis=0)
+    gram = A.T @ A
+    # the raw condition number from the Gram matrix's eigenvalues: a report figure,
+    # exact to rounding up to about 1e7, and "large" beyond
+    lam = np.linalg.eigvalsh(gram)
+    cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
     return _FirstPass(
-        gram=A.T @ A,
+        gram=gram,
         b=A.T @ y,
         yy=float(y @ y),
         beta=beta,
         rss=float(r @ r),
-        tau=residual_tau(r),
-        cond=float(np.linalg.cond(A)),
-        cond_scaled=float(np.linalg.cond(A / np.where(norms > 0, norms, 1.0))),
+        cond=cond,
+        cond_scaled=cond_scaled,
         correction=eiv_correction(model, kin, x_full, sigma_x) if sigma_x > 0 else None,
     )
 

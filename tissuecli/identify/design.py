@@ -20,17 +20,30 @@ def position_noise_sd(x: Array, fs: float) -> float:
     return float(np.sqrt(np.median(top) * fs / 2)) if top.size else 0.0
 
 
-def design(law: Law, kin: Kinematics, x_full: Array, sigma_x: float = 0.0) -> Array:
+def design(
+    law: Law,
+    kin: Kinematics,
+    x_full: Array,
+    sigma_x: float = 0.0,
+    columns: dict[str, Array] | None = None,
+) -> Array:
     """Design matrix (m, p) of a law, consistent with the filtered force.
 
     A position term filters its function of the raw position, ``g * r(x)``, which
     matches ``g * F`` for any r; a speed term uses :meth:`Kinematics.damping_input`
     (exact for a linear r), inertia the filtered acceleration (exact) and an offset
     ones (the filter keeps a constant). ``sigma_x`` (m), the position noise, removes
-    the mean that noise adds inside curved functions.
+    the mean that noise adds inside curved functions. ``columns``, if given, keeps
+    each term's column by name, so laws that share terms (every candidate has
+    inertia, most an offset) compute them once.
     """
     var = sigma_x**2
-    return np.column_stack([_column(t, kin, x_full, var) for t in law.terms])
+    if columns is None:
+        return np.column_stack([_column(t, kin, x_full, var) for t in law.terms])
+    for t in law.terms:
+        if t.name not in columns:
+            columns[t.name] = _column(t, kin, x_full, var)
+    return np.column_stack([columns[t.name] for t in law.terms])
 
 
 def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
@@ -73,6 +86,14 @@ def eiv_correction(law: Law, kin: Kinematics, x_full: Array, sigma_x: float) -> 
 
 def lstsq_scaled(A: Array, y: Array) -> Array:
     """Least squares on unit-norm columns (x^3 in SI units is 1e6 smaller than x)."""
+    return lstsq_scaled_cond(A, y)[0]
+
+
+def lstsq_scaled_cond(A: Array, y: Array) -> tuple[Array, float]:
+    """:func:`lstsq_scaled` and the condition number of the unit-norm columns, from the
+    same singular values."""
     d = np.linalg.norm(A, axis=0)
     d[d == 0] = 1.0
-    return np.linalg.lstsq(A / d, y, rcond=None)[0] / d
+    beta, _, _, sv = np.linalg.lstsq(A / d, y, rcond=None)
+    cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
+    return beta / d, cond
