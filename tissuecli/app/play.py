@@ -272,6 +272,10 @@ def play(
         raise InputError(f"--rate {rate_hz} must be a positive number of Hz")
     if name is not None:
         check_name(name, "play")
+    if log is not None:
+        from ..formats.playlog import check_log  # h5py only when a log is asked for
+
+        check_log(log, rate_hz)  # a foreign file or a full drive: refused before the display
     link, info, profile = _open_display(url, baudrate, rate_hz, profile)
     log_file: PlayLog | None = None
     try:

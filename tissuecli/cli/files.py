@@ -38,15 +38,26 @@ def sessions(file: str, as_json: bool) -> None:
         return
     click.echo(
         f"{'session':<20} {'samples':>9} {'duration s':>10} {'rate Hz':>8} "
-        f"{'lost':>5} {'bad':>5}  tissue"
+        f"{'lost':>5} {'bad':>5}  {'status':<10}  tissue"
     )
     for r in rows:
-        flag = "" if r.get("complete", True) else "  (incomplete)"
+        status, _, reason = r["status"].partition(": ")
+        if reason:  # damaged: no figures, the reason where the tissue goes
+            click.echo(
+                f"{printable(r['name']):<20} {'-':>9} {'-':>10} {'-':>8} {'-':>5} {'-':>5}  "
+                f"{status:<10}  {printable(reason, 120)}"
+            )
+            continue
+        note = f"  ({'; '.join(r['warnings'])})" if r.get("warnings") else ""
         click.echo(
-            f"{printable(r['name']):<20} {r['samples']:>9d} {r['duration_s']:>10.3f} "
-            f"{r['rate_hz']:>8.1f} {r['frames_lost']:>5d} {r['frames_bad']:>5d}  "
-            f"{printable(r.get('tissue', ''), 60)}{flag}"
+            f"{printable(r['name']):<20} {r['samples']:>9d} {_num(r['duration_s'], 10, 3)} "
+            f"{_num(r['rate_hz'], 8, 1)} {r['frames_lost']:>5d} {r['frames_bad']:>5d}  "
+            f"{status:<10}  {printable(r.get('tissue', ''), 60)}{note}"
         )
+
+
+def _num(value: float | None, width: int, digits: int) -> str:
+    return f"{value:>{width}.{digits}f}" if value is not None else f"{'-':>{width}}"
 
 
 @cli.command("import")

@@ -4,6 +4,7 @@ docs/formats.md describes every layout.
 
 - :mod:`~tissuecli.formats.hdf5`: attributes, opening, fsync, reading a group;
 - :mod:`~tissuecli.formats.writer`: the crash-safe append-only writer;
+- :mod:`~tissuecli.formats.space`: free space, room reserved ahead of writes, storage faults;
 - :mod:`~tissuecli.formats.sessions`: sessions (write, stream, read, list);
 - :mod:`~tissuecli.formats.playlog`: play logs;
 - :mod:`~tissuecli.formats.params`: parameter files (their only owner), calibration

@@ -3,6 +3,7 @@ a thread of its own so the control loop never waits for the disk."""
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections.abc import Mapping
@@ -11,9 +12,21 @@ from typing import Any
 
 import numpy as np
 
+from ..core.errors import StorageError
 from ..core.session import check_name
-from .hdf5 import Column, StrPath, group_names
-from .writer import SeriesWriter
+from .hdf5 import (
+    H5_ERRORS,
+    Column,
+    StrPath,
+    damaged,
+    foreign_message,
+    group_names,
+    is_own_file,
+    number_value,
+    opened,
+)
+from .space import check_free_space, preflight_bytes
+from .writer import SeriesWriter, row_bytes
 
 #: parent group of every play log
 PLAYS = "plays"
@@ -67,6 +80,42 @@ LOG_COLUMNS = [
 ]
 
 
+#: bytes one logged control period takes on disk
+LOG_ROW_BYTES = row_bytes(LOG_COLUMNS)
+
+
+def check_log(path: StrPath, rate_hz: float) -> None:
+    """Check, before the display is touched, that a play log can be written to `path`.
+
+    Parameters
+    ----------
+    path : path
+        The log file (it may not exist yet).
+    rate_hz : float
+        Control-loop rate, Hz: the drive must hold 10 s of log at this rate plus 1 MiB.
+
+    Raises
+    ------
+    StorageError
+        If the file is not an HDF5 file written by tissuecli (an empty one is fine), is
+        damaged, its directory is missing, or its drive lacks the room.
+    """
+    file = os.fspath(path)
+    if os.path.exists(file):
+        with opened(file, "r") as f:
+            try:
+                own = is_own_file(f)
+            except H5_ERRORS as exc:
+                raise damaged(file, "the root group", exc) from None
+        if not own:
+            raise StorageError(foreign_message(file, "--log"))
+    elif not os.path.isdir(os.path.dirname(os.path.abspath(file))):
+        raise StorageError(
+            f"cannot create {file}: its directory does not exist; create it or choose another path"
+        )
+    check_free_space(file, preflight_bytes(rate_hz * LOG_ROW_BYTES), what="the play log")
+
+
 class PlayLog:
     """The log of one play: rows buffered by the loop, written by a thread of its own.
 
@@ -81,7 +130,8 @@ class PlayLog:
     name : str
         Group name under ``plays/``; a suffix ``-2``, ``-3``, ... is added if taken.
     meta : mapping
-        Group attributes (tissue, profile, gains, ...).
+        Group attributes (tissue, profile, gains, ...); ``rate_hz`` sets the free space
+        needed to start (10 s of log plus 1 MiB, see :func:`check_log`).
 
     Attributes
     ----------
@@ -93,8 +143,16 @@ class PlayLog:
         name = _unique_name(Path(path), check_name(name, "play"))
         self.path = str(path)
         self.group = f"{PLAYS}/{name}"
+        rate = number_value(meta.get("rate_hz")) or 0.0
         self.writer = SeriesWriter(
-            path, self.group, LOG_COLUMNS, meta, kind="play", flush_interval_s=LOG_FLUSH_S
+            path,
+            self.group,
+            LOG_COLUMNS,
+            meta,
+            kind="play",
+            option="--log",
+            flush_interval_s=LOG_FLUSH_S,
+            min_free_bytes=preflight_bytes(rate * LOG_ROW_BYTES),
         )
         self.error: BaseException | None = None
         self._rows: dict[str, list[float]] = {c.name: [] for c in LOG_COLUMNS}

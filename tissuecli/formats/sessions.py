@@ -3,36 +3,53 @@ and, for recordings, the raw frames; written whole or streamed, read, listed."""
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import h5py
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from ..core.calibration import Adc, calibration_from_dict
 from ..core.errors import InputError, SessionExists, StorageError
 from ..core.session import QUANTITIES, Session, check_name
 from .hdf5 import (
+    CHUNK_ROWS,
+    H5_ERRORS,
+    INTEGERS,
+    NUMBERS,
     Column,
     StrPath,
-    columns_of,
+    check_schema,
+    check_size,
+    clip,
+    count_value,
+    damaged,
+    dataset_problem,
     decode_attrs,
     exists_message,
-    from_attr,
+    file_size,
+    first_line,
+    flag_value,
+    foreign_message,
     group_names,
+    is_own_file,
+    number_value,
     opened,
-    read_group,
+    start_key,
     unreadable,
     usable_rows,
 )
-from .writer import SeriesWriter
+from .space import HEADROOM_BYTES, check_free_space, preflight_bytes
+from .writer import SeriesWriter, row_bytes
 
 #: parent group of every recorded or imported session
 SESSIONS = "sessions"
 #: keys of ``Session.meta`` that exist only in memory and are never stored as attributes
-READ_ONLY_META = ("file", "raw", "calibration")
+READ_ONLY_META = ("file", "raw", "calibration", "warnings")
 CHANNELS = ("force", "position")
 
 
@@ -71,6 +88,44 @@ SESSION_COLUMNS: list[Column] = [
         {"unit": "s", "description": "host monotonic clock, s since the session started"},
     ),
 ]
+
+
+#: what each dataset of a session must hold: dtype kinds and the shape of one row
+SESSION_SCHEMA: dict[str, tuple[str, tuple[int, ...]]] = {
+    col.name: (INTEGERS if np.dtype(col.dtype).kind in "iu" else NUMBERS, col.shape)
+    for col in SESSION_COLUMNS
+}
+#: datasets every session has; the raw ones exist only for recordings
+REQUIRED = tuple(q.name for q in QUANTITIES)
+#: session attributes read as something other than free text, and what they must be;
+#: a value of another type is treated as missing and named in ``warnings``
+ATTR_KINDS = {
+    "schema_version": "count",
+    "rows_committed": "count",
+    "frames_good": "count",
+    "frames_lost": "count",
+    "frames_bad": "count",
+    "sequence_restarts": "count",
+    "complete": "flag",
+    "rate_hz": "number",
+    "clock_hz": "number",
+    "tissue": "text",
+    "note": "text",
+    "source": "text",
+    "start_utc": "text",
+    "created_utc": "text",
+    "software_version": "text",
+    "stop_reason": "text",
+    "clock_map": "mapping",
+    "device": "mapping",
+}
+_KIND_WORDS = {
+    "count": "a whole number >= 0",
+    "flag": "true or false",
+    "number": "a number",
+    "text": "text",
+    "mapping": "a JSON object",
+}
 
 
 def session_group(name: str) -> str:
@@ -132,7 +187,9 @@ def check_new_session(path: StrPath, name: str) -> None:
     SessionExists
         If the file already holds a session of that name.
     StorageError
-        If the file exists but is not a readable HDF5 file, or its directory is missing.
+        If the file exists but is not a readable HDF5 file or was not written by
+        tissuecli, its directory is missing, or its drive has less than
+        :data:`~.space.HEADROOM_BYTES` free.
     """
     group = session_group(name)
     file = os.fspath(path)
@@ -143,10 +200,18 @@ def check_new_session(path: StrPath, name: str) -> None:
                 f"cannot create {file}: its directory does not exist; create it or choose "
                 "another path"
             )
-        return
-    with opened(file, "r") as f:
-        if group in f:
-            raise SessionExists(exists_message("session", name, file))
+    else:
+        with opened(file, "r") as f:
+            try:
+                own = is_own_file(f)
+                taken = own and group in f
+            except H5_ERRORS as exc:
+                raise damaged(file, "the root group", exc) from None
+            if not own:
+                raise StorageError(foreign_message(file, "--out"))
+            if taken:
+                raise SessionExists(exists_message("session", name, file))
+    check_free_space(file, HEADROOM_BYTES, what="a new session")
 
 
 def session_writer(
@@ -158,6 +223,7 @@ def session_writer(
     raw: bool = True,
     flush_interval_s: float = 0.25,
     fsync: bool = True,
+    min_free_bytes: int | None = None,
 ) -> SeriesWriter:
     """Start writing session `name` into `path` (see :class:`SeriesWriter`).
 
@@ -175,6 +241,9 @@ def session_writer(
         Include the ``raw/*`` columns; blocks must then carry them too.
     flush_interval_s, fsync
         See :class:`SeriesWriter`.
+    min_free_bytes : int, optional
+        Free space needed before the file is touched, bytes; by default 10 s of data
+        at ``meta['rate_hz']`` (if given) plus 1 MiB (:func:`~.space.preflight_bytes`).
 
     Returns
     -------
@@ -185,18 +254,25 @@ def session_writer(
     ------
     SessionExists
         If the file already holds a session of that name.
+    StorageError
+        If the drive lacks `min_free_bytes`, or the file cannot be written.
     """
     group = session_group(name)
     attrs = {k: v for k, v in meta.items() if k not in READ_ONLY_META}
     attrs.setdefault("source", "device" if raw else "import")
+    columns = session_columns(raw=raw, calibration=calibration)
+    if min_free_bytes is None:
+        rate = number_value(meta.get("rate_hz"))
+        min_free_bytes = preflight_bytes((rate or 0.0) * row_bytes(columns))
     return SeriesWriter(
         path,
         group,
-        session_columns(raw=raw, calibration=calibration),
+        columns,
         attrs,
         flush_interval_s=flush_interval_s,
         fsync=fsync,
         kind="session",
+        min_free_bytes=min_free_bytes,
     )
 
 
@@ -225,6 +301,8 @@ def write_session(
         If the name is taken.
     InputError
         If the session has no name or its arrays differ in length.
+    StorageError
+        If the drive cannot hold the session plus 1 MiB, or writing fails.
     """
     check_name(session.name, "session")
     n = len(session)
@@ -248,6 +326,9 @@ def write_session(
         if len(set(lengths.values())) != 1:
             raise InputError(f"raw arrays and samples differ in length: {lengths}")
     calibration = session.meta.get("calibration")
+    # the whole session is known: room for every chunk of it plus the headroom
+    chunks = -(-n // CHUNK_ROWS) * CHUNK_ROWS
+    need = chunks * row_bytes(session_columns(raw=raw is not None)) + HEADROOM_BYTES
     with session_writer(
         path,
         session.name,
@@ -255,13 +336,9 @@ def write_session(
         calibration=calibration,
         raw=raw is not None,
         flush_interval_s=float("inf"),
+        min_free_bytes=need,
     ) as writer:
         writer.append(block)
-
-
-def _sessions_root(f: h5py.File) -> h5py.Group | None:
-    root = f.get(SESSIONS)
-    return root if isinstance(root, h5py.Group) else None
 
 
 def session_names(path: StrPath) -> list[str]:
@@ -277,18 +354,140 @@ def _pick_session(path: str, name: str | None) -> str:
         if not names:
             raise StorageError(f"{path} holds no sessions; record or import one first")
         raise StorageError(
-            f"{path} holds {len(names)} sessions ({', '.join(names)}); pass --session NAME"
+            f"{path} holds {len(names)} sessions ({clip(', '.join(names), 200)}); "
+            "pass --session NAME"
         )
     if name not in names:
-        available = ", ".join(names) if names else "none"
+        available = clip(", ".join(names), 200) if names else "none"
         raise StorageError(
-            f'no session "{name}" in {path}; available: {available}; pass one with --session'
+            f'no session "{clip(name)}" in {path}; available: {available}; pass one with --session'
         )
     return name
 
 
+class _Damage(StorageError):
+    """A session group that does not follow the documented layout."""
+
+    def __init__(self, where: str, reason: str) -> None:
+        super().__init__(f"{where} is damaged: {reason}")
+        self.reason = reason
+
+
+@dataclass
+class _Checked:
+    """A session group checked against the layout (see :func:`_check_session`)."""
+
+    datasets: dict[str, h5py.Dataset]
+    attrs: dict[str, Any]
+    rows: int
+    complete: bool
+    warnings: list[str] = field(default_factory=list)
+
+
+def _check_session(f: h5py.File, g: h5py.Group, where: str) -> _Checked:
+    """Check a session group against docs/formats.md.
+
+    Datasets ``time``, ``force``, ``position`` must exist; they and any ``raw/*``
+    dataset must be numeric (integers for ``raw/counts``, ``raw/sequence``,
+    ``raw/device_clock``) with one row per sample. Attributes of :data:`ATTR_KINDS`
+    of another type are dropped and named in ``warnings``.
+
+    Raises
+    ------
+    StorageError
+        ``_Damage`` naming the dataset that breaks the layout, or a newer schema.
+    """
+    warnings: list[str] = []
+    try:
+        attrs = _checked_attrs(decode_attrs(g.attrs, warnings), warnings)
+    except H5_ERRORS as exc:
+        raise _Damage(where, f"its attributes cannot be read ({first_line(exc)})") from None
+    check_schema(attrs.get("schema_version"), where)
+    datasets: dict[str, h5py.Dataset] = {}
+    for key, (kinds, trailing) in SESSION_SCHEMA.items():
+        try:
+            link = g.get(key, getlink=True)
+            obj = None if link is None or isinstance(link, h5py.ExternalLink) else g.get(key)
+        except H5_ERRORS as exc:
+            raise _Damage(where, f"dataset {key} cannot be read ({first_line(exc)})") from None
+        if isinstance(link, h5py.ExternalLink):
+            raise _Damage(where, f"dataset {key} is a link to another file")
+        if obj is None and key not in REQUIRED:
+            continue
+        problem = dataset_problem(obj, kinds, trailing)
+        if problem:
+            raise _Damage(where, f"dataset {key} {problem}")
+        datasets[key] = obj
+    complete = attrs.get("complete")
+    n = usable_rows(
+        [ds.shape[0] for ds in datasets.values()], complete, attrs.get("rows_committed")
+    )
+    size = file_size(f)
+    for key, ds in datasets.items():
+        problem = check_size(ds, n, size)
+        if problem:
+            raise _Damage(where, f"dataset {key} {problem}")
+    return _Checked(datasets, attrs, n, complete is True, warnings)
+
+
+_CHECKS = {"count": count_value, "flag": flag_value, "number": number_value}
+
+
+def _checked_attrs(attrs: dict[str, Any], warnings: list[str]) -> dict[str, Any]:
+    """`attrs` with the values of :data:`ATTR_KINDS` checked; wrong ones dropped and named."""
+    out = dict(attrs)
+    for key, kind in ATTR_KINDS.items():
+        if key not in out:
+            continue
+        value = out.pop(key)
+        if value is None:  # an empty attribute: stored as missing
+            continue
+        if kind == "text":
+            checked = value if isinstance(value, str) else None
+        elif kind == "mapping":
+            checked = value if isinstance(value, dict) else None
+        else:
+            checked = _CHECKS[kind](value)
+        if checked is None:
+            warnings.append(
+                f"attribute {key} is {_describe_value(value)}, not {_KIND_WORDS[kind]}; ignored"
+            )
+        else:
+            out[key] = checked
+    return out
+
+
+def _describe_value(value: Any) -> str:
+    if isinstance(value, str):
+        return "text"
+    if isinstance(value, (bool, np.bool_)):
+        return "a boolean"
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return "a number out of range"
+    if isinstance(value, dict):
+        return "a JSON object"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape}"
+    return f"a {type(value).__name__}"
+
+
+def _open_session(f: h5py.File, file: str, name: str) -> h5py.Group:
+    try:
+        g = f.get(session_group(name))
+    except H5_ERRORS as exc:
+        where = f'session "{clip(name)}" in {file}'
+        raise _Damage(where, f"cannot be opened ({first_line(exc)})") from None
+    if not isinstance(g, h5py.Group):
+        raise StorageError(
+            f'no session "{clip(name)}" in {file}; list them with tissuecli sessions'
+        )
+    return g
+
+
 def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -> Session:
-    """Read one session.
+    """Read one session, checked against the documented layout.
 
     Parameters
     ----------
@@ -306,25 +505,33 @@ def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -
     -------
     Session
         time in s, force in N, position in m; ``meta`` holds the group attributes
-        plus ``'file'``. A session cut short by a crash (``meta['complete']`` False)
-        holds the rows committed before the crash.
+        plus ``'file'``, and ``'warnings'`` if attributes of the wrong type were
+        ignored. A session cut short by a crash (``meta['complete']`` False) holds
+        the rows committed before the crash.
 
     Raises
     ------
     StorageError
-        Missing or non-HDF5 file, no or several sessions without a name, unknown name.
+        Missing, non-HDF5 or damaged file; no or several sessions without a name;
+        unknown name; a session whose datasets are not numeric with one row per sample
+        (the message names the file, the session and the dataset).
     """
     file = os.fspath(path)
     name = _pick_session(file, name)
-    columns, meta = read_group(file, session_group(name))
-    missing = [c for c in ("time", *CHANNELS) if c not in columns]
-    if missing:
-        raise StorageError(
-            f'session "{name}" in {file} lacks dataset(s) {", ".join(missing)}; it was not '
-            "written by tissuecli"
-        )
+    where = f'session "{clip(name)}" in {file}'
+    with opened(file, "r") as f:
+        checked = _check_session(f, _open_session(f, file, name), where)
+        keys = [k for k in checked.datasets if raw or not k.startswith("raw/")]
+        try:
+            columns = {key: checked.datasets[key][: checked.rows] for key in keys}
+            counts = checked.datasets.get("raw/counts")
+            calibration = _read_calibration(counts, checked.warnings) if counts else {}
+        except H5_ERRORS as exc:
+            raise StorageError(unreadable(where, exc)) from None
+    meta = checked.attrs
     meta["file"] = file
-    calibration = _read_calibration(file, session_group(name))
+    if checked.warnings:
+        meta["warnings"] = checked.warnings
     if raw:
         meta["raw"] = {key: value for key, value in columns.items() if key.startswith("raw/")}
         meta["calibration"] = calibration
@@ -353,14 +560,19 @@ def _adc(meta: Mapping[str, Any], calibration: Mapping[str, Any]) -> Adc | None:
         return None
 
 
-def _read_calibration(path: str, group: str) -> dict[str, dict[str, float]]:
-    with opened(path, "r") as f:
-        ds = f.get(f"{group}/raw/counts")
-        if not isinstance(ds, h5py.Dataset) or "conversion" not in ds.attrs:
-            return {}
-        gains = np.atleast_1d(ds.attrs["conversion"])
-        offsets = np.atleast_1d(ds.attrs.get("offset", np.zeros_like(gains)))
-        channels = from_attr(ds.attrs.get("channels", np.array(CHANNELS, dtype=object)))
+def _read_calibration(ds: h5py.Dataset, warnings: list[str]) -> dict[str, dict[str, float]]:
+    """Counts-to-SI calibration from the NWB attributes of ``raw/counts`` ({} if none)."""
+    attrs = decode_attrs(ds.attrs, warnings)
+    if attrs.get("conversion") is None:
+        return {}
+    gains = _numbers(attrs["conversion"])
+    offsets = _numbers(attrs.get("offset", 0.0))
+    channels = attrs.get("channels", list(CHANNELS))
+    if gains is None or offsets is None or not all(isinstance(c, str) for c in channels):
+        warnings.append("the calibration attributes of raw/counts are not numbers; ignored")
+        return {}
+    if offsets.size < gains.size:
+        offsets = np.resize(offsets, gains.shape)
     return {
         str(c): {"gain": float(gains[i]), "offset": float(offsets[i])}
         for i, c in enumerate(channels)
@@ -368,47 +580,99 @@ def _read_calibration(path: str, group: str) -> dict[str, dict[str, float]]:
     }
 
 
+def _numbers(value: Any) -> NDArray[np.float64] | None:
+    """A numeric attribute as a 1-D float array (None if it is not numeric)."""
+    arr = np.atleast_1d(np.asarray(value, dtype=object if isinstance(value, list) else None))
+    if arr.dtype == object:
+        if not all(number_value(v) is not None for v in arr.ravel()):
+            return None
+        arr = arr.astype(float)
+    if arr.dtype.kind not in NUMBERS or arr.size == 0:
+        return None
+    return arr.ravel().astype(np.float64)
+
+
 def list_sessions(path: StrPath) -> list[dict[str, Any]]:
-    """Summaries of every session in `path`, oldest first.
+    """Summaries of every session in `path`, oldest first; damaged ones included.
 
     Returns
     -------
     list of dict
-        Keys ``name``, ``tissue``, ``samples``, ``duration_s`` (s), ``rate_hz`` (Hz,
-        from the median sample interval), ``frames_lost``, ``frames_bad``,
-        ``complete``, ``start_utc`` (ISO 8601), ``source``.
+        Keys ``name``; ``status``: ``'complete'``, ``'incomplete'`` (still being
+        recorded, or cut short by a crash or a fault) or ``'damaged: <reason>'``;
+        ``tissue``, ``samples``, ``duration_s`` (s), ``rate_hz`` (Hz, from the median
+        sample interval), ``frames_lost``, ``frames_bad``, ``complete``, ``start_utc``
+        (ISO 8601), ``source``, and ``warnings`` (attributes of the wrong type that
+        were ignored). Numbers a damaged session cannot give are None.
+
+    Raises
+    ------
+    StorageError
+        If the file is missing, not HDF5, or its list of sessions cannot be read.
     """
     file = os.fspath(path)
     out: list[dict[str, Any]] = []
     with opened(file, "r") as f:
-        root = _sessions_root(f)
-        if root is None:
-            return []
-        for key, g in root.items():
-            if not isinstance(g, h5py.Group) or not isinstance(g.get("time"), h5py.Dataset):
-                continue
+        try:
+            root = f.get(SESSIONS)
+            keys = list(root.keys()) if isinstance(root, h5py.Group) else []
+        except H5_ERRORS as exc:
+            raise damaged(file, f"/{SESSIONS}", exc) from None
+        for key in keys:
             try:
-                attrs = decode_attrs(g.attrs)
-                n = usable_rows(g, columns_of(g))
-                t = g["time"][:n]
-            except (OSError, RuntimeError, KeyError) as exc:
-                raise StorageError(unreadable(f'session "{key}" in {file}', exc)) from None
-            steps = np.diff(t)
-            out.append(
-                {
-                    "name": key,
-                    "tissue": attrs.get("tissue", ""),
-                    "samples": int(n),
-                    "duration_s": float(t[-1] - t[0]) if n > 1 else 0.0,
-                    "rate_hz": float(1.0 / np.median(steps))
-                    if n > 1 and np.median(steps) > 0
-                    else 0.0,
-                    "frames_lost": int(attrs.get("frames_lost", 0) or 0),
-                    "frames_bad": int(attrs.get("frames_bad", 0) or 0),
-                    "complete": bool(attrs.get("complete", False)),
-                    "start_utc": attrs.get("start_utc") or attrs.get("created_utc", ""),
-                    "source": attrs.get("source", ""),
-                }
-            )
+                g = root.get(key)
+            except H5_ERRORS as exc:
+                out.append(_damaged_row(key, "", f"cannot be opened ({first_line(exc)})"))
+                continue
+            if isinstance(g, h5py.Group):
+                out.append(_summary(f, g, file, key))
     out.sort(key=lambda s: (str(s["start_utc"]), s["name"]))
     return out
+
+
+def _summary(f: h5py.File, g: h5py.Group, file: str, key: str) -> dict[str, Any]:
+    """One row of :func:`list_sessions`."""
+    try:
+        checked = _check_session(f, g, f'session "{clip(key)}" in {file}')
+        t = np.asarray(checked.datasets["time"][: checked.rows], dtype=np.float64)
+    except _Damage as exc:
+        return _damaged_row(key, start_key(g), exc.reason)
+    except StorageError as exc:  # a newer schema
+        return _damaged_row(key, start_key(g), str(exc), status="unreadable")
+    except H5_ERRORS as exc:
+        return _damaged_row(key, start_key(g), f"cannot be read ({first_line(exc)})")
+    attrs, n = checked.attrs, checked.rows
+    steps = np.diff(t)
+    step = float(np.median(steps)) if n > 1 else float("nan")
+    duration = float(t[-1] - t[0]) if n > 1 else 0.0
+    return {
+        "name": key,
+        "status": "complete" if checked.complete else "incomplete",
+        "tissue": attrs.get("tissue", ""),
+        "samples": int(n),
+        "duration_s": duration if math.isfinite(duration) else None,
+        "rate_hz": 1.0 / step if math.isfinite(step) and step > 0 else 0.0,
+        "frames_lost": attrs.get("frames_lost", 0),
+        "frames_bad": attrs.get("frames_bad", 0),
+        "complete": checked.complete,
+        "start_utc": attrs.get("start_utc") or attrs.get("created_utc", ""),
+        "source": attrs.get("source", ""),
+        "warnings": checked.warnings,
+    }
+
+
+def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> dict[str, Any]:
+    return {
+        "name": key,
+        "status": f"{status}: {reason}",
+        "tissue": "",
+        "samples": None,
+        "duration_s": None,
+        "rate_hz": None,
+        "frames_lost": None,
+        "frames_bad": None,
+        "complete": False,
+        "start_utc": start,
+        "source": "",
+        "warnings": [],
+    }
