@@ -323,13 +323,14 @@ def test_play_checks_the_log_before_opening_the_display(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from tissuecli.app import play as play_module
-    from tissuecli.core.tissue import Tissue, TissueModel
+    from tissuecli.core.terms import Law
+    from tissuecli.core.tissue import Tissue
 
     def no_display(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("the display was opened")
 
     monkeypatch.setattr(play_module, "_open_display", no_display)
-    tissue = Tissue(TissueModel.from_names("x", "xdot"), 600.0, 3.0, 0.05)
+    tissue = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05)
     _free(monkeypatch, 500_000)
     with pytest.raises(StorageError, match="not enough free space for the play log"):
         play_module.play(tissue, "/dev/null", 1.0, log=tmp_path / "p.h5")

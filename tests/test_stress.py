@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tissuecli.core.errors import FitError, InputError
 from tissuecli.core.session import Session
@@ -148,3 +150,54 @@ def test_coarse_fast_position_keeps_the_cutoff_and_raises_no_false_glitches():
         est = BayesianFit(forms="x,xdot").fit(s)
         assert 5.0 < est.kinematics_.cutoff_hz < 17.0, (seed, est.kinematics_.cutoff_hz)
         assert not any("noise SDs" in w for w in est.warnings_), (seed, est.warnings_)
+
+
+def _degenerate(n: int, shape: str, scale: float, exact: bool) -> Session:
+    t = np.arange(n) * 1e-3
+    x = {
+        "ramp": np.arange(n, dtype=float),
+        "steps": np.floor(np.arange(n) / 50.0),
+        "sine": np.sin(50 * t),
+        "square": np.sign(np.sin(20 * t)),
+    }[shape] * scale
+    rng = np.random.default_rng(n)
+    return Session(t, 3.0 * x / scale + (0.0 if exact else rng.normal(0, 1e-3, n)), x)
+
+
+def _fits_or_says_why(session: Session, forms: str) -> None:
+    """A posterior with finite figures, or one clean refusal; never a numerical warning."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            est = BayesianFit(forms).fit(session)
+        except (FitError, InputError) as exc:
+            assert "\n" not in str(exc)
+            return
+    post = est.best_.posterior
+    assert np.all(np.isfinite(post.mean)) and np.all(np.isfinite(post.sd))
+    assert all(np.isfinite(r.ln_evidence) for r in est.results_)
+
+
+@pytest.mark.parametrize(
+    ("shape", "scale"), [("ramp", 1e-6), ("steps", 1.0), ("sine", 1e-6), ("square", 1.0)]
+)
+def test_degenerate_sessions_fit_or_say_why(shape: str, scale: float) -> None:
+    """Motions that leave terms' columns empty or collinear (a constant speed, no
+    acceleration, a force exactly a multiple of the closure), with one law."""
+    _fits_or_says_why(_degenerate(200, shape, scale, exact=True), "x+xdot+xddot+offset")
+
+
+@pytest.mark.slow
+@settings(max_examples=15, deadline=None)
+@given(
+    n=st.integers(200, 400),
+    shape=st.sampled_from(["ramp", "steps", "sine", "square"]),
+    scale=st.sampled_from([1e-6, 1e-3, 1.0, 1e3]),
+    exact=st.booleans(),
+)
+def test_degenerate_sessions_over_every_law(n: int, shape: str, scale: float, exact: bool):
+    """The same over the eight default laws, whose sampled posteriors a degenerate
+    session makes hard (about 2.5 min: emcee runs to its budget on several laws)."""
+    _fits_or_says_why(_degenerate(n, shape, scale, exact), "all")

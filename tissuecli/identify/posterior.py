@@ -101,6 +101,9 @@ class SufficientStats:
     def log_likelihood(self, beta: Array, sigma: Array) -> Array:
         """ln p(y | beta, sigma) for beta of shape (k, p) and sigma (k,)."""
         quad = self.yy - 2 * beta @ self.b + np.einsum("ki,ij,kj->k", beta, self.G, beta)
+        # a sum of squares: rounding in a near-exact fit must not make it negative (the
+        # likelihood would grow without bound as sigma -> 0)
+        quad = np.maximum(quad, 0.0)
         return -self.n * (np.log(sigma) + 0.5 * LN_2PI) - 0.5 * quad / sigma**2
 
 
@@ -216,7 +219,7 @@ class ExactPosterior:
         if not np.any(on):
             return 1.0
         mu, cov = mu[on], cov[np.ix_(on, on)]
-        sd = np.sqrt(np.diag(cov))
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         if np.all(mu > 6 * sd):
             return 1.0
         return orthant_probability(mu, cov)
@@ -233,7 +236,7 @@ class ExactPosterior:
         mean = w @ mus
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
         cov = second - np.outer(mean, mean)
-        sds = np.sqrt(np.einsum("mii->mi", covs))
+        sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
         ci = np.array(
             [
                 [_mixture_quantile(q, w, mus[:, j], sds[:, j]) for q in (0.025, 0.975)]
@@ -245,14 +248,14 @@ class ExactPosterior:
         sigma_ci = (float(np.interp(0.025, cdf, sig)), float(np.interp(0.975, cdf, sig)))
         # draws for plots: pick a node, then a Gaussian draw; the bound is applied by rejection
         pick = rng.choice(w.size, size=draws, p=w)
-        chol = np.linalg.cholesky(covs + 1e-300 * np.eye(mean.size))
+        chol = _matrix_roots(covs)
         z = rng.standard_normal((draws, mean.size))
         beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], z)
         samples = np.column_stack([beta, sig[pick]])
         samples = samples[np.all(beta[:, self.prior.bounded] >= 0, axis=1)]
         return Posterior(
             mean=mean,
-            sd=np.sqrt(np.diag(cov)),
+            sd=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
             ci95=ci,
             cov=cov,
             sigma_mean=float(w @ sig),
@@ -303,3 +306,14 @@ def _mixture_quantile(q: float, w: Array, mu: Array, sd: Array) -> float:
             return new
         x = new
     return x
+
+
+def _matrix_roots(covs: Array) -> Array:
+    """``L`` with ``L L^T = C`` for each covariance (m, p, p): Cholesky where it works,
+    else the symmetric root with negative eigenvalues (rounding in a singular
+    direction: a term whose column the session leaves empty) set to zero."""
+    try:
+        return np.linalg.cholesky(covs)
+    except np.linalg.LinAlgError:
+        lam, vec = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, -1, -2)))
+        return vec * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]

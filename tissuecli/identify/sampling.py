@@ -49,7 +49,11 @@ class PowerPosterior:
         good = np.isfinite(lp)
         out = np.full(theta.shape[0], -np.inf)
         if np.any(good):
-            out[good] = lp[good] + self.log_likelihood(theta[good])
+            # a walker at a noise level far below the residual has a likelihood that
+            # underflows: -inf is the right value, not a warning
+            with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+                ll = self.log_likelihood(theta[good])
+            out[good] = lp[good] + np.where(np.isnan(ll), -np.inf, ll)
         return out
 
     def to_si(self, theta: Array) -> Array:
@@ -69,18 +73,34 @@ def _start(
     # a noise level piled against the prior's end must not start walkers beyond it
     # (they would start at -inf, and emcee's moves subtract -inf from -inf)
     u = np.clip(u, target.lo + 1e-9, target.hi - 1e-9)
-    return np.column_stack([gamma, u])
+    walkers_at = np.column_stack([gamma, u])
+    # a walker whose likelihood underflows (far out along a direction the data pin
+    # down to rounding) is pulled back towards the centre until it is finite
+    centre = np.median(walkers_at, axis=0)
+    for _ in range(60):
+        lost = ~np.isfinite(target(walkers_at))
+        if not np.any(lost):
+            break
+        walkers_at[lost] = centre + 0.5 * (walkers_at[lost] - centre)
+    return walkers_at
 
 
 def _spread(mean: Array, cov: Array, walkers: int, rng: np.random.Generator) -> Array:
     """Gaussian draws (walkers, p) around ``mean`` with ``cov`` (unit-norm coefficients),
     its eigenvalues floored so that a near-singular covariance still spreads the walkers
     in every direction (an ensemble on a line cannot leave it)."""
-    sym = 0.5 * (cov + cov.T)
-    lam, vec = np.linalg.eigh(sym)
-    floor = 1e-12 * max(float(np.max(np.abs(np.diag(sym)))), 1e-300)
+    lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    # 1e-7 of the widest direction keeps the ensemble's covariance within emcee's
+    # condition limit (1e8) without moving the walkers noticeably
+    floor = 1e-7 * max(float(np.max(lam)), 1e-300)
     z = rng.standard_normal((walkers, mean.size))
     return mean + (z * np.sqrt(np.clip(lam, floor, None))) @ vec.T
+
+
+# emcee refuses an initial ensemble whose covariance has a condition number above 1e8;
+# ours is full rank by construction (:func:`_spread`), but a posterior that is itself
+# that ill-conditioned (a session that barely moves a term) must still be sampled, so
+# every run_mcmc call skips that check.
 
 
 def _ensemble(
@@ -117,12 +137,17 @@ def run_emcee(
     tau = np.full(p0.shape[1], np.inf)
     state = p0
     while sampler.iteration < max_steps:
-        state = sampler.run_mcmc(state, chunk, progress=False)
+        # runs grow with the chain, so the autocorrelation time (O(n log n) over the
+        # whole chain) is estimated O(log n) times, not once per chunk
+        steps = min(max(chunk, sampler.iteration // 4), max_steps - sampler.iteration)
+        state = sampler.run_mcmc(state, steps, progress=False, skip_initial_state_check=True)
         tau = sampler.get_autocorr_time(tol=0)
         if progress is not None:
             progress(sampler.iteration, float(np.max(tau)))
         if sampler.iteration >= max(min_steps, 50 * np.max(tau)):
             break
+        if sampler.iteration >= max_steps // 4 and 50 * np.max(tau) > 2 * max_steps:
+            break  # would need more than twice the budget: say so now, not at the budget
     converged = sampler.iteration >= 50 * np.max(tau)
     burn = int(min(2 * np.max(tau), sampler.iteration // 2))
     thin = max(1, int(np.max(tau) / 2))
@@ -204,7 +229,9 @@ def stepping_stone(
     target = PowerPosterior(stats_, prior)
     state = _start(exact, target, walkers, rng)
     sampler = _ensemble(target, walkers, state.shape[1], rng)
-    state = sampler.run_mcmc(state, burn + 2 * steps, progress=False).coords
+    state = sampler.run_mcmc(
+        state, burn + 2 * steps, progress=False, skip_initial_state_check=True
+    ).coords
     draws = sampler.get_chain(discard=burn, flat=True)
     path = ReferencePath(target, draws.mean(axis=0), np.cov(draws.T) * widen**2)
     ladder = (np.arange(temperatures + 1) / temperatures) ** power
@@ -216,7 +243,9 @@ def stepping_stone(
         else:
             path.t = t
             sampler = _ensemble(path, walkers, state.shape[1], rng)
-            state = sampler.run_mcmc(state, burn + steps, progress=False).coords
+            state = sampler.run_mcmc(
+                state, burn + steps, progress=False, skip_initial_state_check=True
+            ).coords
             theta = sampler.get_chain(discard=burn, flat=True)
         lr = path.log_ratio(theta)
         ln_z += float(logsumexp(dt * lr) - np.log(lr.size))
