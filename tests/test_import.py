@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -291,3 +292,28 @@ def test_an_opening_is_turned_into_closure(tmp_path: Path, name: str) -> None:
     session, report = read_recording(path)
     _check(session)
     assert any("grows as the jaws open" in note for note in report.notes)
+
+
+def test_fit_reads_a_recording_directly_as_import_would(tmp_path: Path) -> None:
+    """One command for a newcomer: fit FILE.csv equals import then fit, to the digit."""
+    from tissuecli.core.tissue import DEFAULT_TISSUE
+    from tissuecli.sim.synth import random_session
+
+    s, _ = random_session(DEFAULT_TISSUE, seed=3, duration_s=4.0)
+    path = _table(
+        tmp_path / "lab.csv",
+        "t_ms;force_g;closure_mm",
+        np.c_[s.time * 1e3, s.force / 9.80665e-3, s.position * 1e3],
+        sep=";",
+    )
+    direct = tissuecli("fit", str(path), "--forms", "x,xdot", "--out", str(tmp_path / "a.json"))
+    assert direct.returncode == 0, direct.stderr
+    assert "read as another logger's recording" in direct.stdout
+    h5 = tmp_path / "lab.h5"
+    assert tissuecli("import", str(path), "--out", str(h5)).returncode == 0
+    stored = tissuecli("fit", str(h5), "--forms", "x,xdot", "--out", str(tmp_path / "b.json"))
+    assert stored.returncode == 0, stored.stderr
+    a, b = (json.loads((tmp_path / f"{n}.json").read_text())["law"] for n in "ab")
+    assert [t["mean"] for t in a["terms"]] == [t["mean"] for t in b["terms"]]
+    # reading options belong to recordings: a session file says so
+    assert_clean_error(tissuecli("fit", str(h5), "--units", "mm"), "tissuecli session file")

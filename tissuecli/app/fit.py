@@ -9,8 +9,8 @@ from typing import Any
 from ..formats.atomic import write_text_atomic
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import write_params
-from ..formats.sessions import read_session
 from ..identify.outcome import FitOutcome, fit_session
+from .transfer import load_session
 
 
 def fit_file(
@@ -20,29 +20,45 @@ def fit_file(
     out: str | os.PathLike[str] | None = None,
     report: str | os.PathLike[str] | None = None,
     force: bool = False,
+    reading: dict[str, Any] | None = None,
     **options: Any,
 ) -> FitOutcome:
-    """Fit a stored session; write the parameter file and the HTML report if asked.
+    """Fit a stored session, or another logger's recording read on the fly; write the
+    parameter file and the HTML report if asked.
 
     Parameters
     ----------
     path : path
-        HDF5 file.
+        A tissuecli HDF5 file, or any recording ``import`` reads (text table, .mat,
+        .npz).
     session : str, optional
-        Session name (may be omitted when the file holds one).
+        Session name (may be omitted when the file holds one); for a recording, the
+        name it is given (default: the file's name).
     out, report : path, optional
         Parameter file (JSON) and HTML report to write (checked before the fit).
     force : bool
-        Replace ``out`` and ``report`` if they exist (never the HDF5 file read).
+        Replace ``out`` and ``report`` if they exist (never the file read).
+    reading : dict, optional
+        For a recording: ``columns``, ``units``, ``jaw_length_m``, ``rate_hz``, as
+        :func:`tissuecli.app.transfer.import_recording` takes them.
     **options
         Passed to :func:`tissuecli.identify.fit_session` (method, forms, sampler, ...).
+
+    Returns
+    -------
+    FitOutcome
+        For a recording, ``outcome.session.meta["import_report"]`` holds the lines
+        that say how it was read (columns, units, time base), as ``import`` prints.
     """
     check_outputs(
         [Output(out, "--out") if out else None, Output(report, "--report") if report else None],
         [path],
         force=force,
     )
-    outcome = fit_session(read_session(path, session), **options)
+    data, read = load_session(path, session, **(reading or {}))
+    if read is not None:
+        data.meta["import_report"] = read.lines()
+    outcome = fit_session(data, **options)
     if out is not None:
         write_params(out, outcome)
     if report is not None:
@@ -85,8 +101,9 @@ def grasp_lines(outcome: FitOutcome) -> list[str]:
 
 def summary_lines(outcome: FitOutcome) -> list[str]:
     """A short terminal summary."""
-    lines = []
     s = outcome.session
+    read = s.meta.get("import_report", [])
+    lines = ["read as another logger's recording:", *(f"  {line}" for line in read)] if read else []
     lines.append(
         f"session {s.name!r}: {len(s)} samples, {s.duration_s:.2f} s at {s.rate_hz:.0f} Hz"
     )

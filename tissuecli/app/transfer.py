@@ -11,7 +11,12 @@ from ..core.units import parse_units
 from ..formats.csvfile import write_csv
 from ..formats.outputs import Output, check_outputs
 from ..formats.recording import ImportReport, read_recording
-from ..formats.sessions import check_new_session, read_session, write_session
+from ..formats.sessions import (
+    check_new_session,
+    is_session_file,
+    read_session,
+    write_session,
+)
 
 
 def import_recording(
@@ -70,3 +75,50 @@ def export_csv(
     s = read_session(path, session)
     write_csv(csv_path, s, written)
     return s
+
+
+def load_session(
+    path: str | os.PathLike[str],
+    session: str | None = None,
+    *,
+    columns: str | None = None,
+    units: str | None = None,
+    jaw_length_m: float | None = None,
+    rate_hz: float | None = None,
+) -> tuple[Session, ImportReport | None]:
+    """A session from a tissuecli HDF5 file, or read on the fly from another logger's
+    recording (as :func:`import_recording` reads it, without storing it).
+
+    Returns
+    -------
+    session : Session
+    report : ImportReport or None
+        What reading a foreign recording found and did; None for a session file.
+
+    Raises
+    ------
+    InputError
+        If reading options are given for a session file, or the recording is bad.
+    """
+    if is_session_file(path):
+        given = [
+            option
+            for option, value in (
+                ("--columns", columns),
+                ("--units", units),
+                ("--jaw-length", jaw_length_m),
+                ("--rate", rate_hz),
+            )
+            if value is not None
+        ]
+        if given:
+            raise InputError(
+                f"{', '.join(given)} read a recording from another logger; {path} is a "
+                "tissuecli session file, already in SI: leave them out"
+            )
+        return read_session(path, session), None
+    name = session if session is not None else Path(path).stem
+    return read_recording(
+        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        name=name,
+    )  # fmt: skip

@@ -12,6 +12,8 @@ from .options import (
     force_option,
     h5_out_option,
     label_options,
+    reading,
+    recording_options,
     session_option,
     units_option,
 )
@@ -64,29 +66,7 @@ def _num(value: float | None, width: int, digits: int) -> str:
 @file_argument("source")
 @h5_out_option()
 @session_option("Name of the new session [default: the name of SOURCE without its extension].")
-@click.option(
-    "--columns",
-    default=None,
-    help="Which column is which, by header name or 1-based index, e.g. "
-    "'time=t_ms,force=force_g,position=3' [default: found by header name].",
-)
-@units_option(
-    "Units per column, e.g. 'time=ms,force=gf,position=mm' or the short 'mm,gf' "
-    "[default: from the header, e.g. t_ms, else s, N, m]. An angle (deg, rad) for "
-    "position is the angle between the jaws: give --jaw-length."
-)
-@click.option(
-    "--jaw-length",
-    default=None,
-    help="Hinge-to-tip length of the jaws, e.g. 20mm: turns a jaw angle into the closure "
-    "at the tips.",
-)
-@click.option(
-    "--rate",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Sample rate in Hz, for files without a time column.",
-)
+@recording_options()
 @label_options()
 def import_(
     source: str,
@@ -115,16 +95,12 @@ def import_(
         tissuecli import rig.mat --out grasp.h5 --session rig-1 --columns time=t,force=F,position=x
     """
     from ..app.transfer import import_recording
-    from ..core.units import parse_quantity
 
     s, report = import_recording(
         source,
         out,
         session,
-        columns=columns,
-        units=units,
-        jaw_length_m=parse_quantity(jaw_length, "length", "--jaw-length") if jaw_length else None,
-        rate_hz=rate,
+        **reading(columns, units, jaw_length, rate),
         tissue=tissue,
         note=note,
     )

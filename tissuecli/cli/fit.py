@@ -8,7 +8,14 @@ from collections.abc import Callable
 import click
 
 from .base import cli
-from .options import file_argument, force_option, seed_option, session_option
+from .options import (
+    file_argument,
+    force_option,
+    reading,
+    recording_options,
+    seed_option,
+    session_option,
+)
 
 
 def _sampling_progress() -> Callable[[str, int, float], None]:
@@ -19,7 +26,7 @@ def _sampling_progress() -> Callable[[str, int, float], None]:
         done = min(1.0, steps / need)
         bar = "#" * int(20 * done) + "-" * (20 - int(20 * done))
         click.echo(
-            f"\rsampling {form:<11} [{bar}] {steps:>6} steps (need ~{need})",
+            f"\rsampling {form:<28} [{bar}] {steps:>6} steps (need ~{need})",
             err=True,
             nl=done >= 1.0,
         )
@@ -40,6 +47,7 @@ def _grasps(text: str) -> str | list[int]:
 @cli.command()
 @file_argument()
 @session_option("Session to fit [default: the only one].")
+@recording_options()
 @click.option(
     "--out",
     type=click.Path(dir_okay=False),
@@ -118,6 +126,10 @@ def _grasps(text: str) -> str | list[int]:
 def fit(
     file: str,
     session: str | None,
+    columns: str | None,
+    units: str | None,
+    jaw_length: str | None,
+    rate: float | None,
     out: str | None,
     report: str | None,
     method: str,
@@ -136,6 +148,9 @@ def fit(
     """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F (and laws beyond it:
     offset, friction) from a session, choosing among the candidate laws by evidence.
 
+    FILE is a tissuecli HDF5 file, or any recording `import` reads (text table,
+    .mat, .npz), read on the fly with --columns, --units, --jaw-length and --rate.
+
     Where grasps alternate with free jaw motion, the grasps are found against the
     free-jaw force and fitted alone.
 
@@ -146,6 +161,8 @@ def fit(
         tissuecli fit grasp.h5 --forms x,xdot         # one law, no model choice
         tissuecli fit grasp.h5 --grasps 2,3 --hold-out 0.3
         tissuecli fit grasp.h5 --start 12.5 --end 40
+        tissuecli fit data/phantom_EF30_0T_A1.csv --forms "x+x^3+offset" \\
+            --columns "time=Time (s),force=Load (N),position=Compression (mm)"
     """
     from ..app.fit import fit_file, summary_lines
 
@@ -155,6 +172,7 @@ def fit(
         out=out,
         report=report,
         force=force,
+        reading=reading(columns, units, jaw_length, rate),
         grasps=_grasps(grasps),
         start_s=start,
         end_s=end,

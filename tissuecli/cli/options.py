@@ -71,6 +71,63 @@ def units_option(help: str) -> Decorator:
     return click.option("--units", default=None, help=help)
 
 
+def recording_options() -> Decorator:
+    """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
+    logger's recording (``import``, and ``fit`` of a recording directly)."""
+
+    def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
+        for option in reversed(
+            [
+                click.option(
+                    "--columns",
+                    default=None,
+                    help="Which column is which, by header name or 1-based index, e.g. "
+                    "'time=t_ms,force=force_g,position=3' [default: found by header name].",
+                ),
+                units_option(
+                    "Units per column, e.g. 'time=ms,force=gf,position=mm' or the short "
+                    "'mm,gf' [default: from the header, e.g. t_ms, else s, N, m]. Counts take "
+                    "a scale (0.00076699*rad), a sensor that grows the other way a sign "
+                    "(-deg). An angle (deg, rad) for position is the angle between the "
+                    "jaws: give --jaw-length."
+                ),
+                click.option(
+                    "--jaw-length",
+                    default=None,
+                    help="Hinge-to-tip length of the jaws, e.g. 20mm: turns a jaw angle into "
+                    "the closure at the tips, a hinge torque into the force there.",
+                ),
+                click.option(
+                    "--rate",
+                    type=click.FloatRange(min=0, min_open=True),
+                    default=None,
+                    help="Sample rate in Hz, for files without a time column.",
+                ),
+            ]
+        ):
+            fn = option(fn)
+        return fn
+
+    return apply
+
+
+def reading(
+    columns: str | None, units: str | None, jaw_length: str | None, rate: float | None
+) -> dict[str, Any]:
+    """The keywords of :func:`tissuecli.app.transfer.import_recording` from
+    :func:`recording_options`' values (--jaw-length parsed to metres)."""
+    from ..core.units import parse_quantity
+
+    return {
+        "columns": columns,
+        "units": units,
+        "jaw_length_m": parse_quantity(jaw_length, "length", "--jaw-length")
+        if jaw_length
+        else None,
+        "rate_hz": rate,
+    }
+
+
 def profile_option(help: str) -> Decorator:
     return click.option(
         "--profile", "profile_file", type=click.Path(dir_okay=False), default=None, help=help

@@ -486,6 +486,29 @@ def _open_session(f: h5py.File, file: str, name: str) -> h5py.Group:
     return g
 
 
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def is_session_file(path: StrPath) -> bool:
+    """Whether ``path`` is an HDF5 file of tissuecli's (its signature at the start and
+    tissuecli's root attributes, or empty), rather than a recording of another logger
+    (text, .npz, a MATLAB v7.3 file, whose HDF5 signature follows a 512-byte header,
+    or other HDF5 data). A file that cannot be read counts as one by its suffix, so
+    that reading it gives the session reader's message."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(HDF5_SIGNATURE))
+    except OSError:
+        return os.fspath(path).lower().endswith((".h5", ".hdf5"))
+    if head != HDF5_SIGNATURE:
+        return False
+    try:
+        with h5py.File(path, "r") as f:
+            return is_own_file(f)
+    except (OSError, RuntimeError, KeyError, ValueError):
+        return True  # damaged: the session reader says how
+
+
 def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -> Session:
     """Read one session, checked against the documented layout.
 
