@@ -215,7 +215,9 @@ def test_fit_export_round_trips_into_the_simulator(forceps, tmp_path):
     assert fitted.K3 == pytest.approx(truth.K3, rel=0.01)
     assert fitted.S == pytest.approx(truth.S, rel=0.05)
     assert tissue_from_dict(doc).law == truth.law
-    assert set(doc["probabilities"]) == {law.name for law in parse_forms("all")}
+    # every linear law, and the relaxation and contact laws the search built from them
+    assert {law.name for law in parse_forms("all")} <= set(doc["probabilities"])
+    assert any("maxwell" in name for name in doc["probabilities"])
 
 
 def test_fit_cli_errors_are_one_line(tmp_path):

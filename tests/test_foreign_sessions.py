@@ -118,12 +118,18 @@ def test_the_fit_scales_with_the_session() -> None:
     c, b = 130.0, 0.065  # M 0.05 kg -> 100 kg, peak force 1.5 N -> 200 N
     big = Session(s.time, s.force * c, s.position * b, name="stage")
     small = Session(s.time, s.force, s.position, name="forceps")
-    for forms in (PAPER_LAW, "all"):
+    for forms in (PAPER_LAW, "paper", "all"):
         a, z = _fit(small, forms), _fit(big, forms)
         assert a.best_.name == z.best_.name
         pa, pz = a.best_.posterior, z.best_.posterior
         np.testing.assert_allclose(pz.mean[:3], pa.mean[:3] * c / b, rtol=1e-6)
-        np.testing.assert_allclose(pz.sd[:3], pa.sd[:3] * c / b, rtol=1e-6)
+        if forms != "all":
+            np.testing.assert_allclose(pz.sd[:3], pa.sd[:3] * c / b, rtol=1e-6)
+        else:
+            # the one scale a law carries: dry friction is smoothed below 1 mm/s, so the
+            # friction laws' columns (and the residual correlation the data weight takes
+            # from the best of them) change with the closure's scale
+            np.testing.assert_allclose(pz.sd[:3], pa.sd[:3] * c / b, rtol=0.2)
 
 
 def _grasping(seed: int, offset_n: float = 0.3) -> tuple[Session, Session]:
@@ -153,7 +159,7 @@ def test_grasps_between_free_motion_fit_as_well_as_one_long_contact(seed: int) -
 def test_fitting_every_sample_of_a_grasping_session_is_biased() -> None:
     """The control: through the free motion, the law does not hold."""
     grasps, _ = _grasping(0)
-    blind = _fit(grasps, "all", grasps="none")
+    blind = _fit(grasps, "x+xdot+xddot+offset", grasps="none")
     truth = np.array([*DEFAULT_TISSUE.coef, 0.3])
     assert np.max(_z(blind, truth)) > 10
 

@@ -44,13 +44,39 @@ class Term(ABC):
     """
 
     name: ClassVar[str]
-    symbol: ClassVar[str]
-    unit: ClassVar[str]
+    symbol: str
+    unit: str
     label: ClassVar[str]
     role: ClassVar[str]
     variable: ClassVar[str]
     passive: ClassVar[bool] = True
     rendered: ClassVar[bool] = True
+    #: the term's force depends on the past (a relaxation branch): it needs a time series
+    memory: ClassVar[bool] = False
+
+    #: names of the nonlinear (shape) parameters the term reads, and their values once
+    #: bound (a term with shapes fits as a family; a tissue holds it bound)
+    shapes: tuple[str, ...] = ()
+    shape: dict[str, float] = {}
+
+    @property
+    def bound(self) -> bool:
+        """Whether every shape parameter has a value."""
+        return all(n in self.shape for n in self.shapes)
+
+    def bind(self, values: dict[str, float]) -> Term:
+        """This term with its shape parameters set from ``values`` (by name); itself if it
+        has none."""
+        return self
+
+    def _key(self) -> tuple[object, ...]:
+        return (type(self), self.symbol, tuple(sorted(self.shape.items())))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Term) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
     @abstractmethod
     def __call__(self, u: ArrayLike) -> Array:
@@ -77,13 +103,19 @@ class Term(ABC):
         u = {"x": x, "v": v, "a": a, "1": np.ones_like(np.asarray(x, dtype=float))}
         return self(u[self.variable])
 
+    def series(self, dt: float, x: Array, v: Array, a: Array) -> Array:
+        """The regressor over a uniformly sampled series (``dt`` s apart, from rest before
+        the first sample): what a term with memory needs; the others ignore ``dt``."""
+        return self.regressor(x, v, a)
+
     def typical(self, scales: MotionScales) -> float:
         """The regressor's size at a session's typical motion (for prior scales)."""
         u = {"x": scales.x, "v": scales.v, "a": scales.a, "1": 1.0}[self.variable]
         return float(abs(self(np.array([u]))[0])) or 1.0
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
+        shape = ", ".join(f"{k}={v:g}" for k, v in self.shape.items())
+        return f"{type(self).__name__}({shape})"
 
 
 TERMS: dict[str, Term] = {}
@@ -228,6 +260,151 @@ class Offset(Term):
         return np.zeros_like(np.asarray(u, dtype=float))
 
 
+@register
+class Contact(Term):
+    """Hunt-Crossley contact stiffness: ``Kc d^n`` with ``d = max(x - x0, 0)``, the
+    indentation past the contact point x0 (m), exponent n; Kc in N/m^n."""
+
+    name, symbol, unit, label, role, variable = (
+        "contact", "Kc", "N/m^n", "dⁿ", "stiffness", "x",
+    )  # fmt: skip
+    shapes = ("n", "x0")
+
+    def __init__(self, shape: dict[str, float] | None = None) -> None:
+        self.shape = dict(shape or {})
+
+    def bind(self, values: dict[str, float]) -> Term:
+        return type(self)({k: float(values[k]) for k in self.shapes})
+
+    def _nd(self) -> tuple[float, float]:
+        return self.shape.get("n", 1.5), self.shape.get("x0", 0.0)
+
+    def __call__(self, u: ArrayLike) -> Array:
+        n, x0 = self._nd()
+        d = np.maximum(np.asarray(u, dtype=float) - x0, 0.0)
+        return d**n
+
+    def derivative(self, u: ArrayLike) -> Array:
+        n, x0 = self._nd()
+        d = np.maximum(np.asarray(u, dtype=float) - x0, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(d > 0, n * d ** (n - 1.0), 0.0)
+
+    def scalar(self, u: float) -> float:
+        n, x0 = self._nd()
+        d = u - x0
+        return d**n if d > 0 else 0.0
+
+    def typical(self, scales: MotionScales) -> float:
+        return float(scales.x ** self._nd()[0]) or 1.0
+
+
+@register
+class ContactDamping(Contact):
+    """Hunt-Crossley contact damping: ``Lc d^n xdot``, the damping that grows with the
+    indentation (no force before contact, none created on release); Lc in N s/m^(n+1).
+    Shares n and x0 with :class:`Contact`."""
+
+    name, symbol, unit, label, role, variable = (
+        "contact*xdot", "Lc", "N s/m^(n+1)", "dⁿẋ", "damping", "xv",
+    )  # fmt: skip
+
+    def regressor(self, x: Array, v: Array, a: Array) -> Array:
+        return Contact.__call__(self, x) * np.asarray(v, dtype=float)
+
+    def typical(self, scales: MotionScales) -> float:
+        return float(scales.x ** self._nd()[0] * scales.v) or 1.0
+
+
+@register
+class Maxwell(Term):
+    """A relaxation branch (generalised Maxwell, or Prony, series): a spring Km in series
+    with a damper Km tau. Its force obeys ``F' = Km xdot - F / tau`` from rest, so a
+    step in closure gives ``Km e^(-t/tau)``: the stress relaxation of soft tissue. One
+    branch with a spring ``x`` is the standard linear solid. Km in N/m, tau in s."""
+
+    name, label, role, variable = "maxwell", "relax", "relaxation", "h"
+    unit = "N/m"
+    memory = True
+
+    def __init__(self, index: int = 1, shape: dict[str, float] | None = None) -> None:
+        self.index = index
+        self.symbol = f"Km{index}"
+        self.shapes = (f"tau{index}",)
+        self.shape = dict(shape or {})
+
+    def bind(self, values: dict[str, float]) -> Term:
+        return type(self)(self.index, {k: float(values[k]) for k in self.shapes})
+
+    @property
+    def tau(self) -> float:
+        return self.shape.get(self.shapes[0], math.nan)
+
+    def __call__(self, u: ArrayLike) -> Array:
+        raise TypeError("a relaxation branch needs the closure's history: use series()")
+
+    def derivative(self, u: ArrayLike) -> Array:
+        # the instantaneous stiffness of the branch: the spring, before it relaxes
+        return np.ones_like(np.asarray(u, dtype=float))
+
+    def regressor(self, x: Array, v: Array, a: Array) -> Array:
+        raise TypeError("a relaxation branch needs the closure's history: use series()")
+
+    def series(self, dt: float, x: Array, v: Array, a: Array) -> Array:
+        return relaxation(np.asarray(x, dtype=float), dt, self.tau)[0]
+
+    def typical(self, scales: MotionScales) -> float:
+        return scales.x or 1.0
+
+
+def relaxation(
+    x: Array, dt: float, tau: float, state: float = 0.0, x_before: float | None = None
+) -> tuple[Array, float]:
+    """The force per unit branch stiffness of a Maxwell branch, sample by sample.
+
+    With the closure linear between samples, ``r' = xdot - r / tau`` integrates
+    exactly to ``r_k = a r_{k-1} + (tau / dt) (1 - a) (x_k - x_{k-1})``,
+    ``a = exp(-dt / tau)``. The recursion runs in blocks short enough that ``a^-j``
+    stays finite, so it is exact and vectorised.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Closure, m, every ``dt`` s.
+    dt, tau : float
+        Sample interval and time constant, s.
+    state : float
+        ``r`` before the first sample (0: at rest).
+    x_before : float, optional
+        The closure before the first sample (default: the first sample, no step).
+
+    Returns
+    -------
+    r : ndarray, shape (n,)
+        m (times Km: N).
+    last : float
+        ``r`` at the last sample, to continue from.
+    """
+    n = x.size
+    out = np.empty(n)
+    if n == 0:
+        return out, state
+    a = math.exp(-dt / tau)
+    gain = (tau / dt) * -math.expm1(-dt / tau)
+    u = gain * np.diff(x, prepend=x[0] if x_before is None else x_before)
+    lam = dt / tau
+    block = max(1, min(n, int(30.0 / lam) if lam > 0 else n))
+    r = state
+    for start in range(0, n, block):
+        seg = u[start : start + block]
+        j = np.arange(seg.size, dtype=float)
+        grow = np.exp(-lam * j)  # a^j, decaying, never overflows
+        # r_k = a^k (a r + sum_{i<=k} a^-i u_i), with a^-i = 1 / grow_i below e^30
+        out[start : start + seg.size] = grow * (a * r + np.cumsum(seg / grow))
+        r = float(out[start + seg.size - 1])
+    return out, r
+
+
 @dataclass(frozen=True)
 class MotionScales:
     """A session's typical closure (m), speed (m/s) and acceleration (m/s^2) and force
@@ -257,15 +434,31 @@ class Law:
     terms: tuple[Term, ...]
 
     def __post_init__(self) -> None:
-        names = [t.name for t in self.terms]
-        if len(set(names)) != len(names) or not names:
-            raise InputError(f"a law needs distinct terms, got {', '.join(names) or 'none'}")
+        symbols = [t.symbol for t in self.terms]
+        if len(set(symbols)) != len(symbols) or not symbols:
+            names = ", ".join(t.name for t in self.terms)
+            raise InputError(f"a law needs distinct terms, got {names or 'none'}")
+        if any(t.name == "contact*xdot" for t in self.terms) and not any(
+            t.name == "contact" for t in self.terms
+        ):
+            raise InputError("contact*xdot (Hunt-Crossley damping) needs its contact term too")
 
     @classmethod
     def of(cls, names: Iterable[str]) -> Law:
-        """The law of the named terms, in the canonical order."""
-        chosen = {term(n).name: term(n) for n in names}
-        return cls(tuple(t for t in TERMS.values() if t.name in chosen))
+        """The law of the named terms, in the canonical order; ``maxwell`` may repeat (one
+        relaxation branch each)."""
+        names = list(names)
+        branches = sum(1 for n in names if n == "maxwell")
+        if branches > MAX_BRANCHES:
+            raise InputError(f"at most {MAX_BRANCHES} relaxation branches (maxwell) in a law")
+        chosen = {term(n).name: term(n) for n in names if n != "maxwell"}
+        terms: list[Term] = []
+        for name in CANONICAL:
+            if name == "maxwell":
+                terms += [Maxwell(i) for i in range(1, branches + 1)]
+            elif name in chosen:
+                terms.append(chosen[name])
+        return cls(tuple(terms))
 
     @classmethod
     def paper(cls, f0: str = "x", f1: str = "xdot", *extra: str) -> Law:
@@ -292,22 +485,88 @@ class Law:
         """Which coefficients are non-negative, shape (p,)."""
         return np.array([t.passive for t in self.terms])
 
+    @property
+    def shape_names(self) -> tuple[str, ...]:
+        """The nonlinear parameters of the law, each once (contact terms share n, x0)."""
+        seen: dict[str, None] = {}
+        for t in self.terms:
+            seen.update(dict.fromkeys(t.shapes))
+        return tuple(seen)
+
+    @property
+    def shape(self) -> dict[str, float]:
+        """The shape parameters' values, once bound."""
+        out: dict[str, float] = {}
+        for t in self.terms:
+            out.update(t.shape)
+        return out
+
+    @property
+    def bound(self) -> bool:
+        return all(t.bound for t in self.terms)
+
+    @property
+    def memory(self) -> bool:
+        """Whether the force depends on the past (relaxation branches)."""
+        return any(t.memory for t in self.terms)
+
+    def bind(self, values: dict[str, float]) -> Law:
+        """The law with its shape parameters set (by name, SI)."""
+        missing = [n for n in self.shape_names if n not in values]
+        if missing:
+            raise InputError(f"law {self.name} needs values for {', '.join(missing)}")
+        return Law(tuple(t.bind(values) for t in self.terms))
+
     def has(self, role: str) -> bool:
         return any(t.role == role for t in self.terms)
 
-    def regressors(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
-        """The law's columns at exact kinematics, shape (n, p)."""
+    def regressors(
+        self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None
+    ) -> Array:
+        """The law's columns at exact kinematics, shape (n, p); a law with memory needs
+        the sample interval ``dt`` (s), the series starting from rest."""
         x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
-        return np.column_stack([t.regressor(x, v, a) for t in self.terms])
+        if self.memory and dt is None:
+            raise InputError(f"law {self.name} has memory: give the series' sample interval")
+        return np.column_stack(
+            [t.series(dt, x, v, a) if t.memory else t.regressor(x, v, a) for t in self.terms]  # type: ignore[arg-type]
+        )
 
-    def force(self, c: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
+    def force(
+        self, c: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None
+    ) -> Array:
         """F = sum_i c_i r_i at exact kinematics, shape (n,), N."""
-        return self.regressors(x, v, a) @ np.asarray(c, dtype=float)
+        return self.regressors(x, v, a, dt) @ np.asarray(c, dtype=float)
 
     def prior_scales(self, scales: MotionScales = FORCEPS_SCALES) -> Array:
         """Prior scale of each coefficient (SI): the coefficient that makes its term reach
         ``scales.force`` at the session's typical motion."""
         return np.array([scales.force / t.typical(scales) for t in self.terms])
+
+
+#: units and the range a file may give each kind of shape parameter (SI): time
+#: constants, Hunt-Crossley exponents and contact points
+SHAPE_UNITS = {"tau": "s", "n": "1", "x0": "m"}
+SHAPE_RANGES = {"tau": (1e-4, 1e4), "n": (0.5, 5.0), "x0": (-1.0, 1.0)}
+
+
+def shape_kind(name: str) -> str:
+    """``tau`` for a branch's time constant (``tau2``), else the name (``n``, ``x0``)."""
+    return "tau" if name.startswith("tau") else name
+
+
+def shape_unit(name: str) -> str:
+    """The SI unit of a shape parameter (``tau2`` -> ``s``)."""
+    return SHAPE_UNITS[shape_kind(name)]
+
+
+#: most relaxation branches a law may have
+MAX_BRANCHES = 3
+#: the order of terms in a law: stiffness, relaxation, damping, friction, inertia, offset
+CANONICAL = (
+    "x", "x^3", "contact", "maxwell", "xdot", "xdot|xdot|", "contact*xdot", "sign(xdot)",
+    "xddot", "offset",
+)  # fmt: skip
 
 
 def parse_law(spec: str) -> Law:
@@ -337,5 +596,9 @@ def paper_laws(*extra: str) -> list[Law]:
 
 def symbols_of(laws: Sequence[Law]) -> list[str]:
     """Every coefficient symbol the laws use, in canonical order."""
-    seen = {s for law in laws for s in law.symbols}
-    return [t.symbol for t in TERMS.values() if t.symbol in seen]
+    seen: dict[str, None] = {}
+    for law in sorted(laws, key=lambda law: -len(law.terms)):
+        seen.update(dict.fromkeys(law.symbols))
+    order = {name: i for i, name in enumerate(CANONICAL)}
+    by_symbol = {t.symbol: t for law in laws for t in law.terms}
+    return sorted(seen, key=lambda s: (order[by_symbol[s].name], s))

@@ -48,6 +48,11 @@ class Tissue:
             values = tuple(by_symbol[s] for s in law.symbols)
         if len(values) != len(law.terms):
             raise InputError(f"law {law.name} has {len(law.terms)} coefficients, got {len(values)}")
+        if not law.bound:
+            raise InputError(
+                f"law {law.name} needs values for its shape parameters "
+                f"{', '.join(law.shape_names)}: bind them with Law.bind"
+            )
         object.__setattr__(self, "law", law)
         object.__setattr__(self, "coef", np.array(values, dtype=float))
 
@@ -72,7 +77,8 @@ class Tissue:
 
     def __repr__(self) -> str:
         values = ", ".join(f"{s}={c:g}" for s, c in zip(self.law.symbols, self.coef, strict=True))
-        return f"Tissue({self.law.name}: {values})"
+        shape = "".join(f", {k}={v:g}" for k, v in self.law.shape.items())
+        return f"Tissue({self.law.name}: {values}{shape})"
 
     def get(self, symbol: str, default: float = 0.0) -> float:
         """The coefficient of ``symbol``, or ``default`` if the law has no such term."""
@@ -88,15 +94,18 @@ class Tissue:
         return self.get("M")
 
     def describe(self) -> dict[str, Any]:
-        """JSON-ready: the law's name and each coefficient by symbol, SI."""
+        """JSON-ready: the law's name, each coefficient by symbol and each shape
+        parameter by name, SI."""
         return {
             "law": self.law.name,
             **{s: float(c) for s, c in zip(self.law.symbols, self.coef, strict=True)},
+            **self.law.shape,
         }
 
-    def force(self, x: ArrayLike, v: ArrayLike, a: ArrayLike) -> Array:
-        """The law's force at exact kinematics, shape (n,), N."""
-        return self.law.force(self.coef, x, v, a)
+    def force(self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None) -> Array:
+        """The law's force at exact kinematics, shape (n,), N; a law with memory needs the
+        series' sample interval ``dt`` (s), starting from rest."""
+        return self.law.force(self.coef, x, v, a, dt)
 
     def validate(self) -> Tissue:
         """Raise :class:`InputError` unless every coefficient is finite, and the passive

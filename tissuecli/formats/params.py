@@ -13,12 +13,18 @@ import os
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from .._version import __version__
 from ..core.calibration import SI_UNITS, Calibration, calibration_from_dict
 from ..core.errors import InputError
-from ..core.terms import TERMS, Law, Term
+from ..core.terms import (
+    SHAPE_RANGES,
+    TERMS,
+    Law,
+    MotionScales,
+    Term,
+    shape_kind,
+    shape_unit,
+)
 from ..core.tissue import Tissue
 from ..render.profile import DisplayProfile, profile_from_dict
 from .jsonfile import item_name, json_type, read_json, shown, write_json
@@ -71,8 +77,25 @@ def _terms(law: Law, mean: Any, sd: Any = None, ci95: Any = None) -> list[dict[s
     return out
 
 
-def _law(law: Law, mean: Any, sd: Any = None, ci95: Any = None) -> dict[str, Any]:
-    return {"name": law.name, "terms": _terms(law, mean, sd, ci95)}
+def _law(
+    law: Law,
+    mean: Any,
+    sd: Any = None,
+    ci95: Any = None,
+    shape: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Any]:
+    out: dict[str, Any] = {"name": law.name, "terms": _terms(law, mean, sd, ci95)}
+    if law.shape_names:
+        # the nonlinear parameters: their posterior where the fit has one, else the values
+        out["shape"] = [
+            {
+                "name": n,
+                "unit": shape_unit(n),
+                **(dict(shape[n]) if shape and n in shape else {"mean": law.shape[n]}),
+            }
+            for n in law.shape_names
+        ]
+    return out
 
 
 def tissue_to_dict(tissue: Tissue) -> dict[str, Any]:
@@ -83,7 +106,7 @@ def tissue_to_dict(tissue: Tissue) -> dict[str, Any]:
 def _result_law(res: ModelResult) -> dict[str, Any]:
     post = res.posterior
     assert post is not None
-    return _law(res.model, post.mean, post.sd, post.ci95)
+    return _law(res.model, post.mean, post.sd, post.ci95, res.shape_posterior)
 
 
 def document(outcome: FitOutcome) -> dict[str, Any]:
@@ -178,10 +201,23 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
 
 
 def write_params(path: str | os.PathLike[str], outcome: FitOutcome) -> dict[str, Any]:
-    """Write the parameter file of a fit to ``path`` (atomically); the document written."""
-    data = document(outcome)
+    """Write the parameter file of a fit to ``path`` (atomically); the document written.
+    A figure that is infinite or undefined (the condition number of a singular
+    design) is written as null: JSON has no infinity."""
+    data = _finite(document(outcome))
     write_json(path, data)
     return data
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float, at any depth, replaced by None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
 
 
 def parameter_range(t: Term) -> float:
@@ -193,7 +229,10 @@ def parameter_range(t: Term) -> float:
     x: K <= 1e6 N/m; x^3: K3 <= 1e12 N/m^3; xdot: S <= 1e5 N s/m; xdot|xdot|: S2 <= 1e7
     N s^2/m^2; sign(xdot): Fc <= 1e3 N; xddot: M <= 1e3 kg; offset: |F0| <= 1e3 N.
     """
-    return RANGE_FORCE_N / abs(float(t(np.array([RANGE_MOTION[t.variable]]))[0]))
+    scales = MotionScales(
+        x=RANGE_MOTION["x"], v=RANGE_MOTION["v"], a=RANGE_MOTION["a"], force=RANGE_FORCE_N
+    )
+    return RANGE_FORCE_N / abs(t.typical(scales))
 
 
 class _Schema:
@@ -341,12 +380,11 @@ def _coefficient(sc: _Schema, t: Term, entry: Any, path: tuple[str | int, ...]) 
 def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
     if not isinstance(spec, Mapping):
         raise sc.fail(("law",), f"must be an object, not {json_type(spec)}")
-    sc.keys(spec, ("law",), ("name", "terms", "probability"), required=("terms",))
+    sc.keys(spec, ("law",), ("name", "terms", "probability", "shape"), required=("terms",))
     terms = spec["terms"]
     if not isinstance(terms, list) or not terms:
         raise sc.fail(("law", "terms"), "must be a non-empty array of terms")
-    chosen: list[Term] = []
-    values = []
+    names: list[str] = []
     for j, entry in enumerate(terms):
         path: tuple[str | int, ...] = ("law", "terms", j)
         if not isinstance(entry, Mapping):
@@ -356,14 +394,56 @@ def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
             raise sc.fail(
                 (*path, "term"), f"= {shown(name)} is not a term; choose among: {', '.join(TERMS)}"
             )
-        t = TERMS[name]
-        if t in chosen:
+        if name in names and name != "maxwell":
             raise sc.fail((*path, "term"), f"= {name!r} appears twice")
-        chosen.append(t)
-        values.append(_coefficient(sc, t, entry, path))
-    law = Law.of(t.name for t in chosen)
-    order = [chosen.index(t) for t in law.terms]
-    return law, [values[i] for i in order]
+        names.append(name)
+    try:
+        law = Law.of(names)
+    except InputError as exc:
+        raise sc.fail(("law", "terms"), f"do not make a law: {exc}") from None
+    if law.shape_names:
+        law = law.bind(_read_shape(sc, spec.get("shape"), law.shape_names))
+    # entries in the file's order; relaxation branches in theirs
+    by_symbol: dict[str, int] = {}
+    branch = 0
+    for j, name in enumerate(names):
+        if name == "maxwell":
+            branch += 1
+            by_symbol[f"Km{branch}"] = j
+        else:
+            by_symbol[TERMS[name].symbol] = j
+    values = [
+        _coefficient(sc, t, terms[by_symbol[t.symbol]], ("law", "terms", by_symbol[t.symbol]))
+        for t in law.terms
+    ]
+    return law, values
+
+
+def _read_shape(sc: _Schema, spec: Any, wanted: tuple[str, ...]) -> dict[str, float]:
+    """The nonlinear parameters: ``[{"name", "mean", "unit", ...}]``, each in range."""
+    if not isinstance(spec, list):
+        raise sc.fail(
+            ("law", "shape"), f"must list the law's nonlinear parameters {', '.join(wanted)}"
+        )
+    out: dict[str, float] = {}
+    for j, entry in enumerate(spec):
+        path: tuple[str | int, ...] = ("law", "shape", j)
+        if not isinstance(entry, Mapping):
+            raise sc.fail(path, f"must be an object, not {json_type(entry)}")
+        sc.keys(entry, path, ("name", "unit", "mean", "sd", "ci95"), required=("name", "mean"))
+        name = entry["name"]
+        if name not in wanted or name in out:
+            raise sc.fail((*path, "name"), f"= {shown(name)}; the law's are {', '.join(wanted)}")
+        unit = shape_unit(name)
+        if entry.get("unit", unit) != unit:
+            given = shown(entry.get("unit"))
+            raise sc.fail((*path, "unit"), f"= {given}, but {name} is in {unit!r}")
+        lo, hi = SHAPE_RANGES[shape_kind(name)]
+        out[name] = sc.number(entry["mean"], (*path, "mean"), lo, hi, unit)
+    missing = [n for n in wanted if n not in out]
+    if missing:
+        raise sc.fail(("law", "shape"), f"lacks {', '.join(missing)}")
+    return out
 
 
 #: version 1 form names and parameters

@@ -11,18 +11,30 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from ..core.session import Session
-from ..core.terms import Law, MotionScales, paper_laws, parse_law
+from ..core.terms import Law, MotionScales, paper_laws, parse_law, shape_kind
 from .derivatives import Differentiator, Kinematics
 from .design import design, eiv_correction, lstsq_scaled_cond, position_noise_sd
 from .estimator import Estimator
 from .noise import data_weight, residual_tau
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
+from .shapes import (
+    ShapeGrid,
+    hermite_nodes,
+    kept,
+    laplace,
+    mix,
+    resolvable,
+    shape_grid,
+    shape_summary,
+    tau_range,
+)
 
 Array = NDArray[np.float64]
 
@@ -37,12 +49,26 @@ NOISE_FREE = 1e-6
 CUT_THRESHOLD = 1e-3
 
 
+def linear_laws() -> list[Law]:
+    """Every law linear in its coefficients that the default search enumerates: stiffness
+    x, x^3 or both; damping xdot or xdot|xdot|; with or without dry friction; with or
+    without an offset; all with inertia (24 laws)."""
+    out = []
+    for stiffness in (("x",), ("x^3",), ("x", "x^3")):
+        for damping in ("xdot", "xdot|xdot|"):
+            for friction in ((), ("sign(xdot)",)):
+                for offset in ((), ("offset",)):
+                    out.append(Law.of([*stiffness, damping, *friction, "xddot", *offset]))
+    return out
+
+
 def parse_forms(spec: str | Sequence[str | Law] | None) -> list[Law]:
-    """The candidate laws: ``"all"``/None (the paper's four, with and without an offset),
-    ``"paper"`` (the four alone), one law (``x,xdot`` or ``x+x^3+xdot+offset+xddot``),
-    or a list of them."""
-    if spec is None or spec == "all":
-        return paper_laws() + paper_laws("offset")
+    """The candidate laws: ``"all"``/None or ``"linear"`` (the 24 of :func:`linear_laws`;
+    ``all`` then searches relaxation and contact from the best of them), ``"paper"``
+    (the paper's four), one law (``x,xdot`` or ``x+x^3+xdot+offset+xddot``,
+    ``x+maxwell+xdot+xddot``), or a list of them."""
+    if spec is None or spec in ("all", "linear"):
+        return linear_laws()
     if spec == "paper":
         return paper_laws()
     specs = [spec] if isinstance(spec, (str, Law)) else list(spec)
@@ -71,10 +97,15 @@ class ModelResult:
     correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
     stats: SufficientStats | None = field(default=None, repr=False)
     prior: Prior | None = field(default=None, repr=False)
+    #: for a law with shape parameters: their posterior (mean, sd, ci95 by name, SI),
+    #: the range searched, and the law as fitted before binding
+    shape_posterior: dict[str, dict[str, Any]] | None = None
+    shape_ranges: dict[str, tuple[float, float]] | None = None
+    family: Law | None = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
-        return self.model.name
+        return (self.family or self.model).name
 
 
 class BayesianFit(Estimator):
@@ -181,23 +212,47 @@ class BayesianFit(Estimator):
         # one pass per law keeps only its sufficient statistics; the terms' columns are
         # computed once and shared by every law that has them
         columns: dict[str, Array] = {}
-        firsts = {
-            m.name: _first_pass(m, kin, session.position, y, sigma_x, columns) for m in models
-        }
+        linear = [m for m in models if not m.shape_names]
+        shaped = [m for m in models if m.shape_names]
+        x_full = session.position
+        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns) for m in linear}
+        if not firsts:  # shaped laws only: their middle node stands in for the residuals
+            m0 = shaped[0]
+            nodes = shape_grid(m0, kin).nodes
+            firsts = {m0.name: _first_pass(m0.bind(nodes[len(nodes) // 2]), kin, x_full, y,
+                                           sigma_x, columns)}  # fmt: skip
         # residual correlation from the best-fitting law: smoothing makes neighbouring
         # residuals alike, and treating them as independent would overstate certainty
-        best_ls = next(m for m in models if m.name == min(firsts, key=lambda k: firsts[k].rss))
-        warnings.extend(_prior_conflict(best_ls, firsts[best_ls.name].beta, scales))
-        A = design(best_ls, kin, session.position, sigma_x, columns)
-        residual = y - A @ firsts[best_ls.name].beta
+        # (the best by BIC: the law with the most terms always leaves the least residual,
+        # and which of two near-equal big laws that is would hang on rounding)
+        n_rows = y.size
+        best_name = min(
+            firsts,
+            key=lambda k: (
+                n_rows * np.log(max(firsts[k].rss, 1e-300) / n_rows)
+                + firsts[k].beta.size * np.log(n_rows)
+            ),
+        )
+        best_ls = next((m for m in linear if m.name == best_name), None)
+        if best_ls is not None:
+            warnings.extend(_prior_conflict(best_ls, firsts[best_name].beta, scales))
+            A = design(best_ls, kin, x_full, sigma_x, columns)
+        else:
+            m0 = shaped[0]
+            A = design(m0.bind(shape_grid(m0, kin).nodes[0]), kin, x_full, sigma_x)
+            A = A[:, : firsts[best_name].beta.size]
+        residual = y - A @ firsts[best_name].beta
         tau = residual_tau(residual)
         # bridged stand-ins are not measurements: each fitted sample counts for less
         weight = data_weight(A, residual, tau) * ready.measured_fraction
-        del A, columns
+        del A
 
-        results = [
-            self._exact(m, firsts[m.name], weight, y.size, sigma_x, scales, rng) for m in models
-        ]
+        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, rng)
+        results = [self._exact(m, firsts[m.name], fit) for m in linear]
+        if self.forms in (None, "all"):
+            results += self._search(results, fit, warnings)
+        results += [self._exact_shaped(m, fit) for m in shaped]
+        del columns
         self._sample(results, rng)
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
@@ -242,38 +297,38 @@ class BayesianFit(Estimator):
         step = session.adc.step("position") if session.adc is not None else 0.0
         return max(position_noise_sd(session.position, fs), step / np.sqrt(12))
 
-    def _exact(
-        self,
-        model: Law,
-        fp: _FirstPass,
-        weight: float,
-        n: int,
-        sigma_x: float,
-        scales: MotionScales,
-        rng: np.random.Generator,
-    ) -> ModelResult:
-        """The closed-form posterior and evidence of one form."""
+    def _stats(
+        self, model: Law, fp: _FirstPass, fit: _Context
+    ) -> tuple[SufficientStats, Prior, Array | None, list[str]]:
+        """The tempered statistics and prior of one law, and the flags of its noise
+        correction."""
         corr = fp.correction
         uncorrected = corr is not None and not _correctable(fp, corr)
         if uncorrected:
             corr = None  # noise dominates a column: the correction would be meaningless
         G = fp.gram - corr if corr is not None else fp.gram
-        st = SufficientStats(weight * G, weight * fp.b, weight * fp.yy, weight * n)
-        prior = Prior(scales=model.prior_scales(scales), passive=model.passive)
-        post = ExactPosterior(st, prior).summary(rng)
+        w, n = fit.weight, fit.y.size
+        st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n)
+        prior = Prior(scales=model.prior_scales(fit.scales), passive=model.passive)
         flags = []
         if uncorrected:
             flags.append(
                 "position noise dominates a column: left uncorrected, so M (and "
                 "perhaps S) are biased towards zero"
             )
+        return st, prior, corr, flags
+
+    def _exact(self, model: Law, fp: _FirstPass, fit: _Context) -> ModelResult:
+        """The closed-form posterior and evidence of one law."""
+        st, prior, corr, flags = self._stats(model, fp, fit)
+        post = ExactPosterior(st, prior).summary(fit.rng)
         if corr is not None:
             # the correction rests on an estimated noise level: say when it matters
             shift = post.mean - fp.beta
             for j in np.flatnonzero(np.abs(shift) > post.sd):
                 flags.append(
                     f"{model.symbols[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
-                    f"position-noise correction (noise {sigma_x * 1e6:.3g} um); its "
+                    f"position-noise correction (noise {fit.sigma_x * 1e6:.3g} um); its "
                     "interval does not include that correction's own uncertainty"
                 )
         return ModelResult(
@@ -282,13 +337,155 @@ class BayesianFit(Estimator):
             posterior=post,
             cond=fp.cond,
             cond_scaled=fp.cond_scaled,
-            residual_rms=float(np.sqrt(fp.rss / n)),
+            residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
             gram=fp.gram,
             correction=corr,
             stats=st,
             prior=prior,
             flags=flags,
         )
+
+    def _exact_shaped(self, law: Law, fit: _Context) -> ModelResult:
+        """A law with shape parameters: its exact evidence at every node of the shape's
+        quadrature grid, weighted by the prior's masses. Where the posterior is sharper
+        than the grid (most sessions: thousands of samples pin a time constant to a few
+        per cent), Newton steps find its peak and a Laplace approximation gives the
+        evidence, and three Gauss-Hermite nodes per parameter carry the shape's
+        uncertainty into the coefficients; elsewhere the grid's heaviest nodes do."""
+        grid = shape_grid(law, fit.kin)
+        cache: dict[tuple[float, ...], tuple[float, tuple[Any, ...]]] = {}
+
+        def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
+            """ln evidence given the shape without the positivity bounds' orthant mass
+            (the costly part, and nearly constant over a peak), and the fit's parts."""
+            key = tuple(node[n] for n in grid.names)
+            if key not in cache:
+                bound = law.bind(node)
+                fp = _first_pass(bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns)
+                st, prior, corr, flags = self._stats(bound, fp, fit)
+                exact = ExactPosterior(st, prior)
+                cache[key] = (exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact))
+            return cache[key]
+
+        def truncation(node: dict[str, float]) -> float:
+            """ln of what the positivity bounds keep of the closed form's evidence."""
+            exact = evaluate(node)[1][5]
+            return exact.ln_evidence() - exact.ln_z_untruncated
+
+        ln_z = np.array([evaluate(node)[0] for node in grid.nodes])
+        # the bounds matter only where the evidence does: the nodes near the top (more
+        # join them if the bounds pull the top down)
+        done = np.zeros(ln_z.size, bool)
+        while True:
+            near = np.flatnonzero(~done & (ln_z > ln_z[done].max(initial=ln_z.max()) - 30.0))
+            if not near.size:
+                break
+            for i in near:
+                ln_z[i] += truncation(grid.nodes[i])
+            done[near] = True
+        log_post = ln_z + grid.log_weight
+        tops = np.argsort(-log_post)[:3]
+        starts = [grid.to_u(grid.nodes[i]) for i in tops]
+        peak = laplace(lambda u: evaluate(grid.from_u(u))[0], grid, starts)
+        sharp = peak is not None and bool(np.all(peak.sd < grid.spacing))
+        if sharp:
+            assert peak is not None
+            d = peak.u.size
+            ln_evidence = (
+                peak.log_z
+                + truncation(grid.from_u(peak.u))
+                + grid.log_density
+                + 0.5 * d * np.log(2 * np.pi)
+                + 0.5 * float(np.linalg.slogdet(peak.cov)[1])
+            )
+            nodes_u, w = hermite_nodes(peak)
+            inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
+            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].summary(fit.rng) for i in inside]
+            post = mix(posts, w[inside], fit.rng)
+            draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
+            shape_post = _shape_draws(grid, draws)
+            point = grid.from_u(peak.u)
+            how = (
+                f"Laplace approximation at the peak over the shape, after a {len(grid.nodes)}-"
+                f"node grid and {len(cache) - len(grid.nodes)} Newton evaluations"
+            )
+        else:
+            ln_evidence = float(_logsumexp(log_post))
+            heavy = kept(log_post)
+            weights = np.exp(log_post[heavy] - log_post[heavy[0]])
+            posts = [evaluate(grid.nodes[i])[1][5].summary(fit.rng) for i in heavy]
+            post = mix(posts, weights, fit.rng)
+            shape_post, point = shape_summary(grid, log_post)
+            how = f"quadrature over {len(grid.nodes)} shape nodes"
+        fp, st, prior, corr, flags, _ = evaluate(point)[1]
+        post.ln_evidence = float(ln_evidence)
+        ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
+        return ModelResult(
+            model=law.bind(point),
+            ln_evidence=post.ln_evidence,
+            posterior=post,
+            cond=fp.cond,
+            cond_scaled=fp.cond_scaled,
+            residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
+            gram=fp.gram,
+            correction=corr,
+            stats=st,
+            prior=prior,
+            flags=list(flags),
+            reason=f"{how} ({ranges})",
+            shape_posterior=shape_post,
+            shape_ranges=grid.ranges,
+            family=law,
+        )
+
+    def _search(
+        self, linear: list[ModelResult], fit: _Context, warnings: list[str]
+    ) -> list[ModelResult]:
+        """Laws beyond the linear ones, built from the best of them and scored by exact
+        evidence (a greedy search; docs/estimators.md): Hunt-Crossley contact in place
+        of its stiffness and damping; one relaxation branch added, and a second if the
+        first raised the evidence; after each, terms the new one makes redundant are
+        taken out while that raises the evidence."""
+        best = max(linear, key=lambda r: r.ln_evidence)
+        tried: list[ModelResult] = []
+
+        def score(names: list[str]) -> ModelResult:
+            res = self._exact_shaped(Law.of(names), fit)
+            tried.append(res)
+            return res
+
+        def prune(res: ModelResult) -> ModelResult:
+            improved = True
+            while improved:
+                improved = False
+                names = [t.name for t in res.family.terms]  # type: ignore[union-attr]
+                for extra in ("offset", "sign(xdot)", "x^3", "x"):
+                    fewer = [n for n in names if n != extra]
+                    if extra not in names or not any(n in ("x", "x^3", "contact") for n in fewer):
+                        continue
+                    trial = score(fewer)
+                    if trial.ln_evidence > res.ln_evidence:
+                        res, improved = trial, True
+                        break
+            return res
+
+        keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
+        prune(score(["contact", "contact*xdot", *keep]))
+        if not resolvable(fit.kin):
+            lo, hi = tau_range(fit.kin)
+            warnings.append(
+                f"relaxation not searched: the session resolves time constants only between "
+                f"{lo:.3g} s and {hi:.3g} s; record longer or with faster motion"
+            )
+            return tried
+        one = score([*(t.name for t in best.model.terms), "maxwell"])
+        if one.ln_evidence <= best.ln_evidence:
+            return tried
+        one = prune(one)
+        two = score([*(t.name for t in one.family.terms), "maxwell"])  # type: ignore[union-attr]
+        if two.ln_evidence > one.ln_evidence:
+            prune(two)
+        return tried
 
     def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
         """Run emcee where the closed form does not apply (or on request), skipping forms
@@ -430,6 +627,39 @@ class _FirstPass:
     correction: Array | None
 
 
+@dataclass
+class _Context:
+    """What every law's fit of one session shares."""
+
+    kin: Kinematics
+    x_full: Array
+    y: Array
+    sigma_x: float
+    weight: float
+    scales: MotionScales
+    columns: dict[str, Array]
+    rng: np.random.Generator
+
+
+def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
+    """Mean, SD and central 95 % interval (SI) of each shape parameter from draws in
+    ``u`` (time constants drawn in their logarithm)."""
+    out: dict[str, dict[str, Any]] = {}
+    for j, name in enumerate(grid.names):
+        v = np.exp(draws[:, j]) if shape_kind(name) == "tau" else draws[:, j]
+        out[name] = {
+            "mean": float(np.mean(v)),
+            "sd": float(np.std(v, ddof=1)),
+            "ci95": [float(q) for q in np.percentile(v, [2.5, 97.5])],
+        }
+    return out
+
+
+def _logsumexp(a: Array) -> float:
+    top = float(np.max(a))
+    return top + float(np.log(np.sum(np.exp(a - top)))) if np.isfinite(top) else top
+
+
 def _correctable(fp: _FirstPass, corr: Array) -> bool:
     """Whether the errors-in-variables correction leaves a proper regression: ``A^T A - C``
     positive definite, and a corrected residual of at least a tenth of the raw one (the
@@ -451,16 +681,25 @@ def _first_pass(
     columns: dict[str, Array] | None = None,
 ) -> _FirstPass:
     A = design(model, kin, x_full, sigma_x, columns)
-    beta, cond_scaled = lstsq_scaled_cond(A, y)
-    r = y - A @ beta
     gram = A.T @ A
+    b = A.T @ y
+    # least squares on unit-norm columns through the Gram matrix (one O(n p^2) product
+    # instead of a second factorisation of A), unless it is too ill-conditioned for that
+    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+    cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
+    if cond_scaled < 1e5:
+        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+    else:
+        beta, cond_scaled = lstsq_scaled_cond(A, y)
+    r = y - A @ beta
     # the raw condition number from the Gram matrix's eigenvalues: a report figure,
     # exact to rounding up to about 1e7, and "large" beyond
     lam = np.linalg.eigvalsh(gram)
     cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
     return _FirstPass(
         gram=gram,
-        b=A.T @ y,
+        b=b,
         yy=float(y @ y),
         beta=beta,
         rss=float(r @ r),

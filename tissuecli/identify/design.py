@@ -35,15 +35,28 @@ def design(
     ones (the filter keeps a constant). ``sigma_x`` (m), the position noise, removes
     the mean that noise adds inside curved functions. ``columns``, if given, keeps
     each term's column by name, so laws that share terms (every candidate has
-    inertia, most an offset) compute them once.
+    inertia, most an offset) compute them once; a term with shape parameters is
+    computed afresh.
     """
     var = sigma_x**2
     if columns is None:
         return np.column_stack([_column(t, kin, x_full, var) for t in law.terms])
+    out = []
     for t in law.terms:
-        if t.name not in columns:
-            columns[t.name] = _column(t, kin, x_full, var)
-    return np.column_stack([columns[t.name] for t in law.terms])
+        if t.shapes:  # one column per shape node: not worth keeping
+            out.append(_column(t, kin, x_full, var))
+            continue
+        key = column_key(t)
+        if key not in columns:
+            columns[key] = _column(t, kin, x_full, var)
+        out.append(columns[key])
+    return np.column_stack(out)
+
+
+def column_key(term: Term) -> str:
+    """What a term's column depends on: its name, symbol and shape parameters."""
+    shape = ",".join(f"{k}={v!r}" for k, v in sorted(term.shape.items()))
+    return f"{term.name}|{term.symbol}|{shape}"
 
 
 def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
@@ -53,6 +66,14 @@ def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
         return kin.damping_input(term, x_full, var)
     if term.variable == "a":
         return term(kin.a)
+    if term.variable in ("xv", "h"):
+        # terms of closure and speed together (contact damping) or of the closure's
+        # history (relaxation) are formed on the raw grid and filtered as the force is;
+        # the central-difference speed's noise is uncorrelated with the closure at the
+        # same sample, so the product carries no noise bias
+        dt = float(np.median(np.diff(kin.time)))
+        v_full = np.gradient(x_full, dt)
+        return kin.smooth(term.series(dt, x_full, v_full, np.zeros_like(x_full)))
     return term(np.ones(kin.time.size))
 
 

@@ -224,6 +224,16 @@ class ExactPosterior:
             return 1.0
         return orthant_probability(mu, cov)
 
+    def ln_evidence(self) -> float:
+        """ln p(y): the closed form over the whole space times the prior's normalisation
+        and the posterior mass inside the positivity bounds."""
+        inside = self.orthant_mass()
+        return float(
+            self.ln_z_untruncated
+            + np.log(max(inside, 1e-300))
+            + int(np.sum(self.prior.bounded)) * np.log(2)
+        )
+
     def summary(self, rng: np.random.Generator, draws: int = 4000) -> Posterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
         w, mus, covs, idx = self.mixture()

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core.calibration import Adc, Calibration, Channel
 from ..core.session import Session
+from ..core.terms import relaxation
 from ..core.tissue import DEFAULT_TISSUE, Tissue
 
 Array = NDArray[np.float64]
@@ -160,6 +161,10 @@ class ForcepsModel:
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
+        # the relaxation branches' force at samples 0.. computed so far, and where each
+        # branch's recursion stands (its state and the last fine-grid closure)
+        self._memory = np.zeros(0)
+        self._branches: list[tuple[float, float | None]] = []
 
     def true_time(self, k: ArrayLike) -> Array:
         """True (host) time of samples ``k``, in s."""
@@ -171,9 +176,47 @@ class ForcepsModel:
 
     def truth(self, k: ArrayLike) -> tuple[Array, Array, Array, Array]:
         """True x (m), xdot (m/s), xddot (m/s^2) and F (N) at samples ``k``; the jaws
-        touch the tissue at closure 0, so there is no force below it."""
+        touch the tissue at closure 0, so there is no force below it. A law with
+        relaxation branches starts from rest at sample 0."""
+        k = np.asarray(k)
         x, v, a = self.operator.kinematics(self.true_time(k))
-        return x, v, a, np.where(x > 0, self.tissue.force(x, v, a), 0.0)
+        law = self.tissue.law
+        if not law.memory:
+            return x, v, a, np.where(x > 0, self.tissue.force(x, v, a), 0.0)
+        now = [(t, c) for t, c in zip(law.terms, self.tissue.coef, strict=True) if not t.memory]
+        f = sum((c * t.regressor(x, v, a) for t, c in now), np.zeros_like(x))
+        f = f + self._relaxation(int(k.max()) + 1 if k.size else 0)[k]
+        return x, v, a, np.where(x > 0, f, 0.0)
+
+    #: fine steps per sample for the relaxation branches' exact integration
+    SUBSTEPS = 8
+
+    def _relaxation(self, n: int) -> Array:
+        """The relaxation branches' summed force at samples ``0 .. n-1``, N, integrated
+        on a grid :data:`SUBSTEPS` times finer than the samples (the operator's closure
+        is exact there), extending what earlier calls computed."""
+        done = self._memory.size
+        if n <= done:
+            return self._memory
+        law, coef = self.tissue.law, self.tissue.coef
+        branches = [(t, c) for t, c in zip(law.terms, coef, strict=True) if t.memory]
+        sub = self.SUBSTEPS
+        # fine points after the last one done (sample done-1), up to sample n-1
+        first = (done - 1) * sub + 1 if done else 0
+        fine = np.arange(first, (n - 1) * sub + 1) / sub  # in samples
+        x, _, _ = self.operator.kinematics(self.true_time(fine))
+        dt = float(self.true_time(1.0)) / sub
+        total = np.zeros(x.size)
+        states = []
+        for i, (term, c) in enumerate(branches):
+            state, before = self._branches[i] if done else (0.0, None)
+            r, last = relaxation(x, dt, term.tau, state, before)
+            total += c * r
+            states.append((last, float(x[-1])))
+        self._branches = states
+        picked = total[sub - 1 :: sub] if done else total[::sub]
+        self._memory = np.concatenate([self._memory, picked])
+        return self._memory
 
     def samples(self, k0: int, k1: int) -> tuple[NDArray[np.int64], NDArray[np.int16]]:
         """Device ticks (n,) and raw counts (n, 2) of samples ``k0 .. k1-1``, noise included.

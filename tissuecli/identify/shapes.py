@@ -1,0 +1,356 @@
+"""Laws with nonlinear (shape) parameters: relaxation time constants, a contact's
+exponent and contact point. Given the shape the law is linear in its coefficients, so
+its exact evidence is known; the shape is marginalised by quadrature over a grid that
+covers only what the session can resolve, and the posterior is the mixture of the
+grid's conditional posteriors.
+
+Priors: a time constant is log-uniform between what the filter can resolve and a third
+of the fitted stretch (and within 10 ms to 100 s); two branches are ordered, tau1 <
+tau2, uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5];
+the contact point x0 uniform from a quarter of the closure's span below its lowest
+fitted value to half the span above it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.terms import Law, shape_kind
+from .derivatives import Kinematics
+from .posterior import Posterior
+
+Array = NDArray[np.float64]
+
+#: the widest range of time constants searched, s
+TAU_RANGE = (0.01, 100.0)
+#: nodes per time constant: one branch, and each of two or more
+TAU_NODES = {1: 16, 2: 10, 3: 6}
+#: Hunt-Crossley exponent range and nodes; contact point nodes
+N_RANGE, N_NODES, X0_NODES = (1.0, 2.5), 5, 7
+#: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
+KEPT_MASS, MAX_KEPT = 0.999, 12
+
+
+@dataclass
+class ShapeGrid:
+    """Quadrature nodes over a law's shape parameters.
+
+    The prior is uniform in the coordinates ``u`` (ln tau for a time constant, the value
+    itself for n and x0), over the box of ``ranges`` (time constants ordered).
+
+    Attributes
+    ----------
+    nodes : list of dict
+        Shape values (SI) by name.
+    log_weight : ndarray, shape (k,)
+        ln of each node's prior mass (they sum to 1).
+    ranges : dict
+        The range searched for each parameter (SI).
+    spacing : ndarray, shape (d,)
+        The nodes' spacing in ``u``, per parameter.
+    log_density : float
+        ln of the prior density in ``u`` inside the ranges.
+    """
+
+    nodes: list[dict[str, float]]
+    log_weight: Array
+    ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    spacing: Array = field(default_factory=lambda: np.zeros(0))
+    log_density: float = 0.0
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.nodes[0])
+
+    def to_u(self, node: dict[str, float]) -> Array:
+        return np.array([_u(n, node[n]) for n in self.names])
+
+    def from_u(self, u: Array) -> dict[str, float]:
+        return {n: (math.exp(v) if shape_kind(n) == "tau" else float(v)) for n, v in
+                zip(self.names, u, strict=True)}  # fmt: skip
+
+    def inside(self, u: Array) -> bool:
+        """Whether ``u`` lies in the prior's support (time constants ordered)."""
+        for n, v in zip(self.names, u, strict=True):
+            lo, hi = (_u(n, b) for b in self.ranges[n])
+            if not lo <= v <= hi:
+                return False
+        taus = [v for n, v in zip(self.names, u, strict=True) if shape_kind(n) == "tau"]
+        return all(a < b for a, b in itertools.pairwise(taus))
+
+
+def _u(name: str, value: float) -> float:
+    return math.log(value) if shape_kind(name) == "tau" else float(value)
+
+
+def tau_range(kin: Kinematics) -> tuple[float, float]:
+    """The time constants a fit can tell apart, s: above twice the filter's time scale
+    (``1 / (2 pi f_c)``; a faster branch is a damper to the filtered data) and below a
+    third of the fitted stretch (a slower one is a spring)."""
+    dt = float(np.median(np.diff(kin.time)))
+    fc = kin.cutoff_hz if math.isfinite(kin.cutoff_hz) and kin.cutoff_hz > 0 else 0.1 / dt
+    lo = max(TAU_RANGE[0], 2.0 / (2.0 * math.pi * fc), 5.0 * dt)
+    hi = min(TAU_RANGE[1], float(kin.time[-1] - kin.time[0]) / 3.0)
+    return lo, hi
+
+
+def resolvable(kin: Kinematics) -> bool:
+    """Whether the session resolves any time constant (a range of at least a factor 4)."""
+    lo, hi = tau_range(kin)
+    return hi > 4.0 * lo
+
+
+def shape_grid(law: Law, kin: Kinematics) -> ShapeGrid:
+    """The quadrature nodes and prior masses for ``law``'s shape parameters."""
+    names = law.shape_names
+    taus = [n for n in names if shape_kind(n) == "tau"]
+    axes: list[tuple[list[str], Array, Array]] = []  # names, values (k, d), ln weights (k,)
+    ranges: dict[str, tuple[float, float]] = {}
+    spacing: list[float] = []
+    log_density = 0.0
+    if taus:
+        lo, hi = tau_range(kin)
+        width = math.log(max(hi, lo * 1.0001) / lo)
+        u, w = _trapezoid(math.log(lo), math.log(lo) + width, TAU_NODES[len(taus)])
+        combos = np.array(list(itertools.combinations(range(u.size), len(taus))))
+        values = np.exp(u[combos])  # increasing along each row: tau1 < tau2 < ...
+        lw = np.sum(np.log(w[combos]), axis=1)
+        axes.append((taus, values, lw - _logsumexp(lw)))
+        ranges.update(dict.fromkeys(taus, (lo, hi)))
+        spacing += [float(u[1] - u[0])] * len(taus)
+        # uniform over the ordered simplex of the box: k! / width^k
+        log_density += math.lgamma(len(taus) + 1) - len(taus) * math.log(width)
+    if "n" in names:
+        u, w = _trapezoid(*N_RANGE, N_NODES)
+        axes.append((["n"], u[:, None], np.log(w)))
+        ranges["n"] = N_RANGE
+        spacing.append(float(u[1] - u[0]))
+        log_density -= math.log(N_RANGE[1] - N_RANGE[0])
+    if "x0" in names:
+        x = kin.x_raw
+        low, span = float(np.percentile(x, 2)), float(np.ptp(x)) or 1e-3
+        lo, hi = low - 0.25 * span, low + 0.5 * span
+        u, w = _trapezoid(lo, hi, X0_NODES)
+        axes.append((["x0"], u[:, None], np.log(w)))
+        ranges["x0"] = (lo, hi)
+        spacing.append(float(u[1] - u[0]))
+        log_density -= math.log(hi - lo)
+    nodes: list[dict[str, float]] = []
+    log_weight: list[float] = []
+    for parts in itertools.product(*(range(len(a[1])) for a in axes)):
+        node: dict[str, float] = {}
+        lw = 0.0
+        for (axis_names, values, weights), i in zip(axes, parts, strict=True):
+            node.update(zip(axis_names, (float(v) for v in values[i]), strict=True))
+            lw += float(weights[i])
+        nodes.append(node)
+        log_weight.append(lw)
+    return ShapeGrid(nodes, np.array(log_weight), ranges, np.array(spacing), log_density)
+
+
+@dataclass
+class Peak:
+    """A sharp posterior over the shape, found by Newton steps on finite differences of
+    the log evidence in ``u``: its mode, the log evidence there, and the covariance
+    of the Gaussian (Laplace) approximation."""
+
+    u: Array
+    log_z: float
+    cov: Array
+
+    @property
+    def sd(self) -> Array:
+        return np.sqrt(np.diag(self.cov))
+
+
+def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array]) -> Peak | None:
+    """The peak of ``log_z`` (ln evidence given the shape, as a function of ``u``) and
+    the Laplace approximation there; None when the surface is not concave at the peak
+    (a broad or multimodal posterior, which the grid integrates better).
+
+    The log evidence is often far sharper than the grid (a drop of 50 within a tenth
+    of a grid step) and its peak may lie on a curved ridge (a contact's exponent and
+    contact point trade off), so the peak is found by Nelder-Mead from each of
+    ``starts`` (the best grid nodes), which needs no derivative, then polished by
+    Newton steps whose curvature comes from central differences at the posterior's
+    own scale."""
+    from scipy.optimize import minimize  # only for laws with shape parameters
+
+    def cost(u: Array) -> float:
+        value = log_z(u) if grid.inside(u) else -math.inf
+        return -value if math.isfinite(value) else 1e300
+
+    for start in starts:  # the next start only if the peak from the last is not one
+        simplex = np.vstack([start, start + np.diag(grid.spacing / 2.0)])
+        found = minimize(
+            cost,
+            start,
+            method="Nelder-Mead",
+            options={
+                "initial_simplex": simplex,
+                "xatol": 1e-3 * float(np.min(grid.spacing)),
+                "fatol": 0.01,
+                "maxfev": 80 * start.size,
+            },
+        )
+        if found.fun < 1e300:
+            peak = _polish(log_z, grid, np.asarray(found.x, dtype=float))
+            if peak is not None:
+                return peak
+    return None
+
+
+def _polish(log_z: Callable[[Array], float], grid: ShapeGrid, u: Array) -> Peak | None:
+    """Newton steps to the peak near ``u``, and its curvature; None if not concave."""
+    h = grid.spacing / 50.0
+    for _ in range(12):
+        f0, g, H = _stencil(log_z, u, h, grid)
+        if H is None or not np.all(np.linalg.eigvalsh(H) < 0):
+            return None
+        cov = np.linalg.inv(-H)
+        sd = np.sqrt(np.diag(cov))
+        step = cov @ g
+        # at most three SDs at a time, and never out of the prior's support
+        step *= min(1.0, 3.0 / max(float(np.max(np.abs(step) / sd)), 1e-300))
+        converged = bool(np.all(np.abs(step) < 0.01 * sd)) and bool(np.all(h <= 1.01 * sd))
+        if converged:
+            return Peak(u, f0, cov)
+        if grid.inside(u + step):
+            u = u + step
+        h = np.clip(sd, 1e-7, grid.spacing / 2.0)
+    return None
+
+
+def _stencil(
+    f: Callable[[Array], float], u: Array, h: Array, grid: ShapeGrid
+) -> tuple[float, Array, Array | None]:
+    """Value, central-difference gradient and Hessian of ``f`` at ``u`` (None if the
+    stencil leaves the prior's support)."""
+    d = u.size
+    f0 = f(u)
+    g = np.zeros(d)
+    H = np.zeros((d, d))
+    for i in range(d):
+        e = np.zeros(d)
+        e[i] = h[i]
+        if not (grid.inside(u + e) and grid.inside(u - e)):
+            return f0, g, None
+        fp, fm = f(u + e), f(u - e)
+        g[i] = (fp - fm) / (2 * h[i])
+        H[i, i] = (fp - 2 * f0 + fm) / h[i] ** 2
+        for j in range(i):
+            e2 = np.zeros(d)
+            e2[j] = h[j]
+            pts = [u + e + e2, u - e - e2, u + e - e2, u - e + e2]
+            if not all(grid.inside(p) for p in pts):
+                return f0, g, None
+            fpp, fmm, fpm, fmp = (f(p) for p in pts)
+            H[i, j] = H[j, i] = (fpp + fmm - fpm - fmp) / (4 * h[i] * h[j])
+    return f0, g, H
+
+
+def hermite_nodes(peak: Peak) -> tuple[list[Array], Array]:
+    """Three-point Gauss-Hermite nodes per dimension of the peak's Gaussian (along its
+    principal axes) and their weights: enough to carry the shape's uncertainty into
+    the coefficients' posterior."""
+    lam, vec = np.linalg.eigh(peak.cov)
+    scale = vec * np.sqrt(np.clip(lam, 0.0, None))
+    z1, w1 = np.array([-math.sqrt(3.0), 0.0, math.sqrt(3.0)]), np.array([1, 4, 1]) / 6.0
+    nodes, weights = [], []
+    for idx in itertools.product(range(3), repeat=peak.u.size):
+        z = z1[list(idx)]
+        nodes.append(peak.u + scale @ z)
+        weights.append(float(np.prod(w1[list(idx)])))
+    return nodes, np.array(weights)
+
+
+def _trapezoid(lo: float, hi: float, k: int) -> tuple[Array, Array]:
+    """``k`` equally spaced nodes on [lo, hi] and trapezoid weights summing to 1."""
+    u = np.linspace(lo, hi, k)
+    w = np.full(k, 1.0)
+    w[[0, -1]] = 0.5
+    return u, w / w.sum()
+
+
+def _logsumexp(a: Array) -> float:
+    top = float(np.max(a))
+    return top + math.log(float(np.sum(np.exp(a - top)))) if math.isfinite(top) else top
+
+
+def kept(log_post: Array) -> NDArray[np.intp]:
+    """The nodes that hold :data:`KEPT_MASS` of the posterior (at most :data:`MAX_KEPT`),
+    heaviest first."""
+    order = np.argsort(-log_post)
+    p = np.exp(log_post[order] - _logsumexp(log_post))
+    count = int(np.searchsorted(np.cumsum(p), KEPT_MASS) + 1)
+    return order[: min(count, MAX_KEPT, order.size)]
+
+
+def shape_summary(
+    grid: ShapeGrid, log_post: Array
+) -> tuple[dict[str, dict[str, float | list[float]]], dict[str, float]]:
+    """The shape parameters' posterior from the grid's weights: mean, SD and central 95 %
+    interval of each (SI), and a point to bind the law at (time constants at their
+    geometric mean, the others at their mean)."""
+    p = np.exp(log_post - _logsumexp(log_post))
+    out: dict[str, dict[str, float | list[float]]] = {}
+    point: dict[str, float] = {}
+    for name in grid.nodes[0]:
+        v = np.array([node[name] for node in grid.nodes])
+        mean = float(p @ v)
+        sd = float(math.sqrt(max(float(p @ (v - mean) ** 2), 0.0)))
+        order = np.argsort(v)
+        cdf = np.cumsum(p[order])
+        ci = [float(np.interp(q, cdf, v[order])) for q in (0.025, 0.975)]
+        out[name] = {"mean": mean, "sd": sd, "ci95": ci}
+        point[name] = float(np.exp(p @ np.log(v))) if shape_kind(name) == "tau" else mean
+    return out, point
+
+
+def mix(posteriors: list[Posterior], weights: Array, rng: np.random.Generator) -> Posterior:
+    """One posterior from the conditional posteriors of several shape nodes: the
+    mixture's mean and covariance (law of total variance), its intervals from draws
+    taken in proportion to the weights."""
+    w = np.asarray(weights, dtype=float) / float(np.sum(weights))
+    if len(posteriors) == 1:
+        return posteriors[0]
+    means = np.array([q.mean for q in posteriors])
+    mean = w @ means
+    second = sum(
+        wi * (q.cov + np.outer(q.mean, q.mean)) for wi, q in zip(w, posteriors, strict=True)
+    )
+    cov = second - np.outer(mean, mean)
+    draws = 4000
+    pick = rng.choice(len(posteriors), size=draws, p=w)
+    parts = []
+    for i, q in enumerate(posteriors):
+        k = int(np.sum(pick == i))
+        if k and q.samples.shape[0]:
+            parts.append(q.samples[rng.integers(0, q.samples.shape[0], k)])
+    samples = np.vstack(parts) if parts else np.zeros((0, mean.size + 1))
+    beta = samples[:, :-1]
+    ci = (
+        np.percentile(beta, [2.5, 97.5], axis=0).T
+        if beta.shape[0]
+        else np.column_stack([mean, mean])
+    )
+    sig = samples[:, -1] if samples.shape[0] else np.array([posteriors[0].sigma_mean])
+    return Posterior(
+        mean=mean,
+        sd=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
+        ci95=ci,
+        cov=cov,
+        sigma_mean=float(w @ np.array([q.sigma_mean for q in posteriors])),
+        sigma_ci95=(float(np.percentile(sig, 2.5)), float(np.percentile(sig, 97.5))),
+        ln_evidence=float("nan"),
+        outside=float(w @ np.array([q.outside for q in posteriors])),
+        method="+".join(sorted({q.method for q in posteriors})) + " (mixture over the shape)",
+        samples=samples,
+        diagnostics={"shape_nodes": len(posteriors)},
+    )
