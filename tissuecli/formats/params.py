@@ -13,6 +13,9 @@ import os
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from .._version import __version__
 from ..core.calibration import SI_UNITS, Calibration, calibration_from_dict
 from ..core.errors import InputError
@@ -28,6 +31,8 @@ from ..core.terms import (
 from ..core.tissue import Tissue
 from ..render.profile import DisplayProfile, profile_from_dict
 from .jsonfile import item_name, json_type, read_json, shown, write_json
+
+Array = NDArray[np.float64]
 
 if TYPE_CHECKING:  # a fit's results are read, never built, here
     from ..identify.bayes import ModelResult
@@ -106,7 +111,10 @@ def tissue_to_dict(tissue: Tissue) -> dict[str, Any]:
 def _result_law(res: ModelResult) -> dict[str, Any]:
     post = res.posterior
     assert post is not None
-    return _law(res.model, post.mean, post.sd, post.ci95, res.shape_posterior)
+    out = _law(res.model, post.mean, post.sd, post.ci95, res.shape_posterior)
+    # the coefficients' covariance, for predictive bands (``tissuecli predict``)
+    out["cov"] = [[float(v) for v in row] for row in np.asarray(post.cov)]
+    return out
 
 
 def document(outcome: FitOutcome) -> dict[str, Any]:
@@ -380,7 +388,7 @@ def _coefficient(sc: _Schema, t: Term, entry: Any, path: tuple[str | int, ...]) 
 def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
     if not isinstance(spec, Mapping):
         raise sc.fail(("law",), f"must be an object, not {json_type(spec)}")
-    sc.keys(spec, ("law",), ("name", "terms", "probability", "shape"), required=("terms",))
+    sc.keys(spec, ("law",), ("name", "terms", "probability", "shape", "cov"), required=("terms",))
     terms = spec["terms"]
     if not isinstance(terms, list) or not terms:
         raise sc.fail(("law", "terms"), "must be a non-empty array of terms")
@@ -536,6 +544,38 @@ def calibration_from_file_dict(data: Mapping[str, Any], source: str) -> Calibrat
 def read_tissue(path: str | os.PathLike[str]) -> Tissue:
     """Read a tissue parameter file (validated: see :func:`tissue_from_dict`)."""
     return tissue_from_dict(read_json(path, "parameter"), source=f"parameter file {path}")
+
+
+def read_fitted(path: str | os.PathLike[str]) -> tuple[Tissue, Array | None, float | None]:
+    """A fitted tissue with what a prediction needs: the coefficients' covariance
+    (``law.cov``, SI, None if the file has none) and the residual SD of the filtered
+    force (``noise.sd``, N, None if absent); both validated."""
+    data = read_json(path, "parameter")
+    source = f"parameter file {path}"
+    tissue = tissue_from_dict(data, source=source)
+    sc = _Schema(source, "parameter")
+    law = data.get("law") if isinstance(data.get("law"), Mapping) else {}
+    cov = None
+    if "cov" in law:
+        p = len(tissue.law.terms)
+        raw = law["cov"]
+        if not (
+            isinstance(raw, list)
+            and len(raw) == p
+            and all(isinstance(row, list) and len(row) == p for row in raw)
+        ):
+            raise sc.fail(("law", "cov"), f"must be a {p} x {p} array of numbers")
+        cov = np.array(
+            [[sc.number(v, ("law", "cov", i, j)) for j, v in enumerate(row)]
+             for i, row in enumerate(raw)]
+        )  # fmt: skip
+        if not np.allclose(cov, cov.T, rtol=1e-6, atol=0.0):
+            raise sc.fail(("law", "cov"), "must be symmetric")
+    noise = data.get("noise")
+    sd = None
+    if isinstance(noise, Mapping) and "sd" in noise:
+        sd = sc.number(noise["sd"], ("noise", "sd"), 0.0, unit="N")
+    return tissue, cov, sd
 
 
 def read_calibration(path: str | os.PathLike[str]) -> Calibration:
