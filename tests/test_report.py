@@ -168,7 +168,18 @@ def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
     outcome = fit_session(_session(seed=4), method="bayes")
     text = _write(tmp_path, outcome)
     assert 'id="plot-windows"' not in text
-    assert len(_images(text)) == 4
+    ids = re.findall(r'<figure id="(plot-[a-z-]+)"', text) or re.findall(
+        r'id="(plot-[a-z-]+)"', text
+    )
+    assert set(ids) == {
+        "plot-time",
+        "plot-loop",
+        "plot-residuals",
+        "plot-residual-map",
+        "plot-elastic",
+        "plot-corner",
+    }
+    assert len(_images(text)) == len(ids)
 
 
 def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
@@ -222,3 +233,21 @@ def test_report_on_a_session_with_lost_frames(tmp_path: Path) -> None:
     _assert_self_contained(text)
     assert "beside lost or clipped samples" in text
     assert "2 gap(s) (9 missing sample(s))" in html.unescape(text)
+
+
+def test_relaxation_law_report_shows_its_time_constant(tmp_path: Path) -> None:
+    sls = Tissue(
+        Law.of(["x", "maxwell", "xdot", "xddot"]).bind({"tau1": 0.5}), 300.0, 200.0, 2.0, 0.05
+    )
+    outcome = fit_session(
+        _session(seed=7, duration_s=8.0, tissue=sls), forms="x+maxwell+xdot+xddot"
+    )
+    text = _write(tmp_path, outcome)
+    _assert_self_contained(text)
+    assert 'id="plot-relaxation"' in text
+    row = re.search(r"<b>tau1</b>.*?</tr>", text, re.S)
+    assert row is not None, "the time constant should have a row in the parameter table"
+    interval = re.search(r"\[([0-9.]+), ([0-9.]+)\]", row.group(0))
+    assert interval is not None
+    lo, hi = float(interval.group(1)), float(interval.group(2))
+    assert lo < 0.5 < hi

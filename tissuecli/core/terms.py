@@ -548,6 +548,12 @@ class Law:
 #: constants, Hunt-Crossley exponents and contact points
 SHAPE_UNITS = {"tau": "s", "n": "1", "x0": "m"}
 SHAPE_RANGES = {"tau": (1e-4, 1e4), "n": (0.5, 5.0), "x0": (-1.0, 1.0)}
+#: what each kind of shape parameter is, in words
+SHAPE_MEANING = {
+    "tau": "relaxation time constant",
+    "n": "contact exponent",
+    "x0": "contact point (closure)",
+}
 
 
 def shape_kind(name: str) -> str:

@@ -535,6 +535,21 @@ class BayesianFit(Estimator):
         assert post is not None
         return self.best_.model, post.mean
 
+    def contributions(self) -> Array:
+        """Each term's share of the fitted force at the fitted samples, shape (m, p), N
+        (the best law's columns times its posterior means)."""
+        law, coef = self._coefficients()
+        return design(law, self.kinematics_, self.session_.position, self.sigma_x_) * coef
+
+    def predictive_sd(self) -> Array:
+        """SD of the filtered force the posterior predicts at the fitted samples, shape
+        (m,), N: the coefficients' covariance carried through the law, and the noise."""
+        post = self.best_.posterior
+        assert post is not None
+        A = design(self.best_.model, self.kinematics_, self.session_.position, self.sigma_x_)
+        var = np.einsum("ij,jk,ik->i", A, post.cov, A) + post.sigma_mean**2
+        return np.sqrt(np.clip(var, 0.0, None))
+
     def _position_noise_sd(self) -> float:
         return self.sigma_x_
 

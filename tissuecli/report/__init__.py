@@ -20,9 +20,12 @@ from .figures import (
     MAX_DRAWS,
     Series,
     corner_figure,
+    elastic_figure,
     figure_html,
     loop_figure,
+    relaxation_figure,
     residual_figure,
+    residual_map_figure,
     series,
     time_figure,
     windows_figure,
@@ -123,6 +126,47 @@ def _plots(outcome: FitOutcome, s: Series) -> list[str]:
             _residual_caption(s),
         ),
     ]
+    if s.v is not None:
+        figs.append(
+            (
+                residual_map_figure(s),
+                "plot-residual-map",
+                "Residuals against closure and speed",
+                "residual force against jaw closure and against closing speed",
+                "The binned means should stay on zero: a curve against closure says the "
+                "stiffness form is wrong (x where x + x³ or contact is needed), one against "
+                "speed that the damping or friction form is.",
+            )
+        )
+    if s.elastic is not None:
+        figs.append(
+            (
+                elastic_figure(s),
+                "plot-elastic",
+                "Elastic force against closure",
+                "measured force less the fitted damping, inertia and offset, against closure",
+                "The points are what the data say the position terms must carry (the "
+                "measured force less every other fitted term); the curve is what the "
+                "chosen stiffness or contact law gives. Curvature the line misses, or a "
+                "contact point where force starts, shows here.",
+            )
+        )
+    best = est.best_ if est is not None else None
+    if best is not None and best.model.memory and best.shape_posterior:
+        ci = {k: list(v["ci95"]) for k, v in best.shape_posterior.items()}
+        assert best.posterior is not None
+        figs.append(
+            (
+                relaxation_figure(best.model, best.posterior.mean, ci),
+                "plot-relaxation",
+                "Stress relaxation",
+                "force after a 1 mm step in closure against time, log scale",
+                "The law's force after a sudden 1 mm squeeze held still: each relaxation "
+                "branch decays with its time constant (dotted) towards the equilibrium "
+                "stiffness. Time constants outside the range the session resolves were not "
+                "searched.",
+            )
+        )
     if est is not None:
         corner = _corner(est)
         if corner is None:

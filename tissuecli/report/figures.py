@@ -59,6 +59,9 @@ class Series:
     source: str
     sigma: float | None
     expected_sd: float | None
+    v: Array | None = None  # filtered speed, m/s
+    band_sd: Array | None = None  # SD of the predicted force, N
+    elastic: Array | None = None  # the fitted position terms' force (stiffness, contact), N
 
     @property
     def residual(self) -> Array:
@@ -73,16 +76,21 @@ def series(outcome: FitOutcome) -> Series:
         post = est.best_.posterior
         assert post is not None
         kin = est.kinematics_
+        parts = est.contributions()
+        elastic = [j for j, t in enumerate(est.best_.model.terms) if t.role == "stiffness"]
         return Series(
             time=kin.time,
             raw=kin.force_raw,
             force=kin.force,
-            fitted=est.predict(),
+            fitted=parts.sum(axis=1),
             x=kin.x,
             model=est.best_.model,
-            source="posterior mean of the best form",
+            source="posterior mean of the best law",
             sigma=post.sigma_mean,
             expected_sd=est.expected_residual_sd_,
+            v=kin.v,
+            band_sd=est.predictive_sd(),
+            elastic=parts[:, elastic].sum(axis=1) if elastic else None,
         )
     assert pinv is not None
     kin = pinv.kinematics_
@@ -168,6 +176,13 @@ def time_figure(s: Series) -> Figure:
         lw=1.3,
         label="measured (filtered)",
     )
+    if s.band_sd is not None:
+        i = stride(s.time.size)
+        t = broken(s.time[i], s.fitted[i])[0]
+        lo = broken(s.time[i], s.fitted[i] - 1.96 * s.band_sd[i])[1]
+        hi = broken(s.time[i], s.fitted[i] + 1.96 * s.band_sd[i])[1]
+        ax.fill_between(t, lo, hi, color=COLOURS["band"], alpha=0.5, lw=0,
+                        label="95 % predictive band")  # fmt: skip
     ax.plot(
         *broken(*envelope(s.time, s.fitted)),
         color=COLOURS["fitted"],
@@ -272,6 +287,93 @@ def residual_figure(s: Series) -> Figure:
         for a, b in zip(ax.get_legend_handles_labels(), hx.get_legend_handles_labels(), strict=True)
     )
     ax.legend(handles, labels, loc="upper right", fontsize=8, ncols=2, framealpha=0.9)
+    return fig
+
+
+def binned(u: Array, r: Array, bins: int = 30) -> tuple[Array, Array, Array]:
+    """Centres, means and standard errors of ``r`` in equal-count bins of ``u``."""
+    order = np.argsort(u)
+    groups = [g for g in np.array_split(order, bins) if g.size > 1]
+    centre = np.array([float(np.mean(u[g])) for g in groups])
+    mean = np.array([float(np.mean(r[g])) for g in groups])
+    se = np.array([float(np.std(r[g], ddof=1)) / np.sqrt(g.size) for g in groups])
+    return centre, mean, se
+
+
+def residual_map_figure(s: Series) -> Figure:
+    """Residuals against closure and against speed, with binned means: a wrong stiffness
+    or damping form leaves a curve there where the time plot shows only noise."""
+    assert s.v is not None
+    fig = new_figure(9.5, 3.4)
+    axes = fig.subplots(1, 2, sharey=True)
+    r = s.residual * 1e3
+    i = stride(r.size, 4000)
+    for ax, u, label in (
+        (axes[0], s.x * 1e3, "jaw closure x (mm)"),
+        (axes[1], s.v * 1e3, "closing speed ẋ (mm/s)"),
+    ):
+        ax.plot(u[i], r[i], ".", ms=1.5, color=COLOURS["raw"], label="residuals")
+        c, m, se = binned(u, r)
+        ax.errorbar(c, m, yerr=2 * se, color=COLOURS["fitted"], lw=1.2, capsize=0,
+                    label="binned mean ± 2 SE")  # fmt: skip
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("residual (mN)")
+    axes[0].legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def elastic_figure(s: Series) -> Figure:
+    """The elastic force against closure: the measured force minus every fitted term
+    but the position ones (a partial residual), with the fitted position terms."""
+    assert s.elastic is not None
+    fig = new_figure(6.4, 4.4)
+    ax = fig.add_subplot()
+    partial = s.force - (s.fitted - s.elastic)
+    i = stride(s.x.size, 4000)
+    ax.plot(s.x[i] * 1e3, partial[i], ".", ms=1.5, color=COLOURS["measured"],
+            label="measured − fitted non-elastic terms")  # fmt: skip
+    order = np.argsort(s.x)
+    j = order[stride(order.size)]
+    ax.plot(s.x[j] * 1e3, s.elastic[j], color=COLOURS["fitted"], lw=1.4, label="fitted elastic")
+    ax.set_xlabel("jaw closure x (mm)")
+    ax.set_ylabel("elastic force (N)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def relaxation_figure(model: Law, coef: Array, shape_ci: dict[str, list[float]]) -> Figure:
+    """The law's force after a 1 mm step in closure (the relaxation function): each
+    branch decays as e^(-t/tau) to the equilibrium stiffness; the band spans the time
+    constants' 95 % intervals."""
+    fig = new_figure(6.4, 4.2)
+    ax = fig.add_subplot()
+    taus = [t.tau for t in model.terms if t.memory]
+    t = np.logspace(np.log10(min(taus) / 30), np.log10(max(taus) * 30), 300)
+
+    def response(which: int) -> Array:
+        out = np.zeros_like(t)
+        for term, c in zip(model.terms, coef, strict=True):
+            if term.memory:
+                name = term.shapes[0]
+                tau = shape_ci[name][which] if which >= 0 else term.tau
+                out += c * 1e-3 * np.exp(-t / tau)
+            elif term.name == "x":
+                out += c * 1e-3
+        return out
+
+    ax.fill_between(t, response(0), response(1), color=COLOURS["band"], alpha=0.6, lw=0,
+                    label="time constants' 95 % intervals")  # fmt: skip
+    ax.plot(t, response(-1), color=COLOURS["fitted"], lw=1.5, label="posterior mean")
+    for tau in taus:
+        ax.axvline(tau, color="k", lw=0.6, ls=":")
+    ax.set_xscale("log")
+    ax.set_xlabel("time after the step (s)")
+    ax.set_ylabel("force after a 1 mm step (N)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="upper right", fontsize=8)
     return fig
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._version import __version__
-from ..core.terms import Law, Term
+from ..core.terms import SHAPE_MEANING, Law, Term, shape_kind, shape_unit
 from ..identify.bayes import DECISIVE, BayesianFit, ModelResult
 from ..identify.outcome import FitOutcome
 from ..identify.pinv import WindowedPinv
@@ -228,6 +228,24 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
                 esc(unit_html(t.unit)),
                 rel,
                 conv_cell,
+            ]
+        )
+    for name, sp in (best.shape_posterior or {}).items():
+        # Shape parameters are marginalised, not point-estimated: their posterior comes
+        # from the quadrature weights, so they get the same columns as the coefficients.
+        mean, sd = float(sp["mean"]), float(sp["sd"])
+        lo, hi = (float(q) for q in sp["ci95"])
+        digit = place(sd) if sd > 0 else place(abs(mean) * 1e-3 or 1e-3)
+        unit = shape_unit(name)
+        rows.append(
+            [
+                f"<b>{esc(name)}</b> {esc(SHAPE_MEANING[shape_kind(name)])}",
+                with_sd(mean, sd),
+                sig(sd, 2),
+                f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
+                esc(unit_html(unit)),
+                f"{100 * sd / abs(mean):.2g} %" if mean != 0 else "—",
+                "—",
             ]
         )
     draws = post.samples[:, -1] if post.samples.shape[0] > 1 else np.empty(0)
