@@ -50,6 +50,20 @@ def test_clean_line_records_every_frame_with_the_right_physics(forceps, tmp_path
     assert np.max(np.abs(s.force - f)) < bound_f
 
 
+def test_listeners_see_every_stored_sample_as_it_is_written(forceps, tmp_path):
+    sim = forceps("--seed", "4")
+    out = tmp_path / "g.h5"
+    blocks = []
+    res = record(str(sim.link), out, "s1", duration_s=1.0, on_samples=blocks.append)
+    assert len(blocks) > 1, "samples should reach listeners in blocks while recording"
+    s = formats.read_session(out)
+    assert sum(len(b.time) for b in blocks) == res.samples == len(s)
+    np.testing.assert_array_equal(np.concatenate([b.force for b in blocks]), s.force)
+    np.testing.assert_array_equal(np.concatenate([b.position for b in blocks]), s.position)
+    host = np.concatenate([b.host_time for b in blocks])
+    assert np.all(np.diff(host) >= 0)
+
+
 def test_corrupt_and_dropped_frames_are_counted_and_recording_resumes(forceps, tmp_path):
     sim = forceps("--corrupt", "0.03", "--drop", "0.02", "--seed", "5")
     out = tmp_path / "g.h5"

@@ -41,6 +41,28 @@ class RecordStatus:
     faults: ClockFaults = field(default_factory=ClockFaults)
 
 
+@dataclass(frozen=True)
+class SampleBlock:
+    """Samples just handed to the writer, shape ``(n,)`` each, SI.
+
+    Attributes
+    ----------
+    time : ndarray
+        Device time on the repaired time base, s (not yet drift-corrected).
+    position : ndarray
+        Jaw closure, m.
+    force : ndarray
+        Grasp force, N.
+    host_time : ndarray
+        Host monotonic time each sample's frame arrived, s from the start of the stream.
+    """
+
+    time: NDArray[np.float64]
+    position: NDArray[np.float64]
+    force: NDArray[np.float64]
+    host_time: NDArray[np.float64]
+
+
 @dataclass
 class RecordResult:
     """Summary of a finished recording.
@@ -80,6 +102,7 @@ def record(
     status_interval_s: float = 0.5,
     flush_interval_s: float = 0.25,
     idle_timeout_s: float = 2.0,
+    on_samples: Callable[[SampleBlock], None] | None = None,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -115,6 +138,10 @@ def record(
     idle_timeout_s : float
         A device that sends no sample, or none that can be kept, for this long is
         taken as lost.
+    on_samples : callable, optional
+        Called in the acquisition loop with each block of samples once it is handed to
+        the writer (the live view and online identification listen here); it must
+        return quickly, as the loop waits for it.
 
     Raises
     ------
@@ -170,7 +197,9 @@ def record(
             clock_hz / rate_hz if math.isfinite(rate_hz) else None,
             limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
-        recording = _Recording(link, open_writer, timebase, cal, clock_hz, out, session, meta)
+        recording = _Recording(
+            link, open_writer, timebase, cal, clock_hz, out, session, meta, on_samples
+        )
         return recording.run(
             Stream(
                 link,
@@ -221,8 +250,10 @@ class _Recording:
         out: Path,
         session: str,
         meta: dict[str, Any],
+        on_samples: Callable[[SampleBlock], None] | None = None,
     ) -> None:
         self.link, self.open_writer, self.timebase = link, open_writer, timebase
+        self.on_samples = on_samples
         self.cal, self.clock_hz = cal, clock_hz
         self.out, self.session, self.meta = out, session, meta
         self.writer: SeriesWriter | None = None
@@ -316,13 +347,15 @@ class _Recording:
         t_dev = np.array([s.ticks for s in kept]) / self.clock_hz
         t_host = np.array([s.host_s for s in kept])
         counts = raw[:, 1:3].astype(np.int16)
+        force = self.cal.force.to_si(counts[:, 0])
+        position = self.cal.position.to_si(counts[:, 1])
         if self.writer is None:
             self.writer = self.open_writer()
         self.writer.append(
             {
                 "time": t_dev,
-                "force": self.cal.force.to_si(counts[:, 0]),
-                "position": self.cal.position.to_si(counts[:, 1]),
+                "force": force,
+                "position": position,
                 "raw/counts": counts,
                 "raw/sequence": raw[:, 0].astype(np.uint32),
                 "raw/device_clock": np.array([s.device_clock for s in kept], dtype=np.int64),
@@ -332,6 +365,8 @@ class _Recording:
         self.samples += counts.shape[0]
         self.host_times.append(t_host)
         self.device_times.append(t_dev)
+        if self.on_samples is not None:
+            self.on_samples(SampleBlock(t_dev, position, force, t_host))
 
     def _counters(self) -> dict[str, Any]:
         return {
