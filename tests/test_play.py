@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from tissuecli import formats
-from tissuecli.app.play import play
+from tissuecli.app.play import PlayLost, play, play_file
 from tissuecli.cli import fail_cleanly as _fail_cleanly
 from tissuecli.core.errors import DeviceError, DeviceLost, RenderError, TissueError
 from tissuecli.core.terms import Law
@@ -238,6 +238,27 @@ def test_losing_the_display_sends_zero_and_raises_device_lost(display, monkeypat
     assert isinstance(info.value, TissueError)
     with pytest.raises(click.ClickException):
         _fail_cleanly(lambda: (_ for _ in ()).throw(info.value))()
+    # the figures up to the loss are kept, not dropped with the exception
+    assert info.value.summary["verdict"] == "display lost"
+    assert info.value.summary["frames"] > 100
+    assert info.value.summary["stop_reason"].startswith("display lost")
+
+
+def test_a_lost_display_still_writes_the_summary_and_the_log(display, tmp_path):
+    """The --summary asked for is written up to the loss, and the message names it."""
+    d = display()
+    params, summary, log = tmp_path / "p.json", tmp_path / "s.json", tmp_path / "plays.h5"
+    params.write_text(json.dumps(formats.tissue_to_dict(INSIDE)))
+    threading.Timer(0.8, d.proc.kill).start()
+    with pytest.raises(PlayLost, match="0 V") as info:
+        play_file(params, str(d.link), 30.0, summary=summary, log=log)
+    assert f"summary {summary} and log {log} written" in str(info.value)
+    written = json.loads(summary.read_text())
+    assert written["verdict"] == "display lost" and written["frames"] > 100
+    assert written["faults"] and written["log"]["path"] == str(log)
+    (name,) = formats.group_names(log, "plays")
+    columns, attrs = formats.read_group(log, f"plays/{name}")
+    assert len(columns["time"]) > 100 and not attrs["complete"]
 
 
 def test_tissue_outside_the_band_is_refused_before_anything_moves(display):

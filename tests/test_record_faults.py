@@ -172,6 +172,13 @@ def test_a_backwards_clock_and_a_restart_still_store_increasing_time(tmp_path):
     assert len(s) == 400 and np.all(np.diff(s.time) > 0)
     np.testing.assert_allclose(s.time, np.arange(400) * 1e-3, atol=1e-12)
     assert (s.meta["clock_steps"], s.meta["sequence_restarts"]) == (1, 1)
+    # and `sessions` shows them, in the table and in --json
+    row = formats.list_sessions(out)[0]
+    assert row["clock_faults"] == {"clock_steps": 1, "sequence_restarts": 1}
+    from tissuecli.cli import cli
+
+    listed = CliRunner().invoke(cli, ["sessions", str(out)])
+    assert listed.exit_code == 0 and "(1 clock step; 1 sequence restart)" in listed.output
 
 
 def test_lost_frames_are_counted_only_up_to_the_duration(tmp_path):

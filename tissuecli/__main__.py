@@ -1,9 +1,29 @@
+"""``python -m tissuecli``, and the ``tissuecli`` console script (``run``)."""
+
+import signal
 import sys
 
-try:
-    from .cli import main
-except KeyboardInterrupt:  # Ctrl-C while the command line loads: nothing has started
-    sys.stderr.write("aborted\n")
-    sys.exit(1)
 
-main()
+def run() -> None:
+    """Console entry point: load the command line, then run it.
+
+    A Ctrl-C while the command line loads (click and the command modules: tens of
+    ms) ends in one line and exit status 1; nothing has started yet. It is caught
+    by a handler that only notes it, because a KeyboardInterrupt raised inside
+    Python's import machinery can be swallowed ("Exception ignored in ...
+    _get_module_lock"), and the command would then run on as if never stopped.
+    """
+    interrupted: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: interrupted.append(signum))
+    try:
+        from .cli import main
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted:
+        sys.stderr.write("aborted\n")
+        sys.exit(1)
+    main()
+
+
+if __name__ == "__main__":
+    run()

@@ -72,6 +72,16 @@ class PlayFaults(RenderError):
         self.summary = summary
 
 
+class PlayLost(DeviceLost):
+    """The display went silent during the play; 0 V was sent. ``summary`` holds the
+    figures up to the loss (``verdict`` ``"display lost"``); :func:`play_file` writes it
+    to ``--summary`` before the command exits 1."""
+
+    def __init__(self, message: str, summary: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.summary = summary
+
+
 def play_faults(summary: Mapping[str, Any], rate_hz: float) -> list[str]:
     """What went wrong in a play, one short sentence each (empty if nothing did).
 
@@ -170,6 +180,8 @@ def play_file(
     PlayFaults
         After the summary and the log are written, when the play was faulty (its
         ``faults`` are not empty; see :func:`play_faults`): the command exits 1.
+    PlayLost
+        After the summary up to the loss is written, when the display went silent.
     """
     log = options.get("log")
     check_outputs(
@@ -181,24 +193,33 @@ def play_file(
         force=force,
     )
     tissue = read_tissue(params)
-    result = play(
-        tissue, url, duration_s, profile=read_profile(profile) if profile else None, **options
-    )
+    try:
+        result = play(
+            tissue, url, duration_s, profile=read_profile(profile) if profile else None, **options
+        )
+    except PlayLost as exc:  # the figures up to the loss are still the user's
+        if summary is not None:
+            write_json(summary, exc.summary)
+        raise PlayLost(f"{exc}{_kept(summary, exc.summary)}", exc.summary) from None
     if summary is not None:
         write_json(summary, result)
     if result["faults"]:
-        kept = [
-            f"{what} {path}"
-            for what, path in (("summary", summary), ("log", result.get("log", {}).get("path")))
-            if path
-        ]
         raise PlayFaults(
-            "the play was faulty: "
-            + "; ".join(result["faults"])
-            + (f" ({' and '.join(kept)} written)" if kept else ""),
+            "the play was faulty: " + "; ".join(result["faults"]) + _kept(summary, result),
             result,
         )
     return result
+
+
+def _kept(summary: str | os.PathLike[str] | None, result: Mapping[str, Any]) -> str:
+    """' (summary S and log L written)' for the files a play wrote, or ''."""
+    log = result.get("log") or {}
+    kept = [
+        f"{what} {os.fspath(path)}"
+        for what, path in (("summary", summary), ("log", log.get("path")))
+        if path
+    ]
+    return f" ({' and '.join(kept)} written)" if kept else ""
 
 
 def play(
@@ -262,8 +283,10 @@ def play(
     ------
     RenderError
         If :func:`~tissuecli.render.check.check` refuses the tissue (nothing is moved).
-    DeviceLost
-        If the display vanishes; 0 V is sent (as far as the line allows) first.
+    PlayLost
+        If the display vanishes (a :class:`~tissuecli.core.errors.DeviceLost`); 0 V is
+        sent (as far as the line allows) first, and ``summary`` holds the figures up to
+        the loss.
     """
     tissue.validate()
     if duration_s is not None and not duration_s > 0:
@@ -278,6 +301,8 @@ def play(
         check_log(log, rate_hz)  # a foreign file or a full drive: refused before the display
     link, info, profile = _open_display(url, baudrate, rate_hz, profile)
     log_file: PlayLog | None = None
+    player: _Player | None = None
+    stream: Stream | None = None
     try:
         verdict = check(tissue, profile, rate_hz, force)
         if not verdict.renderable:
@@ -329,9 +354,20 @@ def play(
             except Exception:  # the first error is the one to report
                 pass
         if isinstance(exc, DeviceLost):
-            raise DeviceLost(
-                f"{exc}; 0 V was sent as the loop ended, in case the line still carries it"
-            ) from None
+            message = f"{exc}; 0 V was sent as the loop ended, in case the line still carries it"
+            if player is None or stream is None:
+                raise DeviceLost(message) from None
+            partial = player.summary(stream)
+            partial["stop_reason"] = f"display lost: {exc}"
+            partial["commands_sent"] = player.sent
+            partial["check"] = verdict.as_dict()
+            partial["tissue"] = tissue.describe()
+            partial = _jsonable(partial)
+            partial["faults"] = [f"the display was lost: {exc}"]
+            partial["verdict"] = "display lost"
+            if log_file is not None:
+                partial["log"] = {"path": str(log), "group": log_file.group}
+            raise PlayLost(message, partial) from None
         raise
     finally:
         link.close()

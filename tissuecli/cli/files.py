@@ -50,12 +50,28 @@ def sessions(file: str, as_json: bool) -> None:
                 f"{status:<10}  {printable(reason, 120)}"
             )
             continue
-        note = f"  ({'; '.join(r['warnings'])})" if r.get("warnings") else ""
+        notes = [_fault(k, n) for k, n in (r.get("clock_faults") or {}).items()]
+        notes += r.get("warnings") or []
+        note = f"  ({'; '.join(notes)})" if notes else ""
         click.echo(
             f"{printable(r['name']):<20} {r['samples']:>9d} {_num(r['duration_s'], 10, 3)} "
             f"{_num(r['rate_hz'], 8, 1)} {r['frames_lost']:>5d} {r['frames_bad']:>5d}  "
             f"{status:<10}  {printable(r.get('tissue', ''), 60)}{note}"
         )
+
+
+#: how the table names each clock fault of a session (``clock_faults`` of list_sessions)
+_FAULT_WORDS = {
+    "clock_jumps": ("clock jump", "clock jumps"),
+    "clock_steps": ("clock step", "clock steps"),
+    "sequence_restarts": ("sequence restart", "sequence restarts"),
+    "frames_rejected": ("frame rejected", "frames rejected"),
+}
+
+
+def _fault(key: str, n: int) -> str:
+    one, many = _FAULT_WORDS.get(key, (key, key))
+    return f"{n} {one if n == 1 else many}"
 
 
 def _num(value: float | None, width: int, digits: int) -> str:

@@ -72,7 +72,8 @@ def play(
     "Error: the play was faulty: ..." says why (the display's watchdog fired, the
     loop rate more than 2 % off, over 5 % of periods missed or frames lost, the
     tracking error beyond its bound by over 0.4 mm, over 5 % of frames saturated or
-    30 % unrenderable; docs/rendering.md).
+    30 % unrenderable; docs/rendering.md). A display lost mid-play also ends
+    with exit 1 after the summary up to the loss and the log are written.
 
     \b
     Examples:
@@ -80,7 +81,7 @@ def play(
         tissuecli play liver.json --port /tmp/display --duration 20 --log plays.h5
         tissuecli play liver.json --check        # the band and the verdict only
     """
-    from ..app.play import PlayFaults, check_file, play_file, summary_lines
+    from ..app.play import PlayFaults, PlayLost, check_file, play_file, summary_lines
     from ..hw.realtime import StopFlag
 
     if check_only:
@@ -94,7 +95,7 @@ def play(
         return
     if port is None:
         raise InputError("give the display's port with --port (or use --check)")
-    faulty: PlayFaults | None = None
+    faulty: PlayFaults | PlayLost | None = None
     try:
         summary = play_file(
             params_file,
@@ -108,7 +109,7 @@ def play(
             stop=StopFlag().install(),
             on_status=_status_line,
         )
-    except PlayFaults as exc:  # the figures first, then the one-line error
+    except (PlayFaults, PlayLost) as exc:  # the figures first, then the one-line error
         summary, faulty = exc.summary, exc
     finally:
         end_live_line()

@@ -90,6 +90,9 @@ SESSION_COLUMNS: list[Column] = [
 ]
 
 
+#: the device's clock faults a recording counts (docs/protocol.md), listed when non-zero
+CLOCK_FAULTS = ("clock_jumps", "clock_steps", "sequence_restarts", "frames_rejected")
+
 #: what each dataset of a session must hold: dtype kinds and the shape of one row
 SESSION_SCHEMA: dict[str, tuple[str, tuple[int, ...]]] = {
     col.name: (INTEGERS if np.dtype(col.dtype).kind in "iu" else NUMBERS, col.shape)
@@ -105,6 +108,9 @@ ATTR_KINDS = {
     "frames_good": "count",
     "frames_lost": "count",
     "frames_bad": "count",
+    "frames_rejected": "count",
+    "clock_jumps": "count",
+    "clock_steps": "count",
     "sequence_restarts": "count",
     "complete": "flag",
     "rate_hz": "number",
@@ -625,8 +631,10 @@ def list_sessions(path: StrPath) -> list[dict[str, Any]]:
         recorded, or cut short by a crash or a fault) or ``'damaged: <reason>'``;
         ``tissue``, ``samples``, ``duration_s`` (s), ``rate_hz`` (Hz, from the median
         sample interval), ``frames_lost``, ``frames_bad``, ``complete``, ``start_utc``
-        (ISO 8601), ``source``, and ``warnings`` (attributes of the wrong type that
-        were ignored). Numbers a damaged session cannot give are None.
+        (ISO 8601), ``source``, ``clock_faults`` (the non-zero counts of
+        :data:`CLOCK_FAULTS`: clock jumps and steps, sequence restarts, frames rejected)
+        and ``warnings`` (attributes of the wrong type that were ignored). Numbers a
+        damaged session cannot give are None.
 
     Raises
     ------
@@ -680,6 +688,7 @@ def _summary(f: h5py.File, g: h5py.Group, file: str, key: str) -> dict[str, Any]
         "complete": checked.complete,
         "start_utc": attrs.get("start_utc") or attrs.get("created_utc", ""),
         "source": attrs.get("source", ""),
+        "clock_faults": {k: attrs[k] for k in CLOCK_FAULTS if attrs.get(k)},
         "warnings": checked.warnings,
     }
 
@@ -697,5 +706,6 @@ def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> 
         "complete": False,
         "start_utc": start,
         "source": "",
+        "clock_faults": {},
         "warnings": [],
     }
