@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from ..core.errors import InputError
 from ..core.tissue import Tissue
 from .gains import choose_gains, loop_is_stable
-from .law import FORCE_TOLERANCE_N, Gains, local_slopes, static_force
+from .law import FORCE_TOLERANCE_N, Gains, LawParts, local_slopes, split_law
 from .profile import PAPER_DISPLAY, DisplayProfile
 
 Array = NDArray[np.float64]
@@ -33,6 +33,89 @@ MAX_SOFT_FRACTION = 0.5
 #: rising and releasing in 0.25-0.5 s) moves the piston at 30-60 mm/s on liver-like
 #: tissues. The damping must be renderable at that speed, closing and opening.
 GRASP_SPEED_M_S = 0.05
+#: How long a grasp holds, s: the simulated finger holds 0.2-0.8 s between a rise and a
+#: release of 0.25-0.5 s each. A tissue with relaxation branches is judged on a grasp
+#: closing at the grasp speed from rest, holding this long and opening again.
+GRASP_HOLD_S = 1.0
+
+
+class Grasp:
+    """The tissue's rendered force on the check's grasp: closing at ``speed`` (m/s) from
+    rest at closure 0, holding :data:`GRASP_HOLD_S`, opening at ``speed``.
+
+    Without relaxation branches the held force is ``E(x)``, closing adds ``D(v) +
+    H(x, v)`` and opening ``D(-v) + H(x, -v)``. A branch's state follows its exact
+    response (:class:`~tissuecli.render.law.Branch`): ``tau v (1 - exp(-x / (v tau)))``
+    on closing to ``x``, times ``exp(-hold / tau)`` after the hold, then on opening
+    from ``x_top`` that decays as ``exp(-(x_top - x) / (v tau))`` while
+    ``tau v (1 - exp(-(x_top - x) / (v tau)))`` is taken off. All arrays are SI (m, N).
+    """
+
+    def __init__(self, parts: LawParts, speed: float, hold: float = GRASP_HOLD_S) -> None:
+        self.parts, self.speed, self.hold = parts, speed, hold
+
+    def _ramp(self, tau: float, x: Array) -> Array:
+        """A branch's state after closing by ``x`` at the grasp speed from relaxed, m."""
+        v = self.speed
+        if not v > 0:
+            return np.zeros_like(x)
+        return tau * v * -np.expm1(-np.maximum(x, 0.0) / (v * tau))
+
+    def held(self, x: Array) -> Array:
+        """Force after closing to ``x`` and holding, N: what the static rules use."""
+        out = self.parts.elastic(x)
+        for br in self.parts.branches:
+            out = out + br.Km * self._ramp(br.tau, x) * math.exp(-self.hold / br.tau)
+        return out
+
+    def rate_force(self, x: Array) -> Array:
+        """Closing at ``x`` less the held force at ``x``, N: the part of the force the
+        speed of the grasp adds (damping, friction and the branches' share that relaxes
+        within the hold)."""
+        return self.closing(x) - self.held(x)
+
+    def closing(self, x: Array) -> Array:
+        """Force while closing through ``x``, N."""
+        v = self.speed
+        out = (
+            self.parts.elastic(x)
+            + self.parts.damping_force(np.full_like(x, v))
+            + self.parts.mixed_force(x, v)
+        )
+        for br in self.parts.branches:
+            out = out + br.Km * self._ramp(br.tau, x)
+        return out
+
+    def opening(self, x: Array, top: float) -> Array:
+        """Force while opening through ``x`` after a hold at ``top``, N."""
+        v = self.speed
+        out = (
+            self.parts.elastic(x)
+            + self.parts.damping_force(np.full_like(x, -v))
+            + self.parts.mixed_force(x, -v)
+        )
+        back = np.maximum(top - x, 0.0)
+        for br in self.parts.branches:
+            start = self._ramp(br.tau, np.array([top]))[0] * math.exp(-self.hold / br.tau)
+            decay = np.exp(-back / (v * br.tau)) if v > 0 else np.ones_like(x)
+            out = out + br.Km * (start * decay - self._ramp(br.tau, back))
+        return out
+
+    def resting(self, x: Array, top: float) -> Array:
+        """What the tissue pushes with at rest at ``x`` after opening from a hold at
+        ``top``, less what dry friction can hold, N: where it is not positive, a model
+        released there stays (friction) or is drawn deeper (the branches' recovery)."""
+        out = self.parts.elastic(x)
+        v = self.speed
+        back = np.maximum(top - x, 0.0)
+        for br in self.parts.branches:
+            start = self._ramp(br.tau, np.array([top]))[0] * math.exp(-self.hold / br.tau)
+            decay = np.exp(-back / (v * br.tau)) if v > 0 else np.ones_like(x)
+            out = out + br.Km * (start * decay - self._ramp(br.tau, back))
+        return out - sum(abs(c) for _, c in self.parts.friction)
+
+    def held_at(self, x: float) -> float:
+        return float(self.held(np.array([x]))[0])
 
 
 def finite_or_none(value: float) -> float | None:
@@ -40,10 +123,19 @@ def finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def working_depth(tissue: Tissue, profile: DisplayProfile, force: float = GRASP_FORCE_N) -> float:
-    """Depth at which the tissue's static force reaches ``force``, m (``inf`` if never
-    within twice the stroke)."""
-    return _solve(lambda x: static_force(tissue, x) - force, 0.0, 2 * profile.stroke)
+def working_depth(
+    tissue: Tissue,
+    profile: DisplayProfile,
+    force: float = GRASP_FORCE_N,
+    speed: float = GRASP_SPEED_M_S,
+) -> float:
+    """Depth at which the tissue's held force (:meth:`Grasp.held`) reaches ``force``, m
+    (``inf`` if never within twice the stroke)."""
+    return _depth(Grasp(split_law(tissue), speed), profile, force)
+
+
+def _depth(grasp: Grasp, profile: DisplayProfile, force: float) -> float:
+    return _solve(lambda x: grasp.held_at(x) - force, 0.0, 2 * profile.stroke)
 
 
 def _solve(fn: Callable[[float], float], lo: float, hi: float) -> float:
@@ -78,6 +170,9 @@ class CheckResult:
         Why it is refused (empty if renderable).
     caveats : list of str
         What will not be exact even so.
+    assumptions : list of str
+        How the terms beyond the paper's were judged and rendered (relaxation
+        branches, contact, contact damping, dry friction, an offset left out).
     depth : ndarray
         Piston depths of the band, m.
     k_min, k_max : ndarray
@@ -119,8 +214,10 @@ class CheckResult:
         display's spring).
     soft_gap : float
         Where the tissue is softer than the display's spring, the largest gap between
-        the tissue's depth and the unpowered piston's under the same force, m: a
-        tracking error the display cannot avoid (0 if nowhere soft).
+        the tissue's depth and the unpowered piston's under the same force, m, or, if
+        larger, how deep the tissue may stay after a release (dry friction, relaxation
+        branches: see :func:`_release_gap`): a tracking error the display cannot
+        avoid (0 if none).
     """
 
     renderable: bool
@@ -145,6 +242,7 @@ class CheckResult:
     closing_saturation_depth: float = math.inf
     release_push_fraction: float = 0.0
     soft_gap: float = 0.0
+    assumptions: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready summary (the band arrays left out)."""
@@ -153,6 +251,7 @@ class CheckResult:
             "verdict": self.verdict,
             "reasons": list(self.reasons),
             "caveats": list(self.caveats),
+            "assumptions": list(self.assumptions),
             "force_limit_n": self.force_limit,
             "saturation_depth_m": self.saturation_depth,
             "working_depth_m": self.working_depth,
@@ -206,6 +305,7 @@ class CheckResult:
             f"  passivity (Colgate): needs b > {self.passivity_required:.2f} N s/m, "
             f"margin {self.passivity_margin:+.2f} N s/m"
         )
+        out += [f"  assumed: {a}" for a in self.assumptions]
         out += [f"  refused: {r}" for r in self.reasons]
         out += [f"  caveat: {c}" for c in self.caveats]
         return out
@@ -268,15 +368,24 @@ def check(
             raise InputError(f"{name} {value} {unit} must be a positive number")
     if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
         raise InputError(f"grasp speed {speed} m/s must be a number >= 0")
-    reasons: list[str] = []
+    parts = split_law(tissue)
+    grasp = Grasp(parts, speed)
+    reasons: list[str] = list(parts.refusals)
     caveats: list[str] = []
     with np.errstate(all="ignore"):
-        depth, k_min, k_max, k_tissue = _band(tissue, profile)
-        x_work, x_sat, f_limit = _limits(tissue, profile, force, reasons)
+        depth, k_min, k_max, k_tissue = _band(grasp, profile)
+        x_work, x_sat, f_limit = _limits(grasp, profile, force, reasons)
         x_eval = min(x_work, x_sat, profile.stroke)
-        soft, soft_gap = _softness(tissue, profile, x_eval, reasons, caveats)
-        damping = _damping(tissue, profile, x_eval, speed, soft, reasons, caveats)
-        gains, radius, required = _loop(tissue, profile, rate_hz, x_eval, reasons, caveats)
+        soft, soft_gap = _softness(grasp, profile, x_eval, reasons, caveats)
+        soft_gap = max(soft_gap, _release_gap(grasp, x_eval, soft_gap, caveats))
+        damping = _damping(grasp, profile, x_eval, soft, reasons, caveats)
+        assumptions = _assumptions(grasp, profile, x_eval, caveats)
+        if parts.refusals:  # no controller to analyse
+            nan = math.nan
+            gains = Gains(Cp=nan, Cv=nan, bandwidth_hz=nan, M=max(tissue.mass, 0.0))
+            radius = required = math.inf
+        else:
+            gains, radius, required = _loop(tissue, profile, rate_hz, x_eval, reasons, caveats)
     margin = profile.b - required
     if margin <= 0:
         caveats.append(
@@ -306,6 +415,7 @@ def check(
         rate_hz=rate_hz,
         grasp_speed=speed,
         soft_gap=soft_gap,
+        assumptions=assumptions,
         **damping,
     )
 
@@ -349,10 +459,9 @@ def _loop(
 
 
 def _damping(
-    tissue: Tissue,
+    grasp: Grasp,
     profile: DisplayProfile,
     x_eval: float,
-    speed: float,
     soft_fraction: float,
     reasons: list[str],
     caveats: list[str],
@@ -360,26 +469,34 @@ def _damping(
     """The pull the law asks for at the speed of a grasp, closing and opening.
 
     With the piston at depth ``x`` moving at ``v`` and the model tracking it, the law
-    asks for ``u = E(x) - Kp x + D(v) - b v``. Closing (``v = speed``) it must
-    stay within the solenoid's pull; opening (``v = -speed``) it must not ask for a
-    push (``u < 0``), which the solenoid cannot give.
+    asks for ``u = F(x, v) - Kp x - b v`` with ``F`` the tissue's force on the grasp
+    (:class:`Grasp`; ``E(x) + D(v)`` for the paper's laws). Closing (``v = speed``) it
+    must stay within the solenoid's pull; opening (``v = -speed``) it must not ask for a
+    push (``u < 0``), which the solenoid cannot give. The force the speed adds alone
+    (``F`` closing less the held force: damping, and the share of the relaxation
+    branches that relaxes within a hold) must not exceed the pull over more than
+    :data:`MAX_SOFT_FRACTION` of the working depth (for the paper's laws: anywhere).
     """
     mm = 1e3
+    speed = grasp.speed
     pull = profile.max_pull
-    damping_force = float(tissue.damping_force(np.array([speed]))[0])
     own = profile.b * speed  # the piston's own damping, which the law subtracts
     grid = np.linspace(0.0, x_eval, 201)[1:] if math.isfinite(x_eval) else np.zeros(0)
-    elastic = tissue.static_force(grid) - profile.Kp * grid
-    closing = elastic + damping_force - own
-    opening = elastic - damping_force + own
+    spring = profile.Kp * grid
+    closing = grasp.closing(grid) - spring - own
+    opening = grasp.opening(grid, x_eval if grid.size else 0.0) - spring + own
+    rate = grasp.rate_force(grid) if grid.size else grasp.rate_force(np.zeros(1))
+    damping_force = float(np.max(rate)) if np.all(rate == rate) else math.nan
     above = np.nonzero(~(closing <= pull))[0]  # NaN counts as saturated
     x_close = float(grid[above[0]]) if above.size else math.inf
     push = float(np.mean(~(opening >= -FORCE_TOLERANCE_N))) if grid.size else 0.0
+    rate_over = float(np.mean(~(rate - own <= pull)))
     v = f"{speed * mm:g} mm/s"
-    if not damping_force - own <= pull:
+    if rate_over > MAX_SOFT_FRACTION or not damping_force == damping_force:
+        where = "" if rate_over == 1.0 else f" over {rate_over:.0%} of the working depth"
         reasons.append(
             f"damping too strong: closing at {v} (the speed of a grasp) the tissue's damping "
-            f"alone is {damping_force:.3g} N, more than the solenoid's {pull:.3g} N pull"
+            f"alone is {damping_force:.3g} N{where}, more than the solenoid's {pull:.3g} N pull"
         )
     elif math.isfinite(x_close):
         caveats.append(
@@ -403,27 +520,28 @@ def _damping(
     }
 
 
-def _band(tissue: Tissue, profile: DisplayProfile) -> tuple[Array, Array, Array, Array]:
+def _band(grasp: Grasp, profile: DisplayProfile) -> tuple[Array, Array, Array, Array]:
     """Depths (m) and, at each, the softest and stiffest secant stiffness the display can
-    show and the tissue's own (N/m)."""
+    show and the tissue's own (held force over depth, N/m)."""
     depth = np.linspace(profile.stroke / 300, profile.stroke, 300)
     with np.errstate(all="ignore"):
-        k_tissue = tissue.static_force(depth) / depth
+        k_tissue = grasp.held(depth) / depth
     return depth, np.full_like(depth, profile.Kp), profile.Kp + profile.max_pull / depth, k_tissue
 
 
 def _limits(
-    tissue: Tissue, profile: DisplayProfile, force: float, reasons: list[str]
+    grasp: Grasp, profile: DisplayProfile, force: float, reasons: list[str]
 ) -> tuple[float, float, float]:
-    """Working depth at ``force``, saturation depth (m) and the force at saturation (N);
-    refusals for a tissue deeper than the stroke or stiffer than the solenoid can hold."""
-    x_work = working_depth(tissue, profile, force)
+    """Working depth at ``force``, saturation depth (m) and the force at saturation (N),
+    all of the held force; refusals for a tissue deeper than the stroke or stiffer than
+    the solenoid can hold."""
+    x_work = _depth(grasp, profile, force)
     x_sat = _solve(
-        lambda x: static_force(tissue, x) - profile.Kp * x - profile.max_pull,
+        lambda x: grasp.held_at(x) - profile.Kp * x - profile.max_pull,
         0.0,
         profile.stroke,
     )
-    f_limit = static_force(tissue, x_sat) if math.isfinite(x_sat) else math.inf
+    f_limit = grasp.held_at(x_sat) if math.isfinite(x_sat) else math.inf
     mm = 1e3
     if not math.isfinite(x_work) or x_work > profile.stroke:
         reasons.append(
@@ -442,7 +560,7 @@ def _limits(
 
 
 def _softness(
-    tissue: Tissue,
+    grasp: Grasp,
     profile: DisplayProfile,
     x_eval: float,
     reasons: list[str],
@@ -453,7 +571,7 @@ def _softness(
     between the tissue's depth and the unpowered piston's under the same force, m."""
     grid = np.linspace(0.0, x_eval, 201)[1:]
     with np.errstate(all="ignore"):
-        force = tissue.static_force(grid)
+        force = grasp.held(grid)
     soft = force < profile.Kp * grid
     soft_fraction = float(np.mean(soft)) if grid.size else 1.0
     # under the force that holds the tissue at x, the unpowered piston sits at F / Kp
@@ -471,6 +589,96 @@ def _softness(
             "shallower than the tissue"
         )
     return soft_fraction, soft_gap
+
+
+def _release_gap(grasp: Grasp, x_eval: float, soft_gap: float, caveats: list[str]) -> float:
+    """How deep the tissue may stay after a grasp's release (dry friction holding it, or
+    relaxation branches drawing it back in while they recover), m: the deepest closure
+    of the working depth where :meth:`Grasp.resting` is not positive. The piston, which
+    the solenoid cannot push, returns to rest meanwhile: a tracking error no controller
+    can avoid, added to the soft gap."""
+    parts = grasp.parts
+    if not (parts.friction or parts.branches) or not math.isfinite(x_eval) or x_eval <= 0:
+        return 0.0
+    grid = np.linspace(0.0, x_eval, 201)[1:]
+    held = ~(grasp.resting(grid, x_eval) > 0)
+    gap = float(grid[held].max()) if held.any() else 0.0
+    if gap > soft_gap:
+        why = " and ".join(
+            w
+            for w, on in (
+                ("dry friction holds it", parts.friction),
+                ("its relaxation branches draw it back while they recover", parts.branches),
+            )
+            if on
+        )
+        caveats.append(
+            f"after a release the tissue may stay up to {gap * 1e3:.2f} mm deep ({why}) "
+            "while the piston, which the solenoid cannot push, returns to rest: a tracking "
+            "error of that size"
+        )
+    return gap
+
+
+def _assumptions(
+    grasp: Grasp, profile: DisplayProfile, x_eval: float, caveats: list[str]
+) -> list[str]:
+    """What the check and the controller assumed of the terms beyond the paper's, one
+    sentence each; a caveat when a long hold relaxes the tissue below the display's
+    spring."""
+    parts, mm = grasp.parts, 1e3
+    out = []
+    x_end = x_eval if math.isfinite(x_eval) and x_eval > 0 else profile.stroke
+    grid = np.linspace(0.0, x_end, 201)[1:]
+    if parts.branches:
+        k_eq = float(np.min(parts.stiffness(grid))) if grid.size else 0.0
+        branches = ", ".join(
+            f"Km{i} = {br.Km:.4g} N/m (tau{i} = {br.tau:.4g} s)"
+            for i, br in enumerate(parts.branches, 1)
+        )
+        out.append(
+            f"relaxation branches {branches}: each carried as a state in the reference "
+            "model and in the pull (exact recursion every control step); instantaneous "
+            f"stiffness adds {parts.instantaneous:.4g} N/m to the springs' "
+            f"{k_eq:.4g} N/m (equilibrium); the force limit, working depth and softness "
+            f"use the force after closing at {grasp.speed * mm:g} mm/s and holding "
+            f"{grasp.hold:g} s, closing and opening the branches' exact response"
+        )
+        relaxed = parts.elastic(grid) < profile.Kp * grid
+        if grid.size and np.mean(relaxed) > MAX_SOFT_FRACTION:
+            caveats.append(
+                "held much longer than the branches' time constants the tissue relaxes to "
+                f"its springs alone, softer than the display's spring over "
+                f"{np.mean(relaxed):.0%} of the working depth: a long hold feels the spring"
+            )
+    for t, c in parts.position:
+        if t.name == "contact":
+            n, x0 = t.shape["n"], t.shape["x0"]
+            d = max(x_end - x0, 0.0)
+            k_end = n * c * d ** (n - 1) if d > 0 else 0.0
+            out.append(
+                f"contact Kc d^n from x0 = {x0 * mm:.3g} mm (n = {n:.3g}): local stiffness "
+                f"n Kc d^(n-1), {k_end:.4g} N/m at {x_end * mm:.2f} mm"
+                + (", unbounded at the contact point (the gains take it from 1 % of the "
+                   "working depth)" if n < 1 else "")
+            )  # fmt: skip
+    for t, _ in parts.mixed:
+        _, s_end = parts.mixed_slopes(np.array([x_end]), grasp.speed)
+        out.append(
+            f"contact damping {t.symbol} d^n xdot at the piston's closure and speed: "
+            f"{float(s_end[0]):.4g} N s/m at {x_end * mm:.2f} mm, none before contact"
+        )
+    for t, c in parts.friction:
+        out.append(
+            f"dry friction {t.symbol} = {c:.4g} N carried by the reference model alone "
+            f"(its slope at rest, {t.symbol} / 1 mm/s, is beyond what the loop renders as "
+            "damping); the piston follows the model's stick and slip"
+        )
+    for t, c in parts.unrendered:
+        out.append(
+            f"{t.name} {t.symbol} = {c:.4g} {t.unit} not rendered (a sensor's, not the tissue's)"
+        )
+    return out
 
 
 def _passivity_required(

@@ -9,7 +9,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.tissue import Tissue
-from .law import NONFINITE, Gains, RenderLaw, control_voltage, local_slopes
+from .law import (
+    NONFINITE,
+    TYPICAL_SPEED,
+    Gains,
+    RenderLaw,
+    control_voltage,
+    local_slopes,
+    split_law,
+)
 from .plant import euler
 from .profile import DisplayProfile
 
@@ -42,13 +50,18 @@ class Controller:
        with ``V_{k-1}`` the voltage the display reported applying; the acceleration
        is a difference of filtered velocities, so its noise telescopes in the model's
        momentum instead of accumulating;
-    3. the tissue model ``M xm'' + D(xm') + E(xm) = F`` advances over the same
-       period (semi-implicit Euler, sub-stepped);
+    3. the tissue model ``M xm'' + D(xm') + E(xm) + H(xm, xm') + Ff(xm') + R = F``
+       advances over the same period (semi-implicit Euler, sub-stepped), ``R`` the
+       force of its relaxation branches, whose states follow the model's closure by
+       the exact recursion at each sub-step; a second set of branch states follows
+       the piston's estimated closure, by the same recursion over the frame's ``dt``;
     4. :func:`control_voltage` is evaluated at the states predicted ``delay`` ahead,
        which cancels most of the phase the loop delay costs: the voltage acts from the
        display's next tick, and the middle of its hold is 1.5 periods ahead, but the
        observed force (a mean over the last period) already lags by half a period, so
        one period aligns model and piston (and tracked best on the offline loop).
+       The piston's branch states are predicted the same way (the recursion over
+       ``delay`` with the predicted closure) and their force enters the pull.
 
     Parameters
     ----------
@@ -80,6 +93,12 @@ class Controller:
     ) -> None:
         self.tissue, self.profile, self.gains = tissue, profile, gains
         self.law = RenderLaw.build(tissue, profile, gains)
+        self.parts = split_law(tissue)
+        self.branches = self.law.branches
+        self.taus = [br.tau for br in self.branches]
+        # each branch's state driven by the piston's closure and by the model's, m
+        self.rp = [0.0] * len(self.branches)
+        self.rm = [0.0] * len(self.branches)
         self.period = 1.0 / rate_hz
         self.delay = delay_periods * self.period
         self.g = 1.0 - theta**3
@@ -89,7 +108,7 @@ class Controller:
         # sub-steps keep the model's own mode well inside semi-implicit Euler's stability
         sl = local_slopes(tissue, profile.stroke)
         w = math.sqrt(max(sl["k_hi"] + gains.Cp, 0.0) / self.mass) if self.mass > 0 else 0.0
-        rate = (sl["s_hi"] + gains.Cv) / self.mass if self.mass > 0 else 0.0
+        rate = (sl["s_model_hi"] + gains.Cv) / self.mass if self.mass > 0 else 0.0
         self.substeps = int(min(50, max(1, math.ceil(self.period * max(w, rate) / 0.2))))
         self.started = False
         self.x = self.v = self.a = self.xm = self.vm = self.volts_prev = 0.0
@@ -97,12 +116,17 @@ class Controller:
     STATE = ("x", "v", "a", "xm", "vm", "volts_prev")
 
     def state(self) -> list[float]:
-        """The controller's state, for linearisation."""
-        return [getattr(self, n) for n in self.STATE]
+        """The controller's state, for linearisation: :data:`STATE`, then the branch
+        states driven by the piston, then those driven by the model (m)."""
+        return [getattr(self, n) for n in self.STATE] + self.rp + self.rm
 
     def set_state(self, values: list[float]) -> None:
-        for n, value in zip(self.STATE, values, strict=True):
+        base = len(self.STATE)
+        nb = len(self.branches)
+        for n, value in zip(self.STATE, values[:base], strict=True):
             setattr(self, n, float(value))
+        self.rp = [float(r) for r in values[base : base + nb]]
+        self.rm = [float(r) for r in values[base + nb : base + 2 * nb]]
         self.started = True
 
     def start(self, position: float, volts: float) -> None:
@@ -110,6 +134,9 @@ class Controller:
         self.x, self.v, self.a = position, 0.0, 0.0
         self.xm, self.vm = position, 0.0
         self.volts_prev = volts
+        # the tissue at rest, relaxed
+        self.rp = [0.0] * len(self.branches)
+        self.rm = [0.0] * len(self.branches)
         self.started = True
 
     def update(self, position: float, volts: float, dt: float | None = None) -> Step:
@@ -157,34 +184,69 @@ class Controller:
         elif position >= p.stroke:
             force = max(force, static)
         # 3. tissue model over the same period
-        law, m = self.law, self.mass
+        law, m, branches = self.law, self.mass, self.branches
+        rp = [br.step(r, x - x0, dt) for br, r in zip(branches, self.rp, strict=True)]
+        rm = list(self.rm)
 
         def accel(t: float, xm: float, vm: float) -> float:
-            return (force - law.speed(vm) - law.static(xm)) / m
+            memory = sum(br.Km * r for br, r in zip(branches, rm, strict=True))
+            return (force - law.model_force(xm, vm, memory)) / m
+
+        def moved(before: float, after: float, h: float) -> None:
+            for i, br in enumerate(branches):
+                rm[i] = br.step(rm[i], after - before, h)
 
         # x = 0 is where the jaws meet the tissue: the model, like the piston at its top
         # stop, cannot go above it
-        xm, vm, _ = euler(self.xm, self.vm, accel, 0.0, dt / self.substeps, self.substeps, 0.0)
+        xm, vm, _ = euler(
+            self.xm,
+            self.vm,
+            accel,
+            0.0,
+            dt / self.substeps,
+            self.substeps,
+            0.0,
+            moved=moved if branches else None,
+        )
         am = accel(0.0, xm, vm)
         # 4. control at the states predicted for when the voltage acts
         tau = self.delay
         xp_f = x + tau * (v + 0.5 * tau * a)
         vp_f = v + tau * a
-        xm_f = xm + tau * (vm + 0.5 * tau * am)
-        vm_f = vm + tau * am
-        volts_out, flags = control_voltage(law, xp_f, vp_f, xm_f, vm_f)
-        pull = law.pull(xp_f, vp_f, xm_f, vm_f)
-        if not all(math.isfinite(z) for z in (x, v, a, xm, vm)):
+        if self.parts.friction and tau > 0:
+            # dry friction makes the model stiff (its slope at rest is Fc / V_SMOOTH): a
+            # Taylor step would overshoot its sticking speed, so integrate it ahead instead
+            saved = list(rm)
+            steps = max(1, round(self.substeps * tau / dt))
+            xm_f, vm_f, _ = euler(
+                xm, vm, accel, 0.0, tau / steps, steps, 0.0, moved=moved if branches else None
+            )
+            rm[:] = saved
+        else:
+            xm_f = xm + tau * (vm + 0.5 * tau * am)
+            vm_f = vm + tau * am
+        memory = sum(br.Km * br.step(r, xp_f - x, tau) for br, r in zip(branches, rp, strict=True))
+        volts_out, flags = control_voltage(law, xp_f, vp_f, xm_f, vm_f, memory)
+        pull = law.pull(xp_f, vp_f, xm_f, vm_f, memory)
+        finite = all(math.isfinite(z) for z in (x, v, a, xm, vm, *rp, *rm))
+        if not finite:
             # never carry NaN into the next period: restart the estimate at the reading
             self.start(position, 0.0)
             return Step(0.0, NONFINITE, self.x, 0.0, 0.0, self.xm, 0.0, math.nan, math.nan)
         self.x, self.v, self.a, self.xm, self.vm = x, v, a, xm, vm
+        self.rp, self.rm = rp, rm
         self.volts_prev = volts
         return Step(volts_out, flags, x, v, a, xm, vm, force, pull)
 
     def local_stiffness(self, x: float) -> float:
-        """``E'(x) + Cp``, N/m: the error equation's stiffness at depth ``x``."""
-        k = float(self.tissue.stiffness(np.array([x]))[0])
+        """``E'(x) + dH/dx + Cp``, N/m: the error equation's softest stiffness at depth
+        ``x`` (branches relaxed, contact damping opening at the typical speed)."""
+        at = np.array([x])
+        k = float(self.parts.stiffness(at)[0])
+        if self.parts.mixed:
+            k += min(
+                float(self.parts.mixed_slopes(at, s)[0][0]) for s in (TYPICAL_SPEED, -TYPICAL_SPEED)
+            )
         return k + self.gains.Cp
 
 

@@ -176,12 +176,38 @@ def loop_radius(
         x1, v1 = free_step(profile, x, v, applied, f_static, dt)
         return np.array([x1, v1, pending, *ctrl.state()])
 
-    s0 = np.array([depth, 0.0, v0, depth, 0.0, 0.0, depth, 0.0, v0])
+    # at rest long enough for the relaxation branches to have relaxed: their states are 0
+    nb = len(ctrl.branches)
+    s0 = np.array([depth, 0.0, v0, depth, 0.0, 0.0, depth, 0.0, v0, *[0.0] * (2 * nb)])
     n = s0.size
     jac = np.zeros((n, n))
-    scale = np.array([1e-3, 1e-2, 0.1, 1e-3, 1e-2, 1.0, 1e-3, 1e-2, 0.1]) * 1e-6
+    base = [1e-3, 1e-2, 0.1, 1e-3, 1e-2, 1.0, 1e-3, 1e-2, 0.1]
+    scale = np.array(base + [1e-3] * (2 * nb)) * 1e-6
     for j in range(n):
         d = np.zeros(n)
         d[j] = scale[j]
         jac[:, j] = (tick(s0 + d) - tick(s0 - d)) / (2 * scale[j])
-    return float(np.max(np.abs(np.linalg.eigvals(jac))))
+    poles = np.linalg.eigvals(jac)
+    if nb:
+        poles = _without_relaxation(poles, 2 * nb, max(math.exp(-dt / min(ctrl.taus)), MAX_RADIUS))
+    return float(np.max(np.abs(poles)))
+
+
+def _without_relaxation(poles: Array, count: int, slow: float) -> Array:
+    """``poles`` less the ``count`` largest real ones in ``[slow, 1]``: the relaxation
+    branches' own modes.
+
+    Each branch adds two states to the loop (driven by the piston and by the model) and
+    two real modes at least as slow as its ``tau``: the tissue's creep under a constant
+    force (time constant ``tau (K + Km) / K``, a pole at 1 for a tissue with no spring
+    of its own) and the relaxation of the tracking error (``tau (1 + Km / (k + Cp))``).
+    They are the tissue's behaviour, not the loop's, and with ``tau`` of seconds they
+    would hide the loop's own modes behind a radius of 0.99999; only real poles slower
+    than both the fastest branch and :data:`MAX_RADIUS` are taken as theirs.
+    """
+    slowest = [
+        i
+        for i in np.argsort(-poles.real)
+        if abs(poles[i].imag) <= 1e-9 and slow * (1 - 1e-9) <= poles[i].real <= 1 + 1e-9
+    ][:count]
+    return np.delete(poles, slowest) if len(slowest) < poles.size else poles

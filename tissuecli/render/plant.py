@@ -24,6 +24,7 @@ def euler(
     steps: int,
     lo: float = -math.inf,
     hi: float = math.inf,
+    moved: Callable[[float, float, float], None] | None = None,
 ) -> tuple[float, float, float]:
     """Semi-implicit (symplectic) Euler: ``v += h a(t_mid, x, v); x += h v``, ``steps`` times.
 
@@ -43,6 +44,9 @@ def euler(
         Number of steps.
     lo, hi : float
         End stops, m.
+    moved : callable, optional
+        ``moved(x_before, x_after, h)`` after each step: how a state that the position
+        drives (a relaxation branch's) keeps up, step by step.
 
     Returns
     -------
@@ -56,11 +60,14 @@ def euler(
     for i in range(steps):
         a = accel(t + (i + 0.5) * h, x, v)
         v += h * a
+        before = x
         x += h * v
         if x <= lo:
             x, v = lo, max(v, 0.0)
         elif x >= hi:
             x, v = hi, min(v, 0.0)
+        if moved is not None:
+            moved(before, x, h)
     return x, v, a
 
 
