@@ -9,8 +9,9 @@ It works on arrays; reading and writing files is the caller's business.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -102,6 +103,9 @@ class ModelResult:
     shape_posterior: dict[str, dict[str, Any]] | None = None
     shape_ranges: dict[str, tuple[float, float]] | None = None
     family: Law | None = field(default=None, repr=False)
+    #: the law bound at its least-squares shape and that fit's residual RMS (N):
+    #: what BIC compares (the posterior's point may sit elsewhere on a flat shape)
+    least_squares: tuple[Law, float] | None = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -248,10 +252,25 @@ class BayesianFit(Estimator):
         del A
 
         fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, rng)
-        results = [self._exact(m, firsts[m.name], fit) for m in linear]
-        if self.forms in (None, "all"):
-            results += self._search(results, fit, warnings)
-        results += [self._exact_shaped(m, fit) for m in shaped]
+        results, found = self._candidates(linear, shaped, firsts, fit)
+        # The weight came from the best linear law's residuals. Where a law with shape
+        # parameters fits markedly better (by BIC), a linear law's misfit is what made
+        # the residuals correlated: they would shrink the data and hide the better law,
+        # so the better law's residuals set the weight and the laws are scored again.
+        ref = min(results, key=lambda r: _bic(r, y.size))
+        if ref.least_squares is not None:
+            law = ref.least_squares[0]
+            A = design(law, kin, x_full, sigma_x, columns)
+            beta = _first_pass(law, kin, x_full, y, sigma_x, columns).beta
+            residual_ref = y - A @ beta
+            tau_ref = residual_tau(residual_ref)
+            weight_ref = data_weight(A, residual_ref, tau_ref) * ready.measured_fraction
+            del A
+            if weight_ref > 1.5 * weight:
+                tau, weight = tau_ref, weight_ref
+                fit = replace(fit, weight=weight)
+                results, found = self._candidates(linear, shaped, firsts, fit)
+        warnings.extend(found)
         del columns
         self._sample(results, rng)
         ln_z = np.array([r.ln_evidence for r in results])
@@ -419,6 +438,9 @@ class BayesianFit(Estimator):
             how = f"quadrature over {len(grid.nodes)} shape nodes"
         fp, st, prior, corr, flags, _ = evaluate(point)[1]
         post.ln_evidence = float(ln_evidence)
+        ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
+        ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
+        ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.y.size))
         ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
         return ModelResult(
             model=law.bind(point),
@@ -436,7 +458,25 @@ class BayesianFit(Estimator):
             shape_posterior=shape_post,
             shape_ranges=grid.ranges,
             family=law,
+            least_squares=(ls_law, ls_rms),
         )
+
+    def _candidates(
+        self,
+        linear: list[Law],
+        shaped: list[Law],
+        firsts: dict[str, _FirstPass],
+        fit: _Context,
+    ) -> tuple[list[ModelResult], list[str]]:
+        """Every candidate law scored at ``fit``'s weight: the linear ones, the search's
+        (default forms) and the laws with shape parameters asked for; and what the
+        search could not do."""
+        found: list[str] = []
+        results = [self._exact(m, firsts[m.name], fit) for m in linear]
+        if self.forms in (None, "all"):
+            results += self._search(results, fit, found)
+        results += [self._exact_shaped(m, fit) for m in shaped]
+        return results, found
 
     def _search(
         self, linear: list[ModelResult], fit: _Context, warnings: list[str]
@@ -446,12 +486,32 @@ class BayesianFit(Estimator):
         of its stiffness and damping; one relaxation branch added, and a second if the
         first raised the evidence; after each, terms the new one makes redundant are
         taken out while that raises the evidence."""
-        best = max(linear, key=lambda r: r.ln_evidence)
+        # from the law the evidence prefers, and from the one that fits best by BIC:
+        # on a misfit's correlated residuals the two part, and only the second may be
+        # the stem of the law that fits
+        n = fit.y.size
+        stems = {r.name: r for r in (max(linear, key=lambda r: r.ln_evidence),
+                                     min(linear, key=lambda r: _bic(r, n)))}  # fmt: skip
         tried: list[ModelResult] = []
+        for best in stems.values():
+            if not self._grow(best, fit, warnings, tried):
+                break
+        return tried
+
+    def _grow(
+        self, best: ModelResult, fit: _Context, warnings: list[str], tried: list[ModelResult]
+    ) -> bool:
+        """The search's steps from one linear law, appending what they score to ``tried``;
+        False if the session resolves no relaxation (no other stem will either)."""
+        done = {r.family.name for r in tried if r.family is not None}
 
         def score(names: list[str]) -> ModelResult:
-            res = self._exact_shaped(Law.of(names), fit)
+            law = Law.of(names)
+            if law.name in done:
+                return next(r for r in tried if r.family is not None and r.family.name == law.name)
+            res = self._exact_shaped(law, fit)
             tried.append(res)
+            done.add(law.name)
             return res
 
         def prune(res: ModelResult) -> ModelResult:
@@ -477,15 +537,15 @@ class BayesianFit(Estimator):
                 f"relaxation not searched: the session resolves time constants only between "
                 f"{lo:.3g} s and {hi:.3g} s; record longer or with faster motion"
             )
-            return tried
+            return False
         one = score([*(t.name for t in best.model.terms), "maxwell"])
         if one.ln_evidence <= best.ln_evidence:
-            return tried
+            return True
         one = prune(one)
         two = score([*(t.name for t in one.family.terms), "maxwell"])  # type: ignore[union-attr]
         if two.ln_evidence > one.ln_evidence:
             prune(two)
-        return tried
+        return True
 
     def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
         """Run emcee where the closed form does not apply (or on request), skipping forms
@@ -654,6 +714,14 @@ class _Context:
     scales: MotionScales
     columns: dict[str, Array]
     rng: np.random.Generator
+
+
+def _bic(res: ModelResult, n: int) -> float:
+    """Schwarz's criterion of a law's least-squares fit over ``n`` samples; its shape
+    parameters count as parameters."""
+    k = len(res.model.terms) + len(res.model.shape_names)
+    rms = res.least_squares[1] if res.least_squares is not None else res.residual_rms
+    return n * math.log(max(rms**2, 1e-300)) + k * math.log(n)
 
 
 def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
