@@ -430,3 +430,69 @@ class _Recording:
             file_bytes=size,
             faults=replace(faults),
         )
+
+
+def record_live(
+    address: str,
+    url: str,
+    out: str | os.PathLike[str],
+    session: str,
+    *,
+    on_url: Callable[[str], None],
+    on_status: Callable[[RecordStatus], None] | None = None,
+    on_samples: Callable[[SampleBlock], None] | None = None,
+    status_interval_s: float = 0.5,
+    **options: Any,
+) -> RecordResult:
+    """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
+
+    The address is bound before the device is touched (a port in use is refused first),
+    ``on_url`` is called with the page's URL, and the server stops when the recording
+    ends. The recorder only appends each block to the view's bounded state; the pages
+    are served from other threads. The view takes the status ten times a second;
+    ``on_status`` is still called every ``status_interval_s`` and once at the end.
+    Other parameters as :func:`record`.
+    """
+    from ..live.server import LiveServer, parse_address
+    from ..live.state import LiveState
+
+    host, port = parse_address(address)
+    state = LiveState(session)
+    shown = [-math.inf, None]  # when on_status was last called, and a status not shown
+
+    def status(s: RecordStatus) -> None:
+        state.set_status(s)
+        if on_status is None:
+            return
+        now = time.monotonic()
+        if now - shown[0] >= status_interval_s:
+            shown[:] = [now, None]
+            on_status(s)
+        else:
+            shown[1] = s
+
+    def samples(block: SampleBlock) -> None:
+        state.append(block)
+        if on_samples is not None:
+            on_samples(block)
+
+    with LiveServer(state, host, port) as server:
+        on_url(server.url)
+        try:
+            return record(
+                url,
+                out,
+                session,
+                on_status=status,
+                on_samples=samples,
+                status_interval_s=min(status_interval_s, LIVE_STATUS_S),
+                **options,
+            )
+        finally:
+            state.finish()
+            if on_status is not None and shown[1] is not None:
+                on_status(shown[1])  # the final status, whenever it came
+
+
+#: how often the live view takes the recording's status, s
+LIVE_STATUS_S = 0.1

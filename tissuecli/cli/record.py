@@ -54,6 +54,10 @@ def _summary(result: Any) -> str:
     )
 
 
+def _show_url(url: str) -> None:
+    click.echo(f"live view: {url}")
+
+
 @cli.command()
 @click.option(
     "--port", required=True, help="Device path (e.g. /dev/ttyUSB0, /tmp/forceps) or pyserial URL."
@@ -72,6 +76,15 @@ def _summary(result: Any) -> str:
 )
 @click.option("--baud", type=int, default=921600, show_default=True, help="Line rate in bit/s.")
 @click.option("--quiet", is_flag=True, help="No live status line.")
+@click.option(
+    "--live",
+    is_flag=False,
+    flag_value="127.0.0.1:0",
+    default=None,
+    metavar="[HOST:PORT]",
+    help="Serve a live view (traces, loop, estimate, status) on a local web page; "
+    "alone: 127.0.0.1 and a free port. The URL is printed.",
+)
 def record(
     port: str,
     out: str,
@@ -82,6 +95,7 @@ def record(
     calibration: str | None,
     baud: int,
     quiet: bool,
+    live: str | None,
 ) -> None:
     """Record a session from the forceps into an HDF5 file.
 
@@ -93,8 +107,10 @@ def record(
     rejected and counted (docs/recording.md).
 
     \b
-    Example:
+    Examples:
         tissuecli record --port /tmp/forceps --out grasp.h5 --duration 10 --session liver-1
+        tissuecli record --port /tmp/forceps --out grasp.h5 --live
+        tissuecli record --port /tmp/forceps --out grasp.h5 --live 127.0.0.1:8050
     """
     from ..hw.realtime import StopFlag
 
@@ -102,12 +118,17 @@ def record(
     stop = StopFlag().install()
 
     from datetime import datetime, timezone
+    from functools import partial
 
     from ..app.record import record as run
     from ..formats.params import read_calibration
 
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     status = None if quiet else _status_line(name)
+    if live is not None:
+        from ..app.record import record_live
+
+        run = partial(record_live, live, on_url=_show_url)
     try:
         result = run(
             port,
