@@ -53,6 +53,9 @@ ESTIMATE_INTERVAL_S = 0.05
 #: the estimate is confident when the central 95 % interval of each coefficient of
 #: these roles is at most this fraction of its mean
 CONFIDENT_WIDTH = {"stiffness": 0.10, "damping": 0.20}
+#: ... and it rests on at least this many effective independent samples per
+#: coefficient (fewer, and the noise level behind the intervals is itself uncertain)
+CONFIDENT_N_EFF = 10.0
 #: quadrature nodes over ln sigma for the online posteriors (the offline fit uses 401;
 #: with thousands of samples sigma's posterior is narrow and 101 agree to 1e-6)
 NODES = 101
@@ -81,7 +84,8 @@ class OnlineEstimate:
         Law name -> posterior probability among the candidates (sums to 1).
     confident : bool
         Every stiffness and damping coefficient's 95 % interval is within
-        :data:`CONFIDENT_WIDTH` of its mean.
+        :data:`CONFIDENT_WIDTH` of its mean, and ``n_eff`` is at least
+        :data:`CONFIDENT_N_EFF` per coefficient.
     samples : float
         Filtered samples behind the estimate, each counted by its forgetting weight.
     n_eff : float
@@ -276,13 +280,17 @@ class OnlineFit:
         self._last_f = math.nan
         self._last_x = math.nan
         self._in_contact = False
+        self._t0: float | None = None  # time of the first sample, when times are given
+        self._k_last = -1  # grid index of the last sample placed by time
         self._cached: OnlineEstimate | None = None
         self._cached_at = -1
         self._rng = np.random.default_rng(0)
 
     # -- the stream ---------------------------------------------------------------
 
-    def update(self, position: ArrayLike, force: ArrayLike) -> None:
+    def update(
+        self, position: ArrayLike, force: ArrayLike, *, time: ArrayLike | None = None
+    ) -> None:
         """Add a block of samples.
 
         Parameters
@@ -291,11 +299,15 @@ class OnlineFit:
             Jaw closure (m) and force (N), evenly spaced at ``rate_hz`` after every
             sample given before. An empty block does nothing; non-finite samples are
             counted in :attr:`skipped` and kept out of the fit.
+        time : array_like, shape (n,), optional
+            Their times (s). Given, samples lost in between (a gap of more than half a
+            sample interval) are filled by holes that no filter window counts across,
+            and samples at or before the last one are skipped.
 
         Raises
         ------
         InputError
-            If the two are not one-dimensional arrays of the same length.
+            If the arrays are not one-dimensional and of one length.
         """
         x = np.asarray(position, dtype=float)
         f = np.asarray(force, dtype=float)
@@ -304,6 +316,8 @@ class OnlineFit:
                 f"position and force must be 1-D arrays of one length; got shapes "
                 f"{x.shape} and {f.shape}"
             )
+        if time is not None:
+            x, f = self._regrid(np.asarray(time, dtype=float), x, f)
         if x.size == 0:
             return
         good = np.isfinite(x) & np.isfinite(f)
@@ -324,6 +338,35 @@ class OnlineFit:
         # the differentiator wants at least two windows at a time
         if self._x.size >= 2 * self.window:
             self._filter()
+
+    def _regrid(self, t: Array, x: Array, f: Array) -> tuple[Array, Array]:
+        """Samples on the stream's grid: holes (NaN) where samples are missing, and
+        none that repeat or go back in time."""
+        if t.shape != x.shape:
+            raise InputError(f"time must have the shape of position {x.shape}, got {t.shape}")
+        ok = np.isfinite(t)
+        if self._t0 is None:
+            if not np.any(ok):
+                self.skipped += t.size
+                return np.zeros(0), np.zeros(0)
+            self._t0 = float(t[ok][0])
+        k = np.rint((np.where(ok, t, -np.inf) - self._t0) * self.rate_hz)
+        # keep samples strictly after the last, in order (a running maximum)
+        last = np.maximum.accumulate(np.concatenate([[self._k_last], k]))[:-1]
+        keep = ok & (k > last)
+        self.skipped += int(t.size - np.sum(keep))
+        if not np.any(keep):
+            return np.zeros(0), np.zeros(0)
+        k = k[keep].astype(np.int64)
+        # holes before each kept sample; a gap longer than a filter window breaks every
+        # window as well as a longer one would, so it costs no more than a window
+        holes = np.minimum(np.diff(np.concatenate([[self._k_last], k])) - 1, self.window)
+        at = np.cumsum(holes + 1) - 1
+        out_x = np.full(int(at[-1] + 1), np.nan)
+        out_f = out_x.copy()
+        out_x[at], out_f[at] = x[keep], f[keep]
+        self._k_last = int(k[-1])
+        return out_x, out_f
 
     def _filter(self) -> None:
         """Filter the buffered samples, count the new rows, keep the last window - 1."""
@@ -465,7 +508,7 @@ class OnlineFit:
         best = int(np.argmax(ln_z))
         law = self.laws[best]
         post = posts[best].summary(self._rng, draws=0)
-        confident = True
+        confident = self._count * self.data_weight >= CONFIDENT_N_EFF * len(law.terms)
         for t, m, (lo, hi) in zip(law.terms, post.mean, post.ci95, strict=True):
             limit = CONFIDENT_WIDTH.get(t.role)
             if limit is not None and not (m > 0 and hi - lo <= limit * m):
