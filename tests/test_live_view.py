@@ -71,7 +71,7 @@ def _check_schema(state: dict) -> None:
         assert np.all(np.diff(tr["time_s"]) > 0)
         assert tr["time_s"][-1] - tr["time_s"][0] <= TRACE_S
         assert lp["time_s"][0] >= lp["start_s"] - 1e-9
-        assert tr["time_s"][-1] - lp["start_s"] <= LOOP_S + 1e-6
+        assert tr["time_s"][-1] - lp["start_s"] <= LOOP_S + 0.05  # to a bucket's start
 
 
 # -- the state alone -------------------------------------------------------------------
@@ -279,7 +279,8 @@ def test_record_live_serves_changing_numbers_and_stays_lossless(forceps, tmp_pat
         assert last["session"] == "s" and last["running"]
         # the status is the recorder's: samples at 1 kHz, no fault
         st = last["status"]
-        assert st["rate_hz"] == pytest.approx(1000, rel=0.1)
+        assert st["rate_hz"] == pytest.approx(1000, rel=0.2)  # start-up included
+        assert st["samples"] == last["samples_seen"]
         assert st["lost_frames"] == st["bad_frames"] == 0
         assert 0 <= last["sample_age_s"] < 1.0
         # SI: closure in metres (the simulator squeezes 0.2-7 mm), force in newtons

@@ -521,8 +521,9 @@ def record_live(
     The address is bound before the device is touched (a port in use is refused first),
     ``on_url`` is called with the page's URL, and the server stops when the recording
     ends. The recorder only appends each block to the view's bounded state; the pages
-    are served from other threads. The view takes the status ten times a second;
-    ``on_status`` is still called every ``status_interval_s`` and once at the end.
+    are served from other threads. The view takes the status at least every
+    :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
+    and once at the end.
     Other parameters as :func:`record`.
     """
     from ..live.server import LiveServer, parse_address
@@ -567,5 +568,6 @@ def record_live(
                 on_status(shown[1])  # the final status, whenever it came
 
 
-#: how often the live view takes the recording's status, s
-LIVE_STATUS_S = 0.1
+#: how often the live view takes the recording's status (and with it the online
+#: estimate, computed in the acquisition loop), s; the traces need no status
+LIVE_STATUS_S = 0.5

@@ -33,6 +33,9 @@ LOOP_POINTS = 1000
 #: a grasp begins where the force rises through this fraction of its range over the
 #: traces' window above the lowest force (the free jaw); it ends below LEAVE_FRACTION
 ENTER_FRACTION, LEAVE_FRACTION = 0.10, 0.05
+#: one document serves every page that asks within this time, s: the pages' number
+#: does not change the work (at most 20 documents a second)
+CACHE_S = 0.05
 #: decimals sent of time (s: 1 us), closure (m: 1 nm) and force (N: 1 uN)
 DECIMALS = (6, 9, 6)
 #: ring capacity, samples: 10 s at 20 kHz (the simulator's highest rate) fits 2.6 times
@@ -116,7 +119,7 @@ class LiveState:
 
     # -- the pages' side -------------------------------------------------------------
 
-    def document(self, max_age_s: float = 0.02) -> bytes:
+    def document(self, max_age_s: float = CACHE_S) -> bytes:
         """``/api/state`` as JSON bytes, made at most once per ``max_age_s`` while no new
         sample arrives, so that many pages cost little more than one."""
         import json
@@ -138,11 +141,12 @@ class LiveState:
         now = time.monotonic()
         status = dict(self._status)
         elapsed = now - offset if math.isfinite(offset) else now - self._t_start
-        status.update(
-            # what the ring knows is newer than the recorder's last status line
-            samples=max(int(status.get("samples", 0)), count) if status else count,
-            elapsed_s=elapsed if self._running else status.get("elapsed_s", elapsed),
-        )
+        if self._running:
+            # what the ring knows is newer than the recorder's last status (the
+            # same quantities: samples kept, their mean rate since the stream began)
+            samples = max(int(status.get("samples", 0)), count)
+            rate = samples / elapsed if elapsed > 0 else 0.0
+            status.update(samples=samples, elapsed_s=elapsed, rate_hz=rate)
         for key in ("rate_hz", "bad_frames", "lost_frames", "file_bytes"):
             status.setdefault(key, 0)
         traces, loop = self._windows(count)
@@ -166,24 +170,24 @@ class LiveState:
         if count < 2:
             return {"window_s": TRACE_S, **empty}, {"start_s": None, **empty, "closing": []}
         # the samples of the windows; never more than a third of the ring, so the
-        # recorder cannot overwrite them while they are copied
+        # recorder cannot overwrite them while they are read
         newest = self._time[(count - 1) % self.capacity]
-        limit = min(count, self.capacity // 3)
-        span = self._span(count, limit)
-        t = self._read(self._time, count, span)
-        first = int(np.searchsorted(t, newest - TRACE_S, side="left"))
-        t = t[first:]
-        x = self._read(self._position, count, span)[first:]
-        f = self._read(self._force, count, span)[first:]
-        start_index = count - t.size  # global index of t[0]
+        span = self._span(count, min(count, self.capacity // 3))
+        t, x, f = (
+            self._read(ring, count, span) for ring in (self._time, self._position, self._force)
+        )
+        start_index = count - span  # global index of t[0]
         series = zip((t, x, f), DECIMALS, strict=True)
         tt, xt, ft = (_means(a, start_index, TRACE_POINTS, d) for a, d in series)
         traces = {"window_s": TRACE_S, "time_s": tt, "position_m": xt, "force_n": ft}
-        # the loop: from the start of the current grasp, within LOOP_S
-        g = _grasp_start(t, f, newest)
-        offset = start_index + g
+        # the loop: from the start of the current grasp (found on the traces' means),
+        # within LOOP_S
+        t_mean = np.asarray(tt)
+        start = t_mean[_grasp_start(t_mean, np.asarray(ft), newest)]
+        half = (t_mean[-1] - t_mean[0]) / (2 * (t_mean.size - 1)) if t_mean.size > 1 else 0.0
+        g = int(np.searchsorted(t, start - half, side="left"))  # the bucket's first sample
         series = zip((t, x, f), DECIMALS, strict=True)
-        tl, xl, fl = (_means(a[g:], offset, LOOP_POINTS, d) for a, d in series)
+        tl, xl, fl = (_means(a[g:], start_index + g, LOOP_POINTS, d) for a, d in series)
         loop = {
             "start_s": float(t[g]),
             "time_s": tl,
@@ -194,7 +198,7 @@ class LiveState:
         return traces, loop
 
     def _span(self, count: int, limit: int) -> int:
-        """How many of the newest samples cover TRACE_S (at most ``limit``)."""
+        """How many of the newest samples lie within TRACE_S (at most ``limit``)."""
         t_new = self._time[(count - 1) % self.capacity]
         lo, hi = 1, limit  # binary search on age: ring order is time order
         while lo < hi:
@@ -203,13 +207,14 @@ class LiveState:
                 hi = mid
             else:
                 lo = mid + 1
-        return min(lo + 1, limit)
+        return lo
 
     def _read(self, ring: Array, count: int, n: int) -> Array:
-        """The ``n`` newest values of ``ring`` in time order (a copy)."""
+        """The ``n`` newest values of ``ring`` in time order: a view, or a copy where
+        they wrap round the ring's end."""
         end = count % self.capacity
         if n <= end:
-            return ring[end - n : end].copy()
+            return ring[end - n : end]
         return np.concatenate((ring[self.capacity - (n - end) :], ring[:end]))
 
 
