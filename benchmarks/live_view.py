@@ -68,13 +68,15 @@ def stall(host: str, port: int) -> socket.socket:
     return s
 
 
-def run(rate: float, duration: float, clients: int, live: bool, root: Path) -> dict[str, float]:
+def run(
+    rate: float, duration: float, clients: int, live: bool, root: Path, extra: list[str]
+) -> dict[str, float]:
     tag = f"r{int(rate)}{'live' if live else ''}"
     out = root / f"{tag}.h5"
     args = ["--quiet", "--duration", str(duration), "--session", "bench", "--out", str(out)]
     with SimulatorProcess("forceps", root / f"f{tag}", ["--rate", str(rate)]) as sim:
         cmd = [sys.executable, "-m", "tissuecli", "record", "--port", str(sim.link), *args]
-        cmd += os.environ.get("LIVE_EXTRA", "").split()
+        cmd += extra
         t0 = time.monotonic()
         proc = subprocess.Popen(
             cmd + (["--live"] if live else []),
@@ -132,7 +134,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=30.0)
     parser.add_argument("--rates", default="1000,10000")
-    parser.add_argument("--clients", type=int, default=4)
+    parser.add_argument("--clients", type=int, default=4, help="polling clients (at least 1)")
+    parser.add_argument(
+        "--no-identify", action="store_true", help="record without online identification"
+    )
     opts = parser.parse_args()
     print(
         f"{'rate Hz':>8} {'live':>5} {'expected':>9} {'stored':>9} {'lost':>5} {'CPU':>6} "
@@ -141,8 +146,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for rate in (float(r) for r in opts.rates.split(",")):
             for live in (False, True):
-                r = run(rate, opts.duration, opts.clients, live, Path(tmp))
-                extra = (
+                extra = ["--no-identify"] if opts.no_identify else []
+                r = run(rate, opts.duration, opts.clients, live, Path(tmp), extra)
+                shown = (
                     f"{r['updates_min']:9.1f} {r['updates_mean']:6.1f} "
                     f"{r['lat_median'] * 1e3:19.1f} {r['lat_95'] * 1e3:6.1f} "
                     f"{r['lat_max'] * 1e3:6.1f}"
@@ -151,7 +157,7 @@ def main() -> None:
                 )
                 print(
                     f"{rate:8.0f} {'yes' if live else 'no':>5} {r['expected']:9d} "
-                    f"{r['stored']:9d} {r['lost']:5d} {r['cpu']:6.1%} {extra}",
+                    f"{r['stored']:9d} {r['lost']:5d} {r['cpu']:6.1%} {shown}",
                     flush=True,
                 )
 

@@ -313,3 +313,160 @@ def test_record_refuses_a_bad_live_address_in_one_line(tmp_path, live):
     result = tissuecli("record", "--port", str(tmp_path / "no-device"), "--out",
                        str(tmp_path / "g.h5"), "--live", live)  # fmt: skip
     assert_clean_error(result, "--live expects HOST:PORT", repr(live))
+
+
+# -- a real browser ----------------------------------------------------------------------
+
+
+class _Browser:
+    """Headless Chromium driven over the DevTools protocol (a websocket, JSON messages)."""
+
+    def __init__(self, profile: Path, width: int = 1280, height: int = 900) -> None:
+        import re
+        import shutil
+        import subprocess
+
+        import websocket  # the test extra websocket-client
+
+        exe = shutil.which("chromium") or shutil.which("chromium-browser")
+        if exe is None:
+            pytest.fail("the browser test needs Chromium: apt-get install -y chromium")
+        self.proc = subprocess.Popen(
+            [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+             "--remote-debugging-port=0", f"--user-data-dir={profile}",
+             f"--window-size={width},{height}", "about:blank"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
+            if found:
+                break
+        else:
+            raise AssertionError("Chromium did not start its DevTools endpoint")
+        port = found.group(1)
+        targets = json.loads(_get(f"http://127.0.0.1:{port}/json/list"))
+        page = next(t for t in targets if t["type"] == "page")
+        self.ws = websocket.create_connection(
+            page["webSocketDebuggerUrl"], timeout=30, suppress_origin=True
+        )
+        self.next_id = 0
+        self.events: list[dict] = []
+        for domain in ("Runtime", "Log", "Network", "Page"):
+            self.call(f"{domain}.enable")
+
+    def call(self, method: str, **params: object) -> dict:
+        self.next_id += 1
+        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            msg = json.loads(self.ws.recv())
+            if msg.get("id") == self.next_id:
+                assert "error" not in msg, msg
+                return msg.get("result", {})
+            self.events.append(msg)
+
+    def evaluate(self, expression: str) -> object:
+        result = self.call(
+            "Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True
+        )
+        assert "exceptionDetails" not in result, result
+        return result["result"].get("value")
+
+    def close(self) -> None:
+        self.ws.close()
+        self.proc.terminate()
+        self.proc.wait(timeout=10)
+
+
+#: what the page shows, read from its elements: status values and the estimate's rows
+_READ_PAGE = """JSON.stringify({
+  state: liveView.state, updatesPerS: liveView.updatesPerS, latencyMs: liveView.latencyMs,
+  status: Object.fromEntries(["elapsed", "samples", "rate", "lost", "bad", "file"].map(
+    id => [id, Number(document.getElementById(id).dataset.value)])),
+  identifying: !document.getElementById("identifying").hidden,
+  means: [...document.querySelectorAll("#parameters tbody tr")].map(r => Number(r.dataset.mean)),
+  names: [...document.querySelectorAll("#parameters tbody tr")].map(r => r.cells[0].textContent),
+  probabilities: Object.fromEntries([...document.querySelectorAll("#probabilities tbody tr")]
+    .map(r => [r.cells[0].textContent, Number(r.dataset.probability)])),
+})"""
+
+
+@pytest.mark.slow
+def test_a_real_browser_shows_the_recording_as_api_state_does(forceps, tmp_path):
+    """The page loads with no console error and no request beyond this server, its
+    numbers change and are /api/state's; a screenshot goes to docs/img/live-view.png."""
+    import base64
+
+    sim = forceps("--seed", "6")
+    out = tmp_path / "g.h5"
+    proc = popen("record", "--port", str(sim.link), "--out", str(out), "--session", "liver-1",
+                 "--tissue", "simulated liver", "--duration", "25", "--live")  # fmt: skip
+    browser = None
+    try:
+        url = _url_of(proc)
+        browser = _Browser(tmp_path / "profile")
+        browser.call("Page.navigate", url=url)
+        deadline = time.monotonic() + 20
+        page = {}
+        while time.monotonic() < deadline:  # until the estimate is there
+            time.sleep(0.5)
+            page = json.loads(browser.evaluate(_READ_PAGE))
+            if page["state"] and page["state"]["estimate"] and not page["identifying"]:
+                break
+        before = page
+        time.sleep(1.5)
+        # read the page once it shows a document newer than one the server gave before:
+        # its numbers lie between that one's and the next
+        api_before = _state(url)
+        for _ in range(100):
+            page = json.loads(browser.evaluate(_READ_PAGE))
+            if page["state"]["samples_seen"] >= api_before["samples_seen"]:
+                break
+            time.sleep(0.05)
+        api_after = _state(url)
+        elapsed = page["status"]["elapsed"]
+        while elapsed < 11 and time.monotonic() < deadline + 15:
+            time.sleep(0.5)  # the screenshot with full traces
+            elapsed = json.loads(browser.evaluate(_READ_PAGE))["status"]["elapsed"]
+        shot = browser.call("Page.captureScreenshot", format="png")["data"]
+    finally:
+        if browser is not None:
+            browser.close()
+        proc.kill()
+        proc.wait()
+    # the numbers change
+    assert page["status"]["samples"] > before["status"]["samples"] > 0
+    assert page["status"]["elapsed"] > before["status"]["elapsed"]
+    # and they are /api/state's
+    st = page["state"]
+    assert api_before["samples_seen"] <= st["samples_seen"] <= api_after["samples_seen"]
+    for key, name in [
+        ("elapsed_s", "elapsed"),
+        ("samples", "samples"),
+        ("rate_hz", "rate"),
+        ("lost_frames", "lost"),
+        ("bad_frames", "bad"),
+        ("file_bytes", "file"),
+    ]:
+        assert page["status"][name] == pytest.approx(st["status"][key])
+        assert api_before["status"][key] <= st["status"][key] + 1e-9 or key == "rate_hz"
+    est = st["estimate"]
+    assert page["names"] == est["names"] == ["K", "S", "M"]
+    assert page["means"] == pytest.approx(est["mean"])
+    assert page["probabilities"] == pytest.approx(est["probabilities"])
+    assert est["names"] == api_after["estimate"]["names"]
+    # the simulated tissue (K = 350 N/m, S = 3 N s/m, M = 0.05 kg) within 10 %
+    assert est["mean"] == pytest.approx([350, 3, 0.05], rel=0.1)
+    # the page measures its updates and latency (figures: benchmarks/live_view.py)
+    assert page["updatesPerS"] > 0 and page["latencyMs"] > 0
+    # no console message, no exception, no request beyond this server
+    methods = {e["method"] for e in browser.events}
+    assert "Runtime.exceptionThrown" not in methods
+    logged = [
+        e for e in browser.events if e["method"] in ("Runtime.consoleAPICalled", "Log.entryAdded")
+    ]
+    assert not logged, logged
+    requests = [e["params"]["request"]["url"] for e in browser.events
+                if e["method"] == "Network.requestWillBeSent"]  # fmt: skip
+    assert requests and all(r.startswith(url) or r.startswith("data:") for r in requests), requests
+    (ROOT / "docs" / "img" / "live-view.png").write_bytes(base64.b64decode(shot))
