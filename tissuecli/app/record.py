@@ -39,6 +39,10 @@ class RecordStatus:
     lost_frames: int = 0
     file_bytes: int = 0
     faults: ClockFaults = field(default_factory=ClockFaults)
+    #: the online identification's current estimate (an
+    #: :class:`~tissuecli.identify.online.OnlineEstimate`), None before it has one or
+    #: without identification
+    estimate: Any = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,10 @@ class RecordResult:
     meta: dict[str, Any] = field(default_factory=dict)
     faults: ClockFaults = field(default_factory=ClockFaults)
     time_rescaled: bool = False
+    #: the online identification's last estimate (None without one) and why it
+    #: stopped, if it did
+    estimate: Any = None
+    identify_note: str = ""
 
 
 def record(
@@ -103,6 +111,8 @@ def record(
     flush_interval_s: float = 0.25,
     idle_timeout_s: float = 2.0,
     on_samples: Callable[[SampleBlock], None] | None = None,
+    identify: bool = True,
+    forgetting_s: float = 5.0,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -142,6 +152,13 @@ def record(
         Called in the acquisition loop with each block of samples once it is handed to
         the writer (the live view and online identification listen here); it must
         return quickly, as the loop waits for it.
+    identify : bool
+        Identify the tissue online while recording
+        (:class:`~tissuecli.identify.online.OnlineFit`, the paper's four laws): the
+        status carries its current estimate and the result its last one. An error
+        in it stops the identification, never the recording.
+    forgetting_s : float
+        Forgetting time constant of the online identification, s.
 
     Raises
     ------
@@ -197,9 +214,17 @@ def record(
             clock_hz / rate_hz if math.isfinite(rate_hz) else None,
             limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
+        online = _Online(rate_hz, forgetting_s) if identify else None
+        listeners = [f for f in (online, on_samples) if f is not None]
+
+        def listen(block: SampleBlock) -> None:
+            for f in listeners:
+                f(block)
+
         recording = _Recording(
-            link, open_writer, timebase, cal, clock_hz, out, session, meta, on_samples
-        )
+            link, open_writer, timebase, cal, clock_hz, out, session, meta,
+            listen if listeners else None, online,
+        )  # fmt: skip
         return recording.run(
             Stream(
                 link,
@@ -236,6 +261,43 @@ def _check_calibration(cal: Calibration, bits: object) -> None:
         )
 
 
+class _Online:
+    """The online identification as a sample listener: made at the first block (with
+    the device's rate, or the rate of the first samples' stamps), fed every block on
+    its time stamps (lost frames become holes), and switched off by any error."""
+
+    def __init__(self, rate_hz: float, forgetting_s: float) -> None:
+        self.rate_hz, self.forgetting_s = rate_hz, forgetting_s
+        self.fit: Any = None
+        self.note = ""
+
+    def __call__(self, block: SampleBlock) -> None:
+        if self.note:
+            return
+        try:
+            if self.fit is None:
+                rate = self.rate_hz
+                if not (math.isfinite(rate) and rate > 0):
+                    if block.time.size < 2:
+                        return  # too few stamps to tell the rate yet
+                    rate = 1.0 / float(np.median(np.diff(block.time)))
+                from ..identify.online import OnlineFit
+
+                self.fit = OnlineFit(rate_hz=rate, forgetting_s=self.forgetting_s)
+            self.fit.update(block.position, block.force, time=block.time)
+        except Exception as exc:  # noqa: BLE001  (identification must never cost a recording)
+            self.note = f"online identification stopped: {exc}"
+
+    def estimate(self) -> Any:
+        if self.fit is None or self.note:
+            return None
+        try:
+            return self.fit.estimate()
+        except Exception as exc:  # noqa: BLE001
+            self.note = f"online identification stopped: {exc}"
+            return None
+
+
 class _Recording:
     """One session being recorded: frames checked and stamped, samples to SI, to the
     writer (created with the first kept sample), and the clock map at the end."""
@@ -251,9 +313,12 @@ class _Recording:
         session: str,
         meta: dict[str, Any],
         on_samples: Callable[[SampleBlock], None] | None = None,
+        online: _Online | None = None,
     ) -> None:
         self.link, self.open_writer, self.timebase = link, open_writer, timebase
         self.on_samples = on_samples
+        self.online = online
+        self.estimate: Any = None
         self.cal, self.clock_hz = cal, clock_hz
         self.out, self.session, self.meta = out, session, meta
         self.writer: SeriesWriter | None = None
@@ -290,6 +355,8 @@ class _Recording:
             lost = exc
         finally:
             clock_map = self._close(stream)
+            if self.online is not None:
+                self.estimate = self.online.estimate()
         if on_status is not None:
             on_status(self._status(time.monotonic() - stream.t_start))
         where = f"in {self.out}, session {self.session!r}"
@@ -316,6 +383,8 @@ class _Recording:
             meta=self.meta,
             faults=replace(self.timebase.faults),
             time_rescaled=self.time_rescaled,
+            estimate=self.estimate,
+            identify_note=self.online.note if self.online is not None else "",
         )
 
     def _check_usable(self, now: float, stream: Stream) -> None:
@@ -421,6 +490,8 @@ class _Recording:
         except OSError:
             size = 0
         faults = self.timebase.faults
+        if self.online is not None:
+            self.estimate = self.online.estimate()
         return RecordStatus(
             elapsed_s=elapsed,
             samples=self.samples,
@@ -429,4 +500,74 @@ class _Recording:
             lost_frames=faults.frames_lost,
             file_bytes=size,
             faults=replace(faults),
+            estimate=self.estimate,
         )
+
+
+def record_live(
+    address: str,
+    url: str,
+    out: str | os.PathLike[str],
+    session: str,
+    *,
+    on_url: Callable[[str], None],
+    on_status: Callable[[RecordStatus], None] | None = None,
+    on_samples: Callable[[SampleBlock], None] | None = None,
+    status_interval_s: float = 0.5,
+    **options: Any,
+) -> RecordResult:
+    """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
+
+    The address is bound before the device is touched (a port in use is refused first),
+    ``on_url`` is called with the page's URL, and the server stops when the recording
+    ends. The recorder only appends each block to the view's bounded state; the pages
+    are served from other threads. The view takes the status at least every
+    :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
+    and once at the end.
+    Other parameters as :func:`record`.
+    """
+    from ..live.server import LiveServer, parse_address
+    from ..live.state import LiveState
+
+    host, port = parse_address(address)
+    state = LiveState(session)
+    shown = [-math.inf, None]  # when on_status was last called, and a status not shown
+
+    def status(s: RecordStatus) -> None:
+        state.set_status(s)
+        state.set_estimate(s.estimate)  # the recording's own online fit: one per recording
+        if on_status is None:
+            return
+        now = time.monotonic()
+        if now - shown[0] >= status_interval_s:
+            shown[:] = [now, None]
+            on_status(s)
+        else:
+            shown[1] = s
+
+    def samples(block: SampleBlock) -> None:
+        state.append(block)
+        if on_samples is not None:
+            on_samples(block)
+
+    with LiveServer(state, host, port) as server:
+        on_url(server.url)
+        try:
+            return record(
+                url,
+                out,
+                session,
+                on_status=status,
+                on_samples=samples,
+                status_interval_s=min(status_interval_s, LIVE_STATUS_S),
+                **options,
+            )
+        finally:
+            state.finish()
+            if on_status is not None and shown[1] is not None:
+                on_status(shown[1])  # the final status, whenever it came
+
+
+#: how often the live view takes the recording's status (and with it the online
+#: estimate, computed in the acquisition loop), s; the traces need no status
+LIVE_STATUS_S = 0.5

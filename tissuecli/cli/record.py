@@ -11,7 +11,7 @@ from .base import cli, end_live_line, live_line
 from .options import duration_option, h5_out_option, label_options
 
 
-def _status_line(session: str) -> Any:
+def _status_line(session: str, identify: bool) -> Any:
     def show(s: Any) -> None:
         faults = s.faults
         clock = (
@@ -20,13 +20,22 @@ def _status_line(session: str) -> Any:
             if faults.any
             else ""
         )
+        tissue = f"  {_estimate_line(s.estimate)}" if identify else ""
         live_line(
             f"recording {session}: {s.elapsed_s:7.1f} s  {s.samples:>9,d} samples  "
             f"{s.rate_hz:7.1f} Hz  bad {s.bad_frames}  lost {s.lost_frames}  "
-            f"{s.file_bytes / 1e6:6.2f} MB{clock}"
+            f"{s.file_bytes / 1e6:6.2f} MB{clock}{tissue}"
         )
 
     return show
+
+
+def _estimate_line(est: Any) -> str:
+    """The online estimate in a few words: the law and its coefficients with +- (half
+    the 95 % interval) once confident, ``identifying...`` before."""
+    if est is None or not est.confident:
+        return "identifying..."
+    return est.describe()
 
 
 def _plural(n: int, word: str) -> str:
@@ -54,6 +63,10 @@ def _summary(result: Any) -> str:
     )
 
 
+def _show_url(url: str) -> None:
+    click.echo(f"live view: {url}")
+
+
 @cli.command()
 @click.option(
     "--port", required=True, help="Device path (e.g. /dev/ttyUSB0, /tmp/forceps) or pyserial URL."
@@ -71,7 +84,32 @@ def _summary(result: Any) -> str:
     help="Counts-to-SI JSON for devices that do not report one (docs/formats.md).",
 )
 @click.option("--baud", type=int, default=921600, show_default=True, help="Line rate in bit/s.")
+@click.option(
+    "--identify/--no-identify",
+    default=True,
+    show_default=True,
+    help="Identify the tissue online while recording: the status line shows the most "
+    "probable law with K, S, M +- half their 95 % intervals once they are confident "
+    "(docs/estimators.md, Online identification).",
+)
+@click.option(
+    "--forgetting",
+    type=click.FloatRange(min=0, min_open=True),
+    default=5.0,
+    show_default=True,
+    help="Online identification forgets with this time constant, s: a new tissue "
+    "replaces the old one in a few of them.",
+)
 @click.option("--quiet", is_flag=True, help="No live status line.")
+@click.option(
+    "--live",
+    is_flag=False,
+    flag_value="127.0.0.1:0",
+    default=None,
+    metavar="[HOST:PORT]",
+    help="Serve a live view (traces, loop, estimate, status) on a local web page; "
+    "alone: 127.0.0.1 and a free port. The URL is printed.",
+)
 def record(
     port: str,
     out: str,
@@ -81,7 +119,10 @@ def record(
     note: str,
     calibration: str | None,
     baud: int,
+    identify: bool,
+    forgetting: float,
     quiet: bool,
+    live: str | None,
 ) -> None:
     """Record a session from the forceps into an HDF5 file.
 
@@ -92,9 +133,17 @@ def record(
     exits 1. Frames whose clock or sequence number is absurd are repaired or
     rejected and counted (docs/recording.md).
 
+    While recording, the tissue is identified online (the paper's four laws, exact
+    posteriors, forgetting older samples): the status line shows the current
+    estimate, and the last one is printed at the end. The stored session is the
+    same with or without it; `tissuecli fit` gives the full offline fit.
+
     \b
-    Example:
+    Examples:
         tissuecli record --port /tmp/forceps --out grasp.h5 --duration 10 --session liver-1
+        tissuecli record --port /tmp/forceps --out grasp.h5 --no-identify
+        tissuecli record --port /tmp/forceps --out grasp.h5 --live
+        tissuecli record --port /tmp/forceps --out grasp.h5 --live 127.0.0.1:8050
     """
     from ..hw.realtime import StopFlag
 
@@ -102,12 +151,17 @@ def record(
     stop = StopFlag().install()
 
     from datetime import datetime, timezone
+    from functools import partial
 
     from ..app.record import record as run
     from ..formats.params import read_calibration
 
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
-    status = None if quiet else _status_line(name)
+    status = None if quiet else _status_line(name, identify)
+    if live is not None:
+        from ..app.record import record_live
+
+        run = partial(record_live, live, on_url=_show_url)
     try:
         result = run(
             port,
@@ -121,8 +175,14 @@ def record(
             baudrate=baud,
             stop=stop,
             on_status=status,
+            identify=identify,
+            forgetting_s=forgetting,
         )
     finally:
         if status is not None:
             end_live_line()
     click.echo(_summary(result))
+    if identify:
+        est = result.estimate
+        last = "no estimate (too few samples in contact)" if est is None else est.describe()
+        click.echo(f"online estimate: {result.identify_note or last}")

@@ -328,7 +328,7 @@ class BayesianFit(Estimator):
         G = fp.gram - corr if corr is not None else fp.gram
         w, n = fit.weight, fit.y.size
         st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n)
-        prior = Prior(scales=model.prior_scales(fit.scales), passive=model.passive)
+        prior = law_prior(model, fit.scales)
         flags = []
         if uncorrected:
             flags.append(
@@ -623,12 +623,33 @@ def session_scales(kin: Kinematics, force_scale: float | None = None) -> MotionS
     reach five times the session's largest force at the session's typical motion.
     """
 
-    def rms(u: Array) -> float:
-        value = float(np.sqrt(np.mean(np.square(u)))) if u.size else 0.0
+    def ms(u: Array) -> float:
+        return float(np.mean(np.square(u))) if u.size else 0.0
+
+    peak = float(np.max(np.abs(kin.force))) if kin.force.size else 0.0
+    return scales_from(ms(kin.x), ms(kin.v), ms(kin.a), peak, force_scale)
+
+
+def scales_from(
+    ms_x: float, ms_v: float, ms_a: float, peak_force: float, force_scale: float | None = None
+) -> MotionScales:
+    """:class:`MotionScales` from the mean squares of the filtered closure (m^2), speed
+    (m^2/s^2) and acceleration (m^2/s^4) and the largest filtered force (N): what
+    :func:`session_scales` computes from a whole session, and the online fit from its
+    running sums."""
+
+    def root(u: float) -> float:
+        value = float(np.sqrt(u)) if u > 0 else 0.0
         return value if value > 0 and np.isfinite(value) else 1.0
 
-    force = force_scale if force_scale else 5.0 * float(np.max(np.abs(kin.force)))
-    return MotionScales(x=rms(kin.x), v=rms(kin.v), a=rms(kin.a), force=force or 1.0)
+    force = force_scale if force_scale else 5.0 * peak_force
+    return MotionScales(x=root(ms_x), v=root(ms_v), a=root(ms_a), force=force or 1.0)
+
+
+def law_prior(law: Law, scales: MotionScales) -> Prior:
+    """The prior of a law's coefficients for a session of these scales (each term may
+    reach the force scale at the typical motion; passive coefficients non-negative)."""
+    return Prior(scales=law.prior_scales(scales), passive=law.passive)
 
 
 def _prior_conflict(law: Law, beta: Array, scales: MotionScales) -> list[str]:
