@@ -4,7 +4,7 @@ observe the operator's force, advance the tissue model and compute the voltage."
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,6 +12,26 @@ from ..core.tissue import Tissue
 from .law import NONFINITE, Gains, RenderLaw, control_voltage, local_slopes
 from .plant import euler
 from .profile import DisplayProfile
+
+#: Time over which :meth:`Controller.retarget` moves from one law to the next, s: several
+#: times the slowest error dynamics (20 Hz bandwidth, 50 ms) so the model follows the
+#: blend, and short against a grasp (0.25-0.5 s to rise) so an update is felt at once.
+RETARGET_SLEW_S = 0.2
+
+#: Energy a retarget may add to what the rendered law stores at the present closure, J
+#: (see :meth:`Controller.retarget`): K up by 1000 N/m at 0.2 mm.
+RETARGET_ENERGY_J = 2e-5
+
+
+@dataclass
+class _Blend:
+    """A retarget under way: the law it goes to, its weight (a cell the blended force
+    closures read) and its length, s."""
+
+    target: RenderLaw
+    source: RenderLaw
+    weight: list[float]
+    slew_s: float
 
 
 @dataclass
@@ -93,6 +113,10 @@ class Controller:
         self.substeps = int(min(50, max(1, math.ceil(self.period * max(w, rate) / 0.2))))
         self.started = False
         self.x = self.v = self.a = self.xm = self.vm = self.volts_prev = 0.0
+        self.blend: _Blend | None = None
+        # damping a passivity controller adds to the output, N s/m; the model carries it
+        # too, so the error feedback does not undo it
+        self.extra_damping = 0.0
 
     STATE = ("x", "v", "a", "xm", "vm", "volts_prev")
 
@@ -138,6 +162,8 @@ class Controller:
         if not self.started:
             self.start(position, volts)
         dt = self.period if dt is None or not dt > 0 else dt
+        if self.blend is not None:
+            self._advance_blend(dt, position)
         p = self.profile
         x0, v0 = self.x, self.v
         # 1. fading-memory filter: predict, then correct with the innovation
@@ -157,10 +183,10 @@ class Controller:
         elif position >= p.stroke:
             force = max(force, static)
         # 3. tissue model over the same period
-        law, m = self.law, self.mass
+        law, m, extra = self.law, self.mass, self.extra_damping
 
         def accel(t: float, xm: float, vm: float) -> float:
-            return (force - law.speed(vm) - law.static(xm)) / m
+            return (force - law.speed(vm) - extra * vm - law.static(xm)) / m
 
         # x = 0 is where the jaws meet the tissue: the model, like the piston at its top
         # stop, cannot go above it
@@ -181,6 +207,61 @@ class Controller:
         self.x, self.v, self.a, self.xm, self.vm = x, v, a, xm, vm
         self.volts_prev = volts
         return Step(volts_out, flags, x, v, a, xm, vm, force, pull)
+
+    def retarget(self, tissue: Tissue, slew_s: float = RETARGET_SLEW_S) -> None:
+        """Move to rendering ``tissue`` without a step in force.
+
+        The rendered forces at rest and of speed (and with them the tissue model's) go
+        from the current law's to the new one's over ``slew_s`` seconds of frames, as a
+        linear blend ``(1 - w) old + w new`` with ``w`` rising from 0 to 1; a retarget
+        during a blend starts from the blend as it stands. Gains and model mass stay.
+
+        A blend removes the jolt, not the energy: a law that stores more at the
+        present closure (a stiffness raised while the tissue is compressed) would give
+        back more than it took in. So ``w`` only rises while the new law stores at most
+        :data:`RETARGET_ENERGY_J` more than the old at the present closure
+        (``int_0^x (E_new - E_old)``): a softer law blends in at once, a stiffer one
+        during a grasp waits for the jaws to open. What remains (the loop's own delay)
+        is for a :class:`~tissuecli.render.passivity.PassivityController`.
+        """
+        tissue.validate()
+        new = RenderLaw.build(tissue, self.profile, self.gains)
+        old = self.law
+        w = [0.0]
+
+        def static(x: float) -> float:
+            return (1.0 - w[0]) * old.static(x) + w[0] * new.static(x)
+
+        def speed(v: float) -> float:
+            return (1.0 - w[0]) * old.speed(v) + w[0] * new.speed(v)
+
+        self.law = replace(new, static=static, speed=speed)
+        self.blend = _Blend(new, old, w, max(slew_s, 0.0))
+        self.tissue = tissue
+        # sub-steps for the stiffer of the two laws
+        sl = local_slopes(tissue, self.profile.stroke)
+        w_n = math.sqrt(max(sl["k_hi"] + self.gains.Cp, 0.0) / self.mass) if self.mass > 0 else 0.0
+        rate = (sl["s_hi"] + self.gains.Cv) / self.mass if self.mass > 0 else 0.0
+        need = int(min(50, max(1, math.ceil(self.period * max(w_n, rate) / 0.2))))
+        self.substeps = max(self.substeps, need)
+
+    def _advance_blend(self, dt: float, position: float) -> None:
+        blend = self.blend
+        assert blend is not None
+        x = max(position, 0.0)
+        if x > 0.0:
+            old = blend.source
+            n = 8  # Simpson over [0, x]: the stored energy's change, J
+            gap = sum(
+                (1 if i in (0, n) else 4 if i % 2 else 2)
+                * (blend.target.static(x * i / n) - old.static(x * i / n))
+                for i in range(n + 1)
+            ) * (x / (3 * n))
+            if gap > RETARGET_ENERGY_J:
+                return
+        blend.weight[0] = min(1.0, blend.weight[0] + (dt / blend.slew_s if blend.slew_s else 1.0))
+        if blend.weight[0] >= 1.0:
+            self.law, self.blend = blend.target, None
 
     def local_stiffness(self, x: float) -> float:
         """``E'(x) + Cp``, N/m: the error equation's stiffness at depth ``x``."""
