@@ -30,7 +30,18 @@ from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_profile, read_tissue
 from ..hw.link import DEFAULT_BAUD, Link, open_device
 from ..hw.protocol import Encoder, SetVoltage
-from ..hw.realtime import Deadlines, StopFlag, realtime, wait_readable
+from ..hw.realtime import (
+    SPIN_S,
+    Deadlines,
+    Elevation,
+    StopFlag,
+    elevate,
+    fallback_message,
+    realtime,
+    run_in_thread,
+    wait_readable,
+    wait_until,
+)
 from ..hw.stream import Stream
 from ..render.check import GRASP_FORCE_N, CheckResult, check
 from ..render.controller import Controller, Step, tracking_bound
@@ -61,6 +72,15 @@ TRACKING_ALLOWANCE_M = 4e-4
 #: docs/rendering.md).
 MAX_SATURATED_FRACTION = 0.05
 MAX_UNRENDERABLE_FRACTION = 0.3
+
+#: How the host loop keeps time (docs/rendering.md, "The loop"): ``"elevated"`` runs it
+#: in a thread of its own under SCHED_FIFO with memory locked and one CPU, sleeping
+#: until :data:`~tissuecli.hw.realtime.SPIN_S` before each expected frame and spinning
+#: through it; ``"thread"`` runs it in its own thread, sleeping in ``select``, without
+#: elevated scheduling or the spin (``--no-realtime``, and the fallback when the system
+#: refuses elevation); ``"plain"`` is the loop before these, in the calling thread
+#: (kept for side-by-side benchmarks).
+LOOPS = ("elevated", "thread", "plain")
 
 
 class PlayFaults(RenderError):
@@ -237,6 +257,8 @@ def play(
     idle_timeout_s: float = 0.1,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     status_interval_s: float = 1.0,
+    loop: str = "elevated",
+    on_message: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Render ``tissue`` on the display at ``url`` for ``duration_s`` seconds.
 
@@ -267,6 +289,10 @@ def play(
         A display silent this long is taken as lost, s.
     on_status : callable, optional
         Called every ``status_interval_s`` with the running figures.
+    loop : {"elevated", "thread", "plain"}
+        How the host loop keeps time (see :data:`LOOPS`).
+    on_message : callable, optional
+        Told, once per process, when elevated scheduling was refused.
 
     Returns
     -------
@@ -275,7 +301,8 @@ def play(
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``commands_sent``,
-        ``actuator_work_j``, ``check`` and more; ``faults`` (what went wrong, see
+        ``actuator_work_j``, ``realtime`` (what :func:`~tissuecli.hw.realtime.elevate`
+        obtained), ``check`` and more; ``faults`` (what went wrong, see
         :func:`play_faults`; empty for a good play) and ``verdict`` (``"as checked"``
         or ``"faulty"``).
 
@@ -295,6 +322,8 @@ def play(
         raise InputError(f"--rate {rate_hz} must be a positive number of Hz")
     if name is not None:
         check_name(name, "play")
+    if loop not in LOOPS:
+        raise InputError(f"loop {loop!r} is not one of {', '.join(LOOPS)}")
     if log is not None:
         from ..formats.playlog import check_log  # h5py only when a log is asked for
 
@@ -332,6 +361,8 @@ def play(
             rate_hz,
             float(info.get("clock_hz", 1e6)),
             log_file,
+            loop,
+            on_message,
         )
         stream = Stream(
             link,
@@ -341,7 +372,12 @@ def play(
             status_interval_s=status_interval_s,
             before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
         )
-        summary = player.run(stream, duration_s, on_status)
+        if loop == "plain":
+            summary = player.run(stream, duration_s, on_status)
+        else:  # the main thread stays free for signals
+            summary = run_in_thread(
+                lambda: player.run(stream, duration_s, on_status), "haptic loop"
+            )
     except BaseException as exc:
         if log_file is not None:
             reason = (
@@ -419,8 +455,13 @@ class _Player:
         rate_hz: float,
         clock_hz: float,
         log: PlayLog | None,
+        loop: str = "plain",
+        on_message: Callable[[str], None] | None = None,
     ) -> None:
         self.link, self.ctrl, self.profile, self.log = link, ctrl, profile, log
+        self.loop, self.on_message = loop, on_message
+        self.spin_s = 0.0
+        self.elevation = Elevation()
         self.period = 1.0 / rate_hz
         self.clock_hz = clock_hz
         self.figures = PlayFigures()
@@ -444,6 +485,30 @@ class _Player:
         period = self.period
         fd = self.link.fileno()
         self.link.nonblocking()
+        restore: Callable[[], None] = lambda: None  # noqa: E731
+        if self.loop == "elevated":
+            self.elevation, restore = elevate()
+            message = fallback_message(self.elevation)
+            if message is not None and self.on_message is not None:
+                self.on_message(message)
+        # a spin pays only at real-time priority: an ordinary thread spinning on a busy
+        # machine spends its time slice and is then descheduled for longer
+        self.spin_s = SPIN_S if self.elevation.elevated else 0.0
+        try:
+            summary = self._loop(stream, duration_s, on_status, period, fd)
+        finally:
+            restore()
+        summary["realtime"] = {"loop": self.loop, **self.elevation.as_dict()}
+        return summary
+
+    def _loop(
+        self,
+        stream: Stream,
+        duration_s: float | None,
+        on_status: Callable[[dict[str, Any]], None] | None,
+        period: float,
+        fd: int | None,
+    ) -> dict[str, Any]:
         with realtime(), stream:
             clock: Deadlines | None = None
             deadline = stream.t_start + 1.0  # the first frame may take a moment
@@ -477,6 +542,10 @@ class _Player:
         summary["commands_sent"] = self.sent
         return summary
 
+    def step(self, x: float, volts: float, dt: float) -> Step:
+        """The controller's answer to one frame (``live`` adds its own stages here)."""
+        return self.ctrl.update(x, volts, dt)
+
     def _receive(self, stream: Stream, deadline: float, fd: int | None) -> tuple[int, float]:
         """Answer-ready: run every Encoder frame that arrives before ``deadline`` through
         the controller; the number of frames and the time."""
@@ -492,7 +561,7 @@ class _Player:
                     self.elapsed += dt
                 self.last_clock = msg.clock
                 x = msg.position * self.profile.resolution
-                step = self.ctrl.update(x, msg.volts, dt)
+                step = self.step(x, msg.volts, dt)
                 self.volts = step.volts
                 flags = self.figures.account(step, msg, x, self.profile.alpha)
                 if self.log is not None:
@@ -509,8 +578,12 @@ class _Player:
             now = time.monotonic()
             if got or now >= deadline:
                 return got, now
+            expected = deadline - 0.5 * self.period  # when the display's frame is due
             if fd is None:
                 time.sleep(min(1e-4, max(0.0, deadline - now)))
+            elif self.spin_s > 0 and now < expected + self.spin_s:
+                # asleep until just before the frame is due, awake through its arrival
+                wait_until(fd, expected + self.spin_s, 2 * self.spin_s)
             else:
                 wait_readable(fd, deadline)
 

@@ -144,3 +144,17 @@ def force_option() -> Decorator:
 
 def file_argument(name: str = "file") -> Decorator:
     return click.argument(name, type=click.Path(dir_okay=False))
+
+
+def realtime_option() -> Decorator:
+    return click.option(
+        "--no-realtime",
+        is_flag=True,
+        help="Run the haptic loop without elevated scheduling (SCHED_FIFO, locked memory, "
+        "one CPU); by default it asks for them and says once if refused.",
+    )
+
+
+def say_once(message: str) -> None:
+    """A library's one-time notice (e.g. real-time scheduling refused), on stderr."""
+    click.echo(f"note: {message}", err=True)

@@ -8,7 +8,15 @@ import click
 
 from ..core.errors import InputError, RenderError
 from .base import cli, end_live_line, live_line
-from .options import duration_option, file_argument, force_option, profile_option, rate_option
+from .options import (
+    duration_option,
+    file_argument,
+    force_option,
+    profile_option,
+    rate_option,
+    realtime_option,
+    say_once,
+)
 
 
 def _status_line(s: dict[str, Any]) -> None:
@@ -49,6 +57,7 @@ def _status_line(s: dict[str, Any]) -> None:
     help="Only report the renderable band and the verdict; open no port, move nothing.",
 )
 @profile_option("Display profile JSON (SI); default: what the display reports, else the paper's.")
+@realtime_option()
 @force_option()
 def play(
     params_file: str,
@@ -59,6 +68,7 @@ def play(
     summary_file: str | None,
     check_only: bool,
     profile_file: str | None,
+    no_realtime: bool,
     force: bool,
 ) -> None:
     """Render an identified tissue on the solenoid haptic display.
@@ -108,6 +118,8 @@ def play(
             log=log,
             stop=StopFlag().install(),
             on_status=_status_line,
+            loop="thread" if no_realtime else "elevated",
+            on_message=say_once,
         )
     except (PlayFaults, PlayLost) as exc:  # the figures first, then the one-line error
         summary, faulty = exc.summary, exc

@@ -4,10 +4,11 @@ observe the operator's force, advance the tissue model and compute the voltage."
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..core.errors import RenderError
 from ..core.tissue import Tissue
 from .law import (
     NONFINITE,
@@ -20,6 +21,26 @@ from .law import (
 )
 from .plant import euler
 from .profile import DisplayProfile
+
+#: Time over which :meth:`Controller.retarget` moves from one law to the next, s: several
+#: times the slowest error dynamics (20 Hz bandwidth, 50 ms) so the model follows the
+#: blend, and short against a grasp (0.25-0.5 s to rise) so an update is felt at once.
+RETARGET_SLEW_S = 0.2
+
+#: Energy a retarget may add to what the rendered law stores at the present closure, J
+#: (see :meth:`Controller.retarget`): K up by 1000 N/m at 0.2 mm.
+RETARGET_ENERGY_J = 2e-5
+
+
+@dataclass
+class _Blend:
+    """A retarget under way: the law it goes to, its weight (a cell the blended force
+    closures read) and its length, s."""
+
+    target: RenderLaw
+    source: RenderLaw
+    weight: list[float]
+    slew_s: float
 
 
 @dataclass
@@ -106,12 +127,13 @@ class Controller:
         self.k = 0.5 * (1.0 - theta) ** 3
         self.mass = gains.M
         # sub-steps keep the model's own mode well inside semi-implicit Euler's stability
-        sl = local_slopes(tissue, profile.stroke)
-        w = math.sqrt(max(sl["k_hi"] + gains.Cp, 0.0) / self.mass) if self.mass > 0 else 0.0
-        rate = (sl["s_model_hi"] + gains.Cv) / self.mass if self.mass > 0 else 0.0
-        self.substeps = int(min(50, max(1, math.ceil(self.period * max(w, rate) / 0.2))))
+        self.substeps = self._substeps(tissue)
         self.started = False
         self.x = self.v = self.a = self.xm = self.vm = self.volts_prev = 0.0
+        self.blend: _Blend | None = None
+        # damping a passivity controller adds to the output, N s/m; the model carries it
+        # too, so the error feedback does not undo it
+        self.extra_damping = 0.0
 
     STATE = ("x", "v", "a", "xm", "vm", "volts_prev")
 
@@ -165,6 +187,8 @@ class Controller:
         if not self.started:
             self.start(position, volts)
         dt = self.period if dt is None or not dt > 0 else dt
+        if self.blend is not None:
+            self._advance_blend(dt, position)
         p = self.profile
         x0, v0 = self.x, self.v
         # 1. fading-memory filter: predict, then correct with the innovation
@@ -184,13 +208,13 @@ class Controller:
         elif position >= p.stroke:
             force = max(force, static)
         # 3. tissue model over the same period
-        law, m, branches = self.law, self.mass, self.branches
+        law, m, branches, extra = self.law, self.mass, self.branches, self.extra_damping
         rp = [br.step(r, x - x0, dt) for br, r in zip(branches, self.rp, strict=True)]
         rm = list(self.rm)
 
         def accel(t: float, xm: float, vm: float) -> float:
             memory = sum(br.Km * r for br, r in zip(branches, rm, strict=True))
-            return (force - law.model_force(xm, vm, memory)) / m
+            return (force - law.model_force(xm, vm, memory) - extra * vm) / m
 
         def moved(before: float, after: float, h: float) -> None:
             for i, br in enumerate(branches):
@@ -237,6 +261,80 @@ class Controller:
         self.rp, self.rm = rp, rm
         self.volts_prev = volts
         return Step(volts_out, flags, x, v, a, xm, vm, force, pull)
+
+    def retarget(self, tissue: Tissue, slew_s: float = RETARGET_SLEW_S) -> None:
+        """Move to rendering ``tissue`` without a step in force.
+
+        The rendered forces at rest and of speed (and with them the tissue model's) go
+        from the current law's to the new one's over ``slew_s`` seconds of frames, as a
+        linear blend ``(1 - w) old + w new`` with ``w`` rising from 0 to 1; a retarget
+        during a blend starts from the blend as it stands. Gains and model mass stay.
+
+        A blend removes the jolt, not the energy: a law that stores more at the
+        present closure (a stiffness raised while the tissue is compressed) would give
+        back more than it took in. So ``w`` only rises while the new law stores at most
+        :data:`RETARGET_ENERGY_J` more than the old at the present closure
+        (``int_0^x (E_new - E_old)``): a softer law blends in at once, a stiffer one
+        during a grasp waits for the jaws to open. What remains (the loop's own delay)
+        is for a :class:`~tissuecli.render.passivity.PassivityController`.
+        """
+        tissue.validate()
+        new = RenderLaw.build(tissue, self.profile, self.gains)
+        old = self.law
+        if new.branches or old.branches:
+            # a branch's state is the history of the closure under its own law: there is
+            # no blend of two histories that conserves energy
+            raise RenderError(
+                "a law with relaxation branches cannot be retargeted while rendering; "
+                "start a new play with it"
+            )
+        w = [0.0]
+
+        def static(x: float) -> float:
+            return (1.0 - w[0]) * old.static(x) + w[0] * new.static(x)
+
+        def speed(v: float) -> float:
+            return (1.0 - w[0]) * old.speed(v) + w[0] * new.speed(v)
+
+        def mixed(x: float, v: float) -> float:
+            return (1.0 - w[0]) * old.mixed(x, v) + w[0] * new.mixed(x, v)
+
+        def friction(v: float) -> float:
+            return (1.0 - w[0]) * old.friction(v) + w[0] * new.friction(v)
+
+        self.law = replace(new, static=static, speed=speed, mixed=mixed, friction=friction)
+        self.blend = _Blend(new, old, w, max(slew_s, 0.0))
+        self.tissue = tissue
+        self.parts = split_law(tissue)
+        # sub-steps for the stiffer of the two laws
+        self.substeps = max(self.substeps, self._substeps(tissue))
+
+    def _substeps(self, tissue: Tissue) -> int:
+        """Model sub-steps per frame that keep the model's own mode of ``tissue`` well
+        inside semi-implicit Euler's stability."""
+        sl = local_slopes(tissue, self.profile.stroke)
+        m, g = self.mass, self.gains
+        w = math.sqrt(max(sl["k_hi"] + g.Cp, 0.0) / m) if m > 0 else 0.0
+        rate = (sl["s_model_hi"] + g.Cv) / m if m > 0 else 0.0
+        return int(min(50, max(1, math.ceil(self.period * max(w, rate) / 0.2))))
+
+    def _advance_blend(self, dt: float, position: float) -> None:
+        blend = self.blend
+        assert blend is not None
+        x = max(position, 0.0)
+        if x > 0.0:
+            old = blend.source
+            n = 8  # Simpson over [0, x]: the stored energy's change, J
+            gap = sum(
+                (1 if i in (0, n) else 4 if i % 2 else 2)
+                * (blend.target.static(x * i / n) - old.static(x * i / n))
+                for i in range(n + 1)
+            ) * (x / (3 * n))
+            if gap > RETARGET_ENERGY_J:
+                return
+        blend.weight[0] = min(1.0, blend.weight[0] + (dt / blend.slew_s if blend.slew_s else 1.0))
+        if blend.weight[0] >= 1.0:
+            self.law, self.blend = blend.target, None
 
     def local_stiffness(self, x: float) -> float:
         """``E'(x) + dH/dx + Cp``, N/m: the error equation's softest stiffness at depth

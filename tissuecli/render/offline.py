@@ -3,7 +3,7 @@ the controller, tick by tick, for tests and for tuning."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -15,6 +15,7 @@ from .check import working_depth
 from .controller import Controller
 from .gains import choose_gains
 from .law import Gains
+from .passivity import PassivityController
 from .plant import piston_step
 from .profile import PAPER_DISPLAY, DisplayProfile
 
@@ -29,6 +30,8 @@ def simulate_offline(
     duration_s: float = 3.0,
     gains: Gains | None = None,
     quantise: bool = True,
+    passivity: PassivityController | None = None,
+    retargets: Sequence[tuple[float, Tissue]] = (),
     **controller_kw: Any,
 ) -> dict[str, Array]:
     """The whole loop without a port: display physics, one period of delay, controller.
@@ -37,12 +40,17 @@ def simulate_offline(
     voltage the host computed from reading ``k - 1``, reads its encoder, and the host
     answers before tick ``k + 1``.
 
+    ``passivity``, if given, runs after the controller every tick (velocity expected
+    over the period the voltage acts: ``vp + 1.5 T ap``); ``retargets`` are
+    ``(time s, tissue)`` pairs handed to :meth:`Controller.retarget` at those times.
+
     Returns
     -------
     dict
         Arrays per tick: ``time`` (s), ``x`` (true position, m), ``xp`` (estimate, m),
         ``xm`` (model, m), ``e`` (``xp - xm``, m), ``volts`` (applied, V), ``flags``,
-        ``force`` (operator, N), ``force_observed`` (N), ``ap`` (m/s^2).
+        ``force`` (operator, N), ``force_observed`` (N), ``ap`` (m/s^2), ``energy``
+        (taken in by the host side so far, J: see :mod:`.passivity`).
     """
     if gains is None:
         depth = min(working_depth(tissue, profile), profile.stroke)
@@ -52,8 +60,10 @@ def simulate_offline(
     dt = 1.0 / rate_hz
     out = {
         k: np.zeros(n)
-        for k in ("time", "x", "xp", "xm", "e", "volts", "force", "force_observed", "ap")
+        for k in ("time", "x", "xp", "xm", "e", "volts", "force", "force_observed", "ap", "energy")
     }
+    pending_retargets = sorted(retargets, key=lambda r: r[0])
+    observer = passivity if passivity is not None else PassivityController(profile)
     out["flags"] = np.zeros(n, dtype=np.int64)
     x = v = 0.0
     pending = 0.0
@@ -61,8 +71,14 @@ def simulate_offline(
         t = i * dt
         applied = pending
         reading = round(x / profile.resolution) * profile.resolution if quantise else x
+        while pending_retargets and pending_retargets[0][0] <= t:
+            ctrl.retarget(pending_retargets.pop(0)[1])
         step = ctrl.update(reading, applied, dt)
         pending = step.volts
+        out["energy"][i] = observer.observe(reading, applied)
+        if passivity is not None:
+            pending = passivity.act(step.volts, step.vp + 1.5 * dt * step.ap, dt).volts
+            ctrl.extra_damping = passivity.damping
         x_new, v, limit = piston_step(profile, x, v, applied, operator, t, dt)
         for key, value in (
             ("time", t),

@@ -1,0 +1,77 @@
+"""Elevated scheduling of the haptic loop's thread, its fallback, and waiting with a spin."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from tissuecli.hw import realtime
+from tissuecli.hw.realtime import Elevation, elevate, fallback_message, run_in_thread, wait_until
+
+
+def _in_thread(fn):  # type: ignore[no-untyped-def]
+    return run_in_thread(fn, "test")
+
+
+def test_elevation_is_granted_to_the_calling_thread_only_and_undone() -> None:
+    if not hasattr(os, "sched_setscheduler"):
+        pytest.skip("no POSIX scheduling here")
+    main_policy = os.sched_getscheduler(0)
+
+    def body() -> tuple[Elevation, int, int, set[int]]:
+        got, restore = elevate(lock_memory=False)
+        during = os.sched_getscheduler(0)
+        cpus = os.sched_getaffinity(0)
+        restore()
+        return got, during, os.sched_getscheduler(0), cpus
+
+    got, during, after, cpus = _in_thread(body)
+    assert os.sched_getscheduler(0) == main_policy  # the main thread untouched
+    if got.elevated:
+        assert during == os.SCHED_FIFO and after == main_policy
+        assert got.priority == realtime.FIFO_PRIORITY
+        assert cpus == {got.cpu}
+    else:
+        assert got.refused and "SCHED_FIFO" in got.refused[0]
+
+
+def test_a_refusal_is_said_once_with_its_reason(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(realtime, "_fallback_said", set())
+    got, restore = _in_thread(lambda: elevate(lock_memory=False, cpu=None))
+    restore()
+    assert not got.elevated and got.scheduler == "SCHED_OTHER"
+    first = fallback_message(got)
+    assert first is not None and "Operation not permitted" in first
+    assert "CAP_SYS_NICE" in first and "RLIMIT_RTPRIO" in first
+    assert fallback_message(got) is None  # once per process
+    assert fallback_message(Elevation(scheduler="SCHED_FIFO", priority=10)) is None
+
+
+def test_wait_until_returns_at_once_on_data_and_waits_out_the_deadline() -> None:
+    r, w = os.pipe()
+    try:
+        t0 = time.monotonic()
+        assert wait_until(r, t0 + 0.02, spin_s=0.005) is False
+        assert time.monotonic() >= t0 + 0.02
+        threading.Timer(0.01, lambda: os.write(w, b"x")).start()
+        assert wait_until(r, time.monotonic() + 5.0, spin_s=0.003) is True
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_run_in_thread_returns_and_raises_what_the_thread_did() -> None:
+    assert run_in_thread(lambda: threading.current_thread().name, "haptic") == "haptic"
+
+    def fail() -> None:
+        raise ValueError("boom")
+
+    with pytest.raises(ValueError, match="boom"):
+        run_in_thread(fail, "haptic")
