@@ -562,6 +562,18 @@ class BayesianFit(Estimator):
                         f"{res.posterior.outside:.1e} of it"
                     )
                 continue
+            cut = res.posterior.outside
+            if self.sampler == "auto" and res.family is None:
+                # the bounded posterior of a law linear in its coefficients is known: its
+                # exact draws by rejection need no chain
+                exact = ExactPosterior(res.stats, res.prior).truncated(rng)  # type: ignore[arg-type]
+                if exact is not None:
+                    res.posterior = exact
+                    res.reason = (
+                        f"exact posterior with the positivity bound, which cuts {100 * cut:.2g} "
+                        f"% of the closed form: {exact.samples.shape[0]} independent draws"
+                    )
+                    continue
             if behind > self.decisive and len(results) > 1:
                 res.status = "skipped"
                 res.reason = (
@@ -571,7 +583,6 @@ class BayesianFit(Estimator):
                 continue
             from .sampling import run_emcee, stepping_stone  # scipy.stats and emcee, if needed
 
-            cut = res.posterior.outside
             res.posterior = run_emcee(res.stats, res.prior, rng, progress=self._progress_for(res))  # type: ignore[arg-type]
             res.status = "emcee"
             res.reason = (
