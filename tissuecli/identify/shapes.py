@@ -33,6 +33,9 @@ TAU_RANGE = (0.01, 100.0)
 TAU_NODES = {1: 16, 2: 10, 3: 6}
 #: Hunt-Crossley exponent range and nodes; contact point nodes
 N_RANGE, N_NODES, X0_NODES = (1.0, 2.5), 5, 7
+#: the coarse grid that only seeds the peak for emcee (more than two shape parameters):
+#: nodes per time constant, exponent and contact point
+COARSE_NODES = {"tau": 6, "n": 4, "x0": 5}
 #: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
 KEPT_MASS, MAX_KEPT = 0.999, 12
 
@@ -106,8 +109,9 @@ def resolvable(kin: Kinematics) -> bool:
     return hi > 4.0 * lo
 
 
-def shape_grid(law: Law, kin: Kinematics) -> ShapeGrid:
-    """The quadrature nodes and prior masses for ``law``'s shape parameters."""
+def shape_grid(law: Law, kin: Kinematics, coarse: bool = False) -> ShapeGrid:
+    """The quadrature nodes and prior masses for ``law``'s shape parameters; ``coarse``:
+    :data:`COARSE_NODES` per parameter, a seed for a sampler rather than a quadrature."""
     names = law.shape_names
     taus = [n for n in names if shape_kind(n) == "tau"]
     axes: list[tuple[list[str], Array, Array]] = []  # names, values (k, d), ln weights (k,)
@@ -117,7 +121,8 @@ def shape_grid(law: Law, kin: Kinematics) -> ShapeGrid:
     if taus:
         lo, hi = tau_range(kin)
         width = math.log(max(hi, lo * 1.0001) / lo)
-        u, w = _trapezoid(math.log(lo), math.log(lo) + width, TAU_NODES[len(taus)])
+        k = COARSE_NODES["tau"] if coarse else TAU_NODES[len(taus)]
+        u, w = _trapezoid(math.log(lo), math.log(lo) + width, max(k, len(taus)))
         combos = np.array(list(itertools.combinations(range(u.size), len(taus))))
         values = np.exp(u[combos])  # increasing along each row: tau1 < tau2 < ...
         lw = np.sum(np.log(w[combos]), axis=1)
@@ -127,7 +132,7 @@ def shape_grid(law: Law, kin: Kinematics) -> ShapeGrid:
         # uniform over the ordered simplex of the box: k! / width^k
         log_density += math.lgamma(len(taus) + 1) - len(taus) * math.log(width)
     if "n" in names:
-        u, w = _trapezoid(*N_RANGE, N_NODES)
+        u, w = _trapezoid(*N_RANGE, COARSE_NODES["n"] if coarse else N_NODES)
         axes.append((["n"], u[:, None], np.log(w)))
         ranges["n"] = N_RANGE
         spacing.append(float(u[1] - u[0]))
@@ -136,7 +141,7 @@ def shape_grid(law: Law, kin: Kinematics) -> ShapeGrid:
         x = kin.x_raw
         low, span = float(np.percentile(x, 2)), float(np.ptp(x)) or 1e-3
         lo, hi = low - 0.25 * span, low + 0.5 * span
-        u, w = _trapezoid(lo, hi, X0_NODES)
+        u, w = _trapezoid(lo, hi, COARSE_NODES["x0"] if coarse else X0_NODES)
         axes.append((["x0"], u[:, None], np.log(w)))
         ranges["x0"] = (lo, hi)
         spacing.append(float(u[1] - u[0]))
