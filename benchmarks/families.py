@@ -81,7 +81,7 @@ FAMILIES: dict[str, Tissue] = {
 }
 THREE = Tissue(
     Law.of(["x", "maxwell", "maxwell", "maxwell", "xdot", "xddot"]).bind(
-        {"tau1": 0.05, "tau2": 0.5, "tau3": 3.0}
+        {"tau1": 0.05, "tau2": 0.3, "tau3": 1.5}
     ),
     300.0,
     150.0,

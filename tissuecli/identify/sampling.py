@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from ..core.errors import FitError
 from .posterior import LN_2PI, ExactPosterior, Posterior, Prior, SufficientStats, logsumexp
 
 Array = NDArray[np.float64]
@@ -309,9 +310,11 @@ def sample_shapes(
     p0 = _spread(start, cov, walkers, rng)
     for k in range(walkers):
         for _ in range(40):
-            if inside(p0[k]) and np.isfinite(target(p0[k])):
+            if np.isfinite(target(p0[k])):
                 break
             p0[k] = start + 0.5 * (p0[k] - start)
+        else:  # a walker starting at -inf would poison emcee's acceptance ratios
+            raise FitError("the shape sampler found no finite start near the peak")
     # differential evolution moves suit a compact posterior in a few dimensions: they
     # mix faster than the stretch move there (emcee's documentation)
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
