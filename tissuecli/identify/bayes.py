@@ -28,6 +28,7 @@ from .design import (
     position_noise_sd,
     raw_speed,
     term_column,
+    term_noise_path,
 )
 from .estimator import Estimator
 from .noise import data_weight, residual_tau
@@ -235,10 +236,11 @@ class BayesianFit(Estimator):
         # one pass per law keeps only its sufficient statistics; the terms' columns are
         # computed once and shared by every law that has them
         columns: dict[str, Array] = {}
+        paths: dict[str, tuple[Array, Array]] = {}  # and their noise paths
         linear = [m for m in models if not m.shape_names]
         shaped = [m for m in models if m.shape_names]
         x_full = session.position
-        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns) for m in linear}
+        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns, paths) for m in linear}
         if not firsts:  # shaped laws only: their middle node stands in for the residuals
             m0 = shaped[0]
             nodes = shape_grid(m0, kin).nodes
@@ -270,7 +272,7 @@ class BayesianFit(Estimator):
         weight = data_weight(A, residual, tau) * ready.measured_fraction
         del A
 
-        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, rng)
+        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
         results = [self._exact(m, firsts[m.name], fit) for m in linear]
         if self.forms in (None, "all"):
             results += self._search(results, fit, warnings)
@@ -788,7 +790,7 @@ class _ShapedPass:
         self.yy = float(fit.y @ fit.y)
         self.speed = raw_speed(kin, x)
         if sx > 0:
-            paths = [noise_path(terms[j], kin, x) for j in self.fixed]
+            paths = [term_noise_path(terms[j], kin, x, fit.paths) for j in self.fixed]
             self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), -1)
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
@@ -808,7 +810,9 @@ class _ShapedPass:
         lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
         cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
         if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
-            return _first_pass(bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns)
+            return _first_pass(
+                bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
+            )
         beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
         rss = max(self.yy - 2.0 * float(beta @ b) + float(beta @ gram @ beta), 0.0)
         lam = np.linalg.eigvalsh(gram)
@@ -862,6 +866,7 @@ class _Context:
     weight: float
     scales: MotionScales
     columns: dict[str, Array]
+    paths: dict[str, tuple[Array, Array]]
     rng: np.random.Generator
 
 
@@ -903,6 +908,7 @@ def _first_pass(
     y: Array,
     sigma_x: float,
     columns: dict[str, Array] | None = None,
+    paths: dict[str, tuple[Array, Array]] | None = None,
 ) -> _FirstPass:
     A = design(model, kin, x_full, sigma_x, columns)
     gram = A.T @ A
@@ -929,7 +935,7 @@ def _first_pass(
         rss=float(r @ r),
         cond=cond,
         cond_scaled=cond_scaled,
-        correction=eiv_correction(model, kin, x_full, sigma_x) if sigma_x > 0 else None,
+        correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
     )
 
 

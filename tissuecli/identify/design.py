@@ -99,18 +99,42 @@ def _column(
     return term(np.ones(kin.time.size))
 
 
-def eiv_correction(law: Law, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
+def eiv_correction(
+    law: Law,
+    kin: Kinematics,
+    x_full: Array,
+    sigma_x: float,
+    paths: dict[str, tuple[Array, Array]] | None = None,
+) -> Array:
     """Expected contribution of position noise to A^T A (errors in variables).
 
     Column j carries noise ``d_j * (k_j * e)`` to first order, with ``d_j`` the
     term's slope and ``k_j`` its kernel (none for an offset), so
     ``E[noise_i . noise_j] = sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it
-    removes the attenuation bias that noisy derivatives put on M.
+    removes the attenuation bias that noisy derivatives put on M. ``paths``, if
+    given, keeps each term's :func:`noise_path` by name, as ``columns`` does in
+    :func:`design`.
     """
-    parts = [noise_path(t, kin, x_full) for t in law.terms]
+    parts = [term_noise_path(t, kin, x_full, paths) for t in law.terms]
     K = np.array([k for k, _ in parts])
     d = np.column_stack([slope for _, slope in parts])
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
+
+
+def term_noise_path(
+    term: Term,
+    kin: Kinematics,
+    x_full: Array,
+    paths: dict[str, tuple[Array, Array]] | None = None,
+) -> tuple[Array, Array]:
+    """:func:`noise_path`, kept in ``paths`` (by :func:`column_key`) unless the term has
+    shape parameters: every law with the term shares it, as its column."""
+    if paths is None or term.shapes:
+        return noise_path(term, kin, x_full)
+    key = column_key(term)
+    if key not in paths:
+        paths[key] = noise_path(term, kin, x_full)
+    return paths[key]
 
 
 def noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:

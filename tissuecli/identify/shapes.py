@@ -17,6 +17,7 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +37,9 @@ N_RANGE, N_NODES, X0_NODES = (1.0, 2.5), 5, 7
 #: the coarse grid that only seeds the peak for emcee (more than two shape parameters):
 #: nodes per time constant, exponent and contact point
 COARSE_NODES = {"tau": 6, "n": 4, "x0": 5}
+#: evaluations per shape parameter after which the search for the peak checks whether
+#: it is heading for the prior's edge
+EDGE_CHECK = 25
 #: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
 KEPT_MASS, MAX_KEPT = 0.999, 12
 
@@ -191,26 +195,29 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
         value = log_z(u) if grid.inside(u) else -math.inf
         return -value if math.isfinite(value) else 1e300
 
+    def climb(start: Array, maxfev: int, step: Array) -> Any:
+        simplex = np.vstack([start, start + np.diag(step)])
+        options = {
+            "initial_simplex": simplex,
+            "xatol": 1e-3 * float(np.min(grid.spacing)),
+            "fatol": 0.01,
+            "maxfev": maxfev,
+        }
+        return minimize(cost, start, method="Nelder-Mead", options=options)
+
     for start in starts:  # the next start only if the peak from the last is not one
-        simplex = np.vstack([start, start + np.diag(grid.spacing / 2.0)])
-        found = minimize(
-            cost,
-            start,
-            method="Nelder-Mead",
-            options={
-                "initial_simplex": simplex,
-                "xatol": 1e-3 * float(np.min(grid.spacing)),
-                "fatol": 0.01,
-                "maxfev": 80 * start.size,
-            },
-        )
+        # a first short climb: one that ends against the prior's edge has found no
+        # Gaussian peak, and the grid integrates a posterior piled on an edge. This is
+        # where a law with nothing to relax or to contact ends, so stopping there (and
+        # skipping the other starts) saves most of the search's time on such sessions
+        found = climb(start, EDGE_CHECK * start.size, grid.spacing / 2.0)
+        if found.fun < 1e300 and _at_edge(grid, np.asarray(found.x, dtype=float)):
+            return None
+        if not found.success and found.fun < 1e300:  # not there yet: climb on
+            found = climb(np.asarray(found.x, dtype=float), 80 * start.size, grid.spacing / 8.0)
         if found.fun < 1e300:
             u = np.asarray(found.x, dtype=float)
             if _at_edge(grid, u):
-                # the best value lies against the prior's edge: no Gaussian peak there,
-                # and the grid integrates a posterior piled on an edge (this is where
-                # a law with nothing to relax or to contact ends, so skipping the other
-                # starts saves most of the search's time on such sessions)
                 return None
             peak = _polish(log_z, grid, u)
             if peak is not None:
