@@ -480,10 +480,16 @@ class BayesianFit(Estimator):
                     # exact to rounding for its near-Gaussian posterior, at a quarter the cost
                     return parts(grid.from_u(u), nodes=101)[0]
 
-                draws, diag = sample_shapes(
-                    target, start, start_cov, grid.inside, fit.rng,
-                    progress=self._progress_for(res),
-                )  # fmt: skip
+                try:
+                    draws, diag = sample_shapes(
+                        target, grid.interior(start), start_cov, grid.inside, fit.rng,
+                        progress=self._progress_for(res),
+                    )  # fmt: skip
+                except FitError as e:  # keep the Laplace summary, and say why
+                    res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
+                    res.reason += f"; shape not sampled: {e}"
+                    res.flags.append(f"shape not sampled ({e}): its intervals are Laplace's")
+                    return
                 summary = _shape_draws(grid, draws)
                 for j, name in enumerate(grid.names):
                     summary[name]["method"] = "emcee"

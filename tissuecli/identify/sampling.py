@@ -307,6 +307,8 @@ def sample_shapes(
         return value if np.isfinite(value) else -np.inf
 
     # walkers around the start, within the support (pulled in towards the start if not)
+    if not np.isfinite(target(start)):
+        raise FitError("its peak lies outside the prior's support or has no finite evidence")
     p0 = _spread(start, cov, walkers, rng)
     for k in range(walkers):
         for _ in range(40):
@@ -314,7 +316,7 @@ def sample_shapes(
                 break
             p0[k] = start + 0.5 * (p0[k] - start)
         else:  # a walker starting at -inf would poison emcee's acceptance ratios
-            raise FitError("the shape sampler found no finite start near the peak")
+            p0[k] = start
     # differential evolution moves suit a compact posterior in a few dimensions: they
     # mix faster than the stretch move there (emcee's documentation)
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]

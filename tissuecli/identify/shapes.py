@@ -91,6 +91,15 @@ class ShapeGrid:
         taus = [v for n, v in zip(self.names, u, strict=True) if shape_kind(n) == "tau"]
         return all(a < b for a, b in itertools.pairwise(taus))
 
+    def interior(self, u: Array) -> Array:
+        """``u`` moved inside the box by a millionth of a grid step: a node on the
+        box's edge may fall outside it after a round trip through ln and exp."""
+        out = np.array(u, dtype=float)
+        for i, (n, h) in enumerate(zip(self.names, self.spacing, strict=True)):
+            lo, hi = (_u(n, b) for b in self.ranges[n])
+            out[i] = min(max(out[i], lo + 1e-6 * h), hi - 1e-6 * h)
+        return out
+
 
 def _u(name: str, value: float) -> float:
     return math.log(value) if shape_kind(name) == "tau" else float(value)
