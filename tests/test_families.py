@@ -4,12 +4,15 @@ never samples a structure decisively behind."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
-from tissuecli.identify import BayesianFit
+from tissuecli.formats.params import document, tissue_from_dict
+from tissuecli.identify import BayesianFit, fit_session
 from tissuecli.sim.synth import random_session
 
 FAMILIES = {
@@ -64,8 +67,8 @@ def test_the_search_finds_the_true_structure(family: str) -> None:
 
 def test_three_branches_are_sampled_by_emcee_with_diagnostics() -> None:
     law = Law.of(["x", "maxwell", "maxwell", "maxwell", "xdot", "xddot"])
-    est = BayesianFit(forms=[law]).fit(_session(THREE, rate_hz=250.0, duration_s=10.0))
-    best = est.best_
+    outcome = fit_session(_session(THREE, rate_hz=250.0, duration_s=10.0), forms=law.name)
+    best = outcome.bayes.best_
     diag = best.shape_sampler
     assert diag is not None and diag["status"] == "sampled"
     assert len(diag["tau"]) == 3 and all(t > 0 for t in diag["tau"])
@@ -80,6 +83,13 @@ def test_three_branches_are_sampled_by_emcee_with_diagnostics() -> None:
         # with room for the chain's Monte Carlo error in the SD
         assert abs(sp["mean"] - true) < 4.5 * sp["sd"], name
     assert "shape sampled by emcee" in best.reason
+    # the parameter file keeps the diagnostics and reads back
+    doc = json.loads(json.dumps(document(outcome)))
+    assert doc["laws"][law.name]["sampler"]["shape_emcee"]["steps"] == diag["steps"]
+    assert [e["method"] for e in doc["law"]["shape"]] == ["emcee"] * 3
+    assert tissue_from_dict(doc).law.shape == pytest.approx(
+        {n: sp["mean"] for n, sp in best.shape_posterior.items()}, rel=1e-12
+    )
 
 
 def test_structures_decisively_behind_are_not_sampled() -> None:
