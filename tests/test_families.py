@@ -102,3 +102,17 @@ def test_structures_decisively_behind_are_not_sampled() -> None:
     assert "steps" not in behind.shape_sampler  # no chain ran
     assert "method" not in next(iter(behind.shape_posterior.values()))
     assert "shape not sampled" in behind.reason
+
+
+def test_time_constants_the_session_cannot_resolve_are_not_searched() -> None:
+    # 1.5 s at 250 Hz resolves time constants between about 0.03 s (the filter) and
+    # 0.43 s (a third of the fitted stretch): room for one branch, not for two
+    sls = Tissue(
+        Law.of(["x", "maxwell", "xdot", "xddot"]).bind({"tau1": 0.15}), 300.0, 200.0, 2.0, 0.05
+    )
+    est = BayesianFit().fit(_session(sls, rate_hz=250.0, duration_s=1.5))
+    assert est.best_.name == sls.law.name
+    lo, hi = est.best_.shape_ranges["tau1"]
+    assert hi < 16 * lo
+    assert not any(r.name.count("maxwell") > 1 for r in est.results_)
+    assert any("relaxation branch 2 not searched" in w for w in est.warnings_)

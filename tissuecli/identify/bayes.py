@@ -138,8 +138,10 @@ class BayesianFit(Estimator):
     Parameters
     ----------
     forms : str, Law or list of them
-        ``"all"`` (the paper's four laws, with and without an offset), ``"paper"``
-        (the four alone), or laws such as ``"x,xdot"`` or ``"x+x^3+xdot+offset+xddot"``.
+        ``"all"`` (the 24 linear laws of :func:`linear_laws`, then a greedy search
+        adding contact and up to three relaxation branches), ``"linear"`` (the 24
+        alone), ``"paper"`` (the paper's four), or laws such as ``"x,xdot"`` or
+        ``"x+x^3+xdot+offset+xddot"``.
     sampler : {"auto", "emcee"}
         ``auto`` samples only where the exact posterior does not apply (the
         positivity bound cuts it); ``emcee`` samples every form not skipped,
