@@ -438,7 +438,9 @@ def _read_shape(sc: _Schema, spec: Any, wanted: tuple[str, ...]) -> dict[str, fl
         path: tuple[str | int, ...] = ("law", "shape", j)
         if not isinstance(entry, Mapping):
             raise sc.fail(path, f"must be an object, not {json_type(entry)}")
-        sc.keys(entry, path, ("name", "unit", "mean", "sd", "ci95"), required=("name", "mean"))
+        # method and tau_steps: how the shape was marginalised (emcee's autocorrelation time)
+        known = ("name", "unit", "mean", "sd", "ci95", "method", "tau_steps")
+        sc.keys(entry, path, known, required=("name", "mean"))
         name = entry["name"]
         if name not in wanted or name in out:
             raise sc.fail((*path, "name"), f"= {shown(name)}; the law's are {', '.join(wanted)}")

@@ -19,9 +19,18 @@ from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from ..core.session import Session
-from ..core.terms import Law, MotionScales, paper_laws, parse_law, shape_kind
+from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law, shape_kind
 from .derivatives import Differentiator, Kinematics
-from .design import design, eiv_correction, lstsq_scaled_cond, position_noise_sd
+from .design import (
+    design,
+    eiv_correction,
+    lstsq_scaled_cond,
+    noise_path,
+    position_noise_sd,
+    raw_speed,
+    term_column,
+    term_noise_path,
+)
 from .estimator import Estimator
 from .noise import data_weight, residual_tau
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
@@ -48,6 +57,17 @@ NOISE_FREE = 1e-6
 
 #: posterior mass beyond the positivity bounds above which the posterior is sampled
 CUT_THRESHOLD = 1e-3
+
+#: shape parameters up to which a grid (and a Laplace approximation) marginalises the
+#: shape; beyond, emcee samples it
+MAX_GRID_SHAPES = 2
+
+#: each further relaxation branch needs the resolvable range of time constants to
+#: span this factor more (k branches: BRANCH_SPREAD**k)
+BRANCH_SPREAD = 4.0
+
+#: draws of the shape's chain whose conditional posteriors make the coefficients' one
+SHAPE_MIXTURE = 8
 
 
 def linear_laws() -> list[Law]:
@@ -106,6 +126,10 @@ class ModelResult:
     #: the law bound at its least-squares shape and that fit's residual RMS (N):
     #: what BIC compares (the posterior's point may sit elsewhere on a flat shape)
     least_squares: tuple[Law, float] | None = field(default=None, repr=False)
+    #: with more than MAX_GRID_SHAPES shape parameters: the shape sampler's diagnostics
+    #: (``status`` pending, sampled or skipped, and emcee's figures once sampled)
+    shape_sampler: dict[str, Any] | None = None
+    sample_shape: Callable[[], None] | None = field(default=None, repr=False, compare=False)
 
     @property
     def name(self) -> str:
@@ -118,8 +142,10 @@ class BayesianFit(Estimator):
     Parameters
     ----------
     forms : str, Law or list of them
-        ``"all"`` (the paper's four laws, with and without an offset), ``"paper"``
-        (the four alone), or laws such as ``"x,xdot"`` or ``"x+x^3+xdot+offset+xddot"``.
+        ``"all"`` (the 24 linear laws of :func:`linear_laws`, then a greedy search
+        adding contact and up to three relaxation branches), ``"linear"`` (the 24
+        alone), ``"paper"`` (the paper's four), or laws such as ``"x,xdot"`` or
+        ``"x+x^3+xdot+offset+xddot"``.
     sampler : {"auto", "emcee"}
         ``auto`` samples only where the exact posterior does not apply (the
         positivity bound cuts it); ``emcee`` samples every form not skipped,
@@ -216,10 +242,11 @@ class BayesianFit(Estimator):
         # one pass per law keeps only its sufficient statistics; the terms' columns are
         # computed once and shared by every law that has them
         columns: dict[str, Array] = {}
+        paths: dict[str, tuple[Array, Array]] = {}  # and their noise paths
         linear = [m for m in models if not m.shape_names]
         shaped = [m for m in models if m.shape_names]
         x_full = session.position
-        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns) for m in linear}
+        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns, paths) for m in linear}
         if not firsts:  # shaped laws only: their middle node stands in for the residuals
             m0 = shaped[0]
             nodes = shape_grid(m0, kin).nodes
@@ -251,7 +278,7 @@ class BayesianFit(Estimator):
         weight = data_weight(A, residual, tau) * ready.measured_fraction
         del A
 
-        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, rng)
+        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
         results, found = self._candidates(linear, shaped, firsts, fit)
         # The weight came from the best linear law's residuals. Where a law with shape
         # parameters fits markedly better (by BIC), a linear law's misfit is what made
@@ -272,6 +299,7 @@ class BayesianFit(Estimator):
                 results, found = self._candidates(linear, shaped, firsts, fit)
         warnings.extend(found)
         del columns
+        self._sample_shapes(results)
         self._sample(results, rng)
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
@@ -370,20 +398,31 @@ class BayesianFit(Estimator):
         than the grid (most sessions: thousands of samples pin a time constant to a few
         per cent), Newton steps find its peak and a Laplace approximation gives the
         evidence, and three Gauss-Hermite nodes per parameter carry the shape's
-        uncertainty into the coefficients; elsewhere the grid's heaviest nodes do."""
-        grid = shape_grid(law, fit.kin)
+        uncertainty into the coefficients; elsewhere the grid's heaviest nodes do.
+
+        With more than :data:`MAX_GRID_SHAPES` shape parameters the grid is coarse and
+        only seeds the peak; the evidence is still the Laplace approximation (or the
+        grid's sum), and the shape's posterior is left to :meth:`_sample_shapes` (emcee),
+        which runs only if the law is not decisively behind the best.
+        """
+        many = len(law.shape_names) > MAX_GRID_SHAPES
+        grid = shape_grid(law, fit.kin, coarse=many)
+        light = _ShapedPass(law, fit)
         cache: dict[tuple[float, ...], tuple[float, tuple[Any, ...]]] = {}
 
-        def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
+        def parts(node: dict[str, float], nodes: int = 401) -> tuple[float, tuple[Any, ...]]:
             """ln evidence given the shape without the positivity bounds' orthant mass
             (the costly part, and nearly constant over a peak), and the fit's parts."""
+            bound = law.bind(node)
+            fp = light(node)
+            st, prior, corr, flags = self._stats(bound, fp, fit)
+            exact = ExactPosterior(st, prior, nodes=nodes)
+            return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
+
+        def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
             key = tuple(node[n] for n in grid.names)
             if key not in cache:
-                bound = law.bind(node)
-                fp = _first_pass(bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns)
-                st, prior, corr, flags = self._stats(bound, fp, fit)
-                exact = ExactPosterior(st, prior)
-                cache[key] = (exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact))
+                cache[key] = parts(node)
             return cache[key]
 
         def truncation(node: dict[str, float]) -> float:
@@ -417,17 +456,22 @@ class BayesianFit(Estimator):
                 + 0.5 * d * np.log(2 * np.pi)
                 + 0.5 * float(np.linalg.slogdet(peak.cov)[1])
             )
-            nodes_u, w = hermite_nodes(peak)
-            inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].summary(fit.rng) for i in inside]
-            post = mix(posts, w[inside], fit.rng)
+            point = grid.from_u(peak.u)
+            if many:  # the chain will carry the shape's uncertainty, if it runs
+                post = evaluate(point)[1][5].summary(fit.rng)
+            else:
+                nodes_u, w = hermite_nodes(peak)
+                inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
+                posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].summary(fit.rng)
+                         for i in inside]  # fmt: skip
+                post = mix(posts, w[inside], fit.rng)
             draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
             shape_post = _shape_draws(grid, draws)
-            point = grid.from_u(peak.u)
             how = (
                 f"Laplace approximation at the peak over the shape, after a {len(grid.nodes)}-"
                 f"node grid and {len(cache) - len(grid.nodes)} Newton evaluations"
             )
+            start, start_cov = peak.u, peak.cov
         else:
             ln_evidence = float(_logsumexp(log_post))
             heavy = kept(log_post)
@@ -436,12 +480,84 @@ class BayesianFit(Estimator):
             post = mix(posts, weights, fit.rng)
             shape_post, point = shape_summary(grid, log_post)
             how = f"quadrature over {len(grid.nodes)} shape nodes"
-        fp, st, prior, corr, flags, _ = evaluate(point)[1]
+            start, start_cov = grid.to_u(grid.nodes[heavy[0]]), np.diag((grid.spacing / 4) ** 2)
         post.ln_evidence = float(ln_evidence)
         ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
         ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
         ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.y.size))
         ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
+        res = self._shaped_result(law, point, post, evaluate, fit)
+        res.reason = f"{how} ({ranges})"
+        res.shape_posterior = shape_post
+        res.shape_ranges = grid.ranges
+        res.least_squares = (ls_law, ls_rms)
+
+        if many:
+            res.shape_sampler = {"status": "pending", "evidence": how}
+
+            def sample() -> None:
+                """emcee over the shape, started at the peak; the evidence stays the
+                estimate above (a chain gives none)."""
+                from .sampling import sample_shapes  # emcee, only when a shape is sampled
+
+                def target(u: Array) -> float:
+                    # uniform prior in u inside the support; 101 nodes over ln sigma are
+                    # exact to rounding for its near-Gaussian posterior, at a quarter the cost
+                    return parts(grid.from_u(u), nodes=101)[0]
+
+                try:
+                    draws, diag = sample_shapes(
+                        target, grid.interior(start), start_cov, grid.inside, fit.rng,
+                        progress=self._progress_for(res),
+                    )  # fmt: skip
+                except FitError as e:  # keep the Laplace summary, and say why
+                    res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
+                    res.reason += f"; shape not sampled: {e}"
+                    res.flags.append(f"shape not sampled ({e}): its intervals are Laplace's")
+                    return
+                summary = _shape_draws(grid, draws)
+                for j, name in enumerate(grid.names):
+                    summary[name]["method"] = "emcee"
+                    summary[name]["tau_steps"] = diag["tau"][j]
+                pick = fit.rng.choice(draws.shape[0], size=min(SHAPE_MIXTURE, draws.shape[0]),
+                                      replace=False)  # fmt: skip
+                posts = [evaluate(grid.from_u(draws[i]))[1][5].summary(fit.rng) for i in pick]
+                mixed = mix(posts, np.ones(len(posts)), fit.rng)
+                mixed.ln_evidence = res.ln_evidence
+                median = np.median(draws, axis=0)
+                centre = grid.from_u(median) if grid.inside(median) else grid.from_u(draws[0])
+                new = self._shaped_result(law, centre, mixed, evaluate, fit)
+                for name in ("model", "posterior", "cond", "cond_scaled", "residual_rms",
+                             "gram", "correction", "stats", "prior", "flags"):  # fmt: skip
+                    setattr(res, name, getattr(new, name))
+                res.shape_posterior = summary
+                diag.update(status="sampled", evidence=how)
+                res.shape_sampler = diag
+                mixed.diagnostics["shape_emcee"] = diag
+                res.reason += (
+                    f"; shape sampled by emcee ({diag['walkers']} walkers, {diag['steps']} "
+                    f"steps, tau {max(diag['tau']):.0f}, acceptance {diag['acceptance']:.2f})"
+                )
+                if not diag["converged"]:
+                    res.flags.append(
+                        f"shape chain stopped at {diag['steps']} steps, shorter than 50 "
+                        f"autocorrelation times ({50 * max(diag['tau']):.0f}): its intervals "
+                        "are rough"
+                    )
+
+            res.sample_shape = sample
+        return res
+
+    def _shaped_result(
+        self,
+        law: Law,
+        point: dict[str, float],
+        post: Posterior,
+        evaluate: Callable[[dict[str, float]], tuple[float, tuple[Any, ...]]],
+        fit: _Context,
+    ) -> ModelResult:
+        """The result of a law with shape parameters, bound at ``point``."""
+        fp, st, prior, corr, flags, _ = evaluate(point)[1]
         return ModelResult(
             model=law.bind(point),
             ln_evidence=post.ln_evidence,
@@ -454,11 +570,7 @@ class BayesianFit(Estimator):
             stats=st,
             prior=prior,
             flags=list(flags),
-            reason=f"{how} ({ranges})",
-            shape_posterior=shape_post,
-            shape_ranges=grid.ranges,
             family=law,
-            least_squares=(ls_law, ls_rms),
         )
 
     def _candidates(
@@ -476,16 +588,37 @@ class BayesianFit(Estimator):
         if self.forms in (None, "all"):
             results += self._search(results, fit, found)
         results += [self._exact_shaped(m, fit) for m in shaped]
-        return results, found
+        return results, list(dict.fromkeys(found))
+
+    def _sample_shapes(self, results: list[ModelResult]) -> None:
+        """Run emcee over the shape of each law with more than :data:`MAX_GRID_SHAPES`
+        shape parameters, unless it is decisively behind the best."""
+        top = max(r.ln_evidence for r in results)
+        for res in results:
+            if res.sample_shape is None:
+                continue
+            behind = top - res.ln_evidence
+            if behind > self.decisive:
+                res.shape_sampler = {
+                    **(res.shape_sampler or {}),
+                    "status": "skipped",
+                    "reason": f"ln Bayes factor {behind:.1f} behind the best "
+                    f"(> {self.decisive:.1f}, decisive)",
+                }
+                res.reason += f"; shape not sampled: {res.shape_sampler['reason']}"
+            else:
+                res.sample_shape()
+            res.sample_shape = None
 
     def _search(
         self, linear: list[ModelResult], fit: _Context, warnings: list[str]
     ) -> list[ModelResult]:
         """Laws beyond the linear ones, built from the best of them and scored by exact
         evidence (a greedy search; docs/estimators.md): Hunt-Crossley contact in place
-        of its stiffness and damping; one relaxation branch added, and a second if the
-        first raised the evidence; after each, terms the new one makes redundant are
-        taken out while that raises the evidence."""
+        of its stiffness and damping; then, to the better of the two, relaxation branches
+        one at a time (up to three, one on a contact law) while each raises the
+        evidence; after each, terms the new one makes redundant are taken out while
+        that raises the evidence."""
         # from the law the evidence prefers, and from the one that fits best by BIC:
         # on a misfit's correlated residuals the two part, and only the second may be
         # the stem of the law that fits
@@ -530,7 +663,8 @@ class BayesianFit(Estimator):
             return res
 
         keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
-        prune(score(["contact", "contact*xdot", *keep]))
+        contact = prune(score(["contact", "contact*xdot", *keep]))
+        base = contact if contact.ln_evidence > best.ln_evidence else best
         if not resolvable(fit.kin):
             lo, hi = tau_range(fit.kin)
             warnings.append(
@@ -538,13 +672,24 @@ class BayesianFit(Estimator):
                 f"{lo:.3g} s and {hi:.3g} s; record longer or with faster motion"
             )
             return False
-        one = score([*(t.name for t in best.model.terms), "maxwell"])
-        if one.ln_evidence <= best.ln_evidence:
-            return True
-        one = prune(one)
-        two = score([*(t.name for t in one.family.terms), "maxwell"])  # type: ignore[union-attr]
-        if two.ln_evidence > one.ln_evidence:
-            prune(two)
+        lo, hi = tau_range(fit.kin)
+        # branches one at a time while each raises the evidence; a contact law takes one
+        # (its exponent and contact point already make it the costliest to sample)
+        most = 1 if base is contact else MAX_BRANCHES
+        current = base
+        for k in range(1, most + 1):
+            if hi < BRANCH_SPREAD**k * lo:
+                warnings.append(
+                    f"relaxation branch {k} not searched: the session resolves time constants "
+                    f"only between {lo:.3g} s and {hi:.3g} s, too narrow a range for {k} "
+                    "distinct ones"
+                )
+                break
+            names = [t.name for t in (current.family or current.model).terms]
+            trial = score([*names, "maxwell"])
+            if trial.ln_evidence <= current.ln_evidence:
+                break
+            current = prune(trial)
         return True
 
     def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
@@ -557,10 +702,12 @@ class BayesianFit(Estimator):
             needs = res.posterior.outside > CUT_THRESHOLD or self.sampler == "emcee"
             if not needs:
                 if self.sampler == "auto":
-                    res.reason = (
+                    text = (
                         "exact posterior (closed form); positivity bound cuts "
                         f"{res.posterior.outside:.1e} of it"
                     )
+                    # a shaped law keeps how its shape was marginalised
+                    res.reason = f"{res.reason}; {text}" if res.family is not None else text
                 continue
             cut = res.posterior.outside
             if self.sampler == "auto" and res.family is None:
@@ -576,10 +723,11 @@ class BayesianFit(Estimator):
                     continue
             if behind > self.decisive and len(results) > 1:
                 res.status = "skipped"
-                res.reason = (
+                text = (
                     f"not sampled: ln Bayes factor {behind:.1f} behind the best "
                     f"(> {self.decisive:.1f}, decisive)"
                 )
+                res.reason = f"{res.reason}; {text}" if res.family is not None else text
                 continue
             from .sampling import run_emcee, stepping_stone  # scipy.stats and emcee, if needed
 
@@ -720,6 +868,79 @@ def _expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
     return float(np.sqrt(sigma**2 + max(extra, 0.0)))
 
 
+class _ShapedPass:
+    """:func:`_first_pass` of one law at many values of its shape parameters.
+
+    The columns without shape parameters, their products with each other and with the
+    force, and their noise paths do not change from one shape to the next: they are
+    formed once, so that each shape costs only its own columns and their products
+    (what makes sampling the shape affordable).
+    """
+
+    def __init__(self, law: Law, fit: _Context) -> None:
+        self.law, self.fit = law, fit
+        terms = law.terms
+        self.fixed = [j for j, t in enumerate(terms) if not t.shapes]
+        self.moving = [j for j, t in enumerate(terms) if t.shapes]
+        kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
+        cols = [term_column(terms[j], kin, x, sx, fit.columns) for j in self.fixed]
+        self.F = np.column_stack(cols) if cols else np.zeros((fit.y.size, 0))
+        self.G_ff = self.F.T @ self.F
+        self.b_f = self.F.T @ fit.y
+        self.yy = float(fit.y @ fit.y)
+        self.speed = raw_speed(kin, x)
+        if sx > 0:
+            paths = [term_noise_path(terms[j], kin, x, fit.paths) for j in self.fixed]
+            self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), -1)
+            self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
+            self.DtD_f = self.D_f.T @ self.D_f
+
+    def __call__(self, node: dict[str, float]) -> _FirstPass:
+        fit, bound = self.fit, self.law.bind(node)
+        p, fixed, moving = len(bound.terms), self.fixed, self.moving
+        S = np.column_stack(
+            [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,
+                         raw_speed=self.speed) for j in moving]
+        )  # fmt: skip
+        gram = self._assemble(self.G_ff, S.T @ self.F, S.T @ S)
+        b = np.empty(p)
+        b[fixed] = self.b_f
+        b[moving] = S.T @ fit.y
+        d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+        lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+        cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
+        if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
+            return _first_pass(
+                bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
+            )
+        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+        rss = max(self.yy - 2.0 * float(beta @ b) + float(beta @ gram @ beta), 0.0)
+        lam = np.linalg.eigvalsh(gram)
+        cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
+        correction = None
+        if fit.sigma_x > 0:
+            paths = [noise_path(bound.terms[j], fit.kin, fit.x_full) for j in moving]
+            K = np.empty((p, fit.kin.kernels[0].size))
+            K[fixed] = self.K_f
+            K[moving] = [k for k, _ in paths]
+            D = np.column_stack([dd for _, dd in paths])
+            DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
+            correction = fit.sigma_x**2 * (K @ K.T) * DtD
+        return _FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
+
+    def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
+        """A (p, p) matrix of products from its blocks: fixed with fixed, moving with
+        fixed, moving with moving."""
+        fixed, moving = self.fixed, self.moving
+        p = len(fixed) + len(moving)
+        out = np.empty((p, p))
+        out[np.ix_(fixed, fixed)] = ff
+        out[np.ix_(moving, fixed)] = mf
+        out[np.ix_(fixed, moving)] = mf.T
+        out[np.ix_(moving, moving)] = mm
+        return out
+
+
 @dataclass
 class _FirstPass:
     """What the fit keeps of one form's design matrix: its sufficient statistics."""
@@ -745,6 +966,7 @@ class _Context:
     weight: float
     scales: MotionScales
     columns: dict[str, Array]
+    paths: dict[str, tuple[Array, Array]]
     rng: np.random.Generator
 
 
@@ -794,6 +1016,7 @@ def _first_pass(
     y: Array,
     sigma_x: float,
     columns: dict[str, Array] | None = None,
+    paths: dict[str, tuple[Array, Array]] | None = None,
 ) -> _FirstPass:
     A = design(model, kin, x_full, sigma_x, columns)
     gram = A.T @ A
@@ -820,7 +1043,7 @@ def _first_pass(
         rss=float(r @ r),
         cond=cond,
         cond_scaled=cond_scaled,
-        correction=eiv_correction(model, kin, x_full, sigma_x) if sigma_x > 0 else None,
+        correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
     )
 
 

@@ -38,19 +38,28 @@ def design(
     inertia, most an offset) compute them once; a term with shape parameters is
     computed afresh.
     """
+    return np.column_stack([term_column(t, kin, x_full, sigma_x, columns) for t in law.terms])
+
+
+def term_column(
+    term: Term,
+    kin: Kinematics,
+    x_full: Array,
+    sigma_x: float = 0.0,
+    columns: dict[str, Array] | None = None,
+    raw_speed: tuple[float, Array] | None = None,
+) -> Array:
+    """One term's column of :func:`design`, shape (m,); kept in ``columns`` (by
+    :func:`column_key`) unless the term has shape parameters. ``raw_speed``, the sample
+    interval (s) and central-difference speed (m/s) of :func:`raw_speed`, if already
+    known."""
     var = sigma_x**2
-    if columns is None:
-        return np.column_stack([_column(t, kin, x_full, var) for t in law.terms])
-    out = []
-    for t in law.terms:
-        if t.shapes:  # one column per shape node: not worth keeping
-            out.append(_column(t, kin, x_full, var))
-            continue
-        key = column_key(t)
-        if key not in columns:
-            columns[key] = _column(t, kin, x_full, var)
-        out.append(columns[key])
-    return np.column_stack(out)
+    if columns is None or term.shapes:  # one column per shape node: not worth keeping
+        return _column(term, kin, x_full, var, raw_speed)
+    key = column_key(term)
+    if key not in columns:
+        columns[key] = _column(term, kin, x_full, var)
+    return columns[key]
 
 
 def column_key(term: Term) -> str:
@@ -59,7 +68,21 @@ def column_key(term: Term) -> str:
     return f"{term.name}|{term.symbol}|{shape}"
 
 
-def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
+def raw_speed(kin: Kinematics, x_full: Array) -> tuple[float, Array]:
+    """The sample interval (s) and the central-difference speed on the raw grid (m/s)
+    that terms of the closure's history and of closure and speed together are formed
+    from."""
+    dt = float(np.median(np.diff(kin.time)))
+    return dt, np.gradient(x_full, dt)
+
+
+def _column(
+    term: Term,
+    kin: Kinematics,
+    x_full: Array,
+    var: float,
+    speed: tuple[float, Array] | None = None,
+) -> Array:
     if term.variable == "x":
         return kin.stiffness_input(term, x_full, var)
     if term.variable == "v":
@@ -71,38 +94,60 @@ def _column(term: Term, kin: Kinematics, x_full: Array, var: float) -> Array:
         # history (relaxation) are formed on the raw grid and filtered as the force is;
         # the central-difference speed's noise is uncorrelated with the closure at the
         # same sample, so the product carries no noise bias
-        dt = float(np.median(np.diff(kin.time)))
-        v_full = np.gradient(x_full, dt)
+        dt, v_full = speed or raw_speed(kin, x_full)
         return kin.smooth(term.series(dt, x_full, v_full, np.zeros_like(x_full)))
     return term(np.ones(kin.time.size))
 
 
-def eiv_correction(law: Law, kin: Kinematics, x_full: Array, sigma_x: float) -> Array:
+def eiv_correction(
+    law: Law,
+    kin: Kinematics,
+    x_full: Array,
+    sigma_x: float,
+    paths: dict[str, tuple[Array, Array]] | None = None,
+) -> Array:
     """Expected contribution of position noise to A^T A (errors in variables).
 
     Column j carries noise ``d_j * (k_j * e)`` to first order, with ``d_j`` the
     term's slope and ``k_j`` its kernel (none for an offset), so
     ``E[noise_i . noise_j] = sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it
-    removes the attenuation bias that noisy derivatives put on M.
+    removes the attenuation bias that noisy derivatives put on M. ``paths``, if
+    given, keeps each term's :func:`noise_path` by name, as ``columns`` does in
+    :func:`design`.
     """
-    m = kin.v.size
-    kernels, slopes = [], []
-    for t in law.terms:
-        if t.variable == "x":
-            kernels.append(kin.kernels[0])
-            slopes.append(kin.smooth(t.derivative(x_full)))
-        elif t.variable == "v":
-            kernels.append(kin.kernels[1])
-            slopes.append(t.derivative(kin.v))
-        elif t.variable == "a":
-            kernels.append(kin.kernels[2])
-            slopes.append(t.derivative(kin.a))
-        else:  # a constant carries no position noise
-            kernels.append(np.zeros_like(kin.kernels[0]))
-            slopes.append(np.zeros(m))
-    d = np.column_stack(slopes)
-    K = np.array(kernels)
+    parts = [term_noise_path(t, kin, x_full, paths) for t in law.terms]
+    K = np.array([k for k, _ in parts])
+    d = np.column_stack([slope for _, slope in parts])
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
+
+
+def term_noise_path(
+    term: Term,
+    kin: Kinematics,
+    x_full: Array,
+    paths: dict[str, tuple[Array, Array]] | None = None,
+) -> tuple[Array, Array]:
+    """:func:`noise_path`, kept in ``paths`` (by :func:`column_key`) unless the term has
+    shape parameters: every law with the term shares it, as its column."""
+    if paths is None or term.shapes:
+        return noise_path(term, kin, x_full)
+    key = column_key(term)
+    if key not in paths:
+        paths[key] = noise_path(term, kin, x_full)
+    return paths[key]
+
+
+def noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:
+    """How position noise reaches a term's column (:func:`eiv_correction`): the kernel
+    it passes through, shape (w,), and the term's slope at each fitted sample, shape (m,)."""
+    if term.variable == "x":
+        return kin.kernels[0], kin.smooth(term.derivative(x_full))
+    if term.variable == "v":
+        return kin.kernels[1], term.derivative(kin.v)
+    if term.variable == "a":
+        return kin.kernels[2], term.derivative(kin.a)
+    # a constant, or a history filtered from the raw closure, carries none to first order
+    return np.zeros_like(kin.kernels[0]), np.zeros(kin.v.size)
 
 
 def lstsq_scaled(A: Array, y: Array) -> Array:

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from ..core.errors import FitError
 from .posterior import LN_2PI, ExactPosterior, Posterior, Prior, SufficientStats, logsumexp
 
 Array = NDArray[np.float64]
@@ -250,3 +251,98 @@ def stepping_stone(
         lr = path.log_ratio(theta)
         ln_z += float(logsumexp(dt * lr) - np.log(lr.size))
     return ln_z
+
+
+def sample_shapes(
+    log_post: Callable[[Array], float],
+    start: Array,
+    cov: Array,
+    inside: Callable[[Array], bool],
+    rng: np.random.Generator,
+    *,
+    walkers: int | None = None,
+    chunk: int = 200,
+    min_steps: int = 400,
+    max_steps: int = 3000,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[Array, dict[str, Any]]:
+    """Sample a law's shape parameters with emcee, the coefficients and noise level
+    marginalised exactly (``log_post`` is the log evidence given the shape plus the log
+    prior of the shape, up to a constant).
+
+    Parameters
+    ----------
+    log_post : callable
+        ``log_post(u)`` for one point ``u``, shape (d,), in the shape's coordinates
+        (ln tau for a time constant, n and x0 as they are).
+    start, cov : ndarray, shapes (d,) and (d, d)
+        Where to start the walkers: the peak found from the grid and a covariance
+        (the Laplace approximation's, or the grid's spacing).
+    inside : callable
+        Whether a point lies in the prior's support.
+    walkers : int, optional
+        Default ``max(8, 2 d + 2)`` (emcee needs at least 2 d).
+    chunk, min_steps, max_steps : int
+        Steps per run between checks of the autocorrelation time, and the bounds on
+        the chain's length: it stops at 50 integrated autocorrelation times (emcee's
+        rule), or at ``max_steps`` with ``converged`` false.
+
+    Returns
+    -------
+    draws : ndarray, shape (k, d)
+        Posterior draws in ``u`` after a burn-in of 2 tau, thinned by tau / 2.
+    diagnostics : dict
+        ``steps``, ``walkers``, ``tau`` (per parameter, steps), ``acceptance``,
+        ``converged``, ``samples`` (draws kept) and ``independent_samples``.
+    """
+    import emcee  # only when a shape is sampled
+
+    d = start.size
+    walkers = walkers or max(8, 2 * d + 2)
+
+    def target(u: Array) -> float:
+        if not inside(u):
+            return -np.inf
+        value = log_post(u)
+        return value if np.isfinite(value) else -np.inf
+
+    # walkers around the start, within the support (pulled in towards the start if not)
+    if not np.isfinite(target(start)):
+        raise FitError("its peak lies outside the prior's support or has no finite evidence")
+    p0 = _spread(start, cov, walkers, rng)
+    for k in range(walkers):
+        for _ in range(40):
+            if np.isfinite(target(p0[k])):
+                break
+            p0[k] = start + 0.5 * (p0[k] - start)
+        else:  # a walker starting at -inf would poison emcee's acceptance ratios
+            p0[k] = start
+    # differential evolution moves suit a compact posterior in a few dimensions: they
+    # mix faster than the stretch move there (emcee's documentation)
+    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(walkers, d, target, moves=moves)
+    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+    state: Any = p0
+    tau = np.full(d, np.inf)
+    while sampler.iteration < max_steps:
+        steps = min(max(chunk, sampler.iteration // 4), max_steps - sampler.iteration)
+        state = sampler.run_mcmc(state, steps, progress=False, skip_initial_state_check=True)
+        tau = sampler.get_autocorr_time(tol=0)
+        if progress is not None:
+            progress(sampler.iteration, float(np.max(tau)))
+        if sampler.iteration >= max(min_steps, 50 * np.max(tau)):
+            break
+    top = float(np.max(tau))
+    converged = bool(sampler.iteration >= 50 * top)
+    burn = int(min(2 * top, sampler.iteration // 2))
+    thin = max(1, int(top / 2))
+    draws = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    return draws, {
+        "steps": int(sampler.iteration),
+        "walkers": int(walkers),
+        "tau": [float(t) for t in tau],
+        "acceptance": float(np.mean(sampler.acceptance_fraction)),
+        "converged": converged,
+        "samples": int(draws.shape[0]),
+        "independent_samples": int(draws.shape[0] * thin / max(top, 1.0)),
+    }
