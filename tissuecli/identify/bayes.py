@@ -368,7 +368,7 @@ class BayesianFit(Estimator):
     def _exact(self, model: Law, fp: _FirstPass, fit: _Context) -> ModelResult:
         """The closed-form posterior and evidence of one law."""
         st, prior, corr, flags = self._stats(model, fp, fit)
-        post = ExactPosterior(st, prior).summary(fit.rng)
+        post = ExactPosterior(st, prior).bounded(fit.rng, CUT_THRESHOLD)
         if corr is not None:
             # the correction rests on an estimated noise level: say when it matters
             shift = post.mean - fp.beta
@@ -414,7 +414,10 @@ class BayesianFit(Estimator):
             """ln evidence given the shape without the positivity bounds' orthant mass
             (the costly part, and nearly constant over a peak), and the fit's parts."""
             bound = law.bind(node)
-            fp = light(node)
+            key = (law.name, tuple(node[n] for n in grid.names))
+            fp = fit.shaped_passes.get(key)
+            if fp is None:
+                fp = fit.shaped_passes[key] = light(node)
             st, prior, corr, flags = self._stats(bound, fp, fit)
             exact = ExactPosterior(st, prior, nodes=nodes)
             return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
@@ -458,11 +461,11 @@ class BayesianFit(Estimator):
             )
             point = grid.from_u(peak.u)
             if many:  # the chain will carry the shape's uncertainty, if it runs
-                post = evaluate(point)[1][5].summary(fit.rng)
+                post = evaluate(point)[1][5].bounded(fit.rng, CUT_THRESHOLD)
             else:
                 nodes_u, w = hermite_nodes(peak)
                 inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-                posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].summary(fit.rng)
+                posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD)
                          for i in inside]  # fmt: skip
                 post = mix(posts, w[inside], fit.rng)
             draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
@@ -476,7 +479,7 @@ class BayesianFit(Estimator):
             ln_evidence = float(_logsumexp(log_post))
             heavy = kept(log_post)
             weights = np.exp(log_post[heavy] - log_post[heavy[0]])
-            posts = [evaluate(grid.nodes[i])[1][5].summary(fit.rng) for i in heavy]
+            posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in heavy]
             post = mix(posts, weights, fit.rng)
             shape_post, point = shape_summary(grid, log_post)
             how = f"quadrature over {len(grid.nodes)} shape nodes"
@@ -521,7 +524,10 @@ class BayesianFit(Estimator):
                     summary[name]["tau_steps"] = diag["tau"][j]
                 pick = fit.rng.choice(draws.shape[0], size=min(SHAPE_MIXTURE, draws.shape[0]),
                                       replace=False)  # fmt: skip
-                posts = [evaluate(grid.from_u(draws[i]))[1][5].summary(fit.rng) for i in pick]
+                posts = [
+                    evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD)
+                    for i in pick
+                ]
                 mixed = mix(posts, np.ones(len(posts)), fit.rng)
                 mixed.ln_evidence = res.ln_evidence
                 median = np.median(draws, axis=0)
@@ -591,21 +597,33 @@ class BayesianFit(Estimator):
         return results, list(dict.fromkeys(found))
 
     def _sample_shapes(self, results: list[ModelResult]) -> None:
-        """Run emcee over the shape of each law with more than :data:`MAX_GRID_SHAPES`
-        shape parameters, unless it is decisively behind the best."""
+        """Run emcee over the shape of the chosen law if it has more than
+        :data:`MAX_GRID_SHAPES` shape parameters. A runner-up keeps its Laplace summary
+        (its evidence, what ranks it, is the same estimate either way) unless every law
+        not decisively behind is to be sampled (``sampler="emcee"``)."""
         top = max(r.ln_evidence for r in results)
         for res in results:
             if res.sample_shape is None:
                 continue
             behind = top - res.ln_evidence
+            reason = ""
             if behind > self.decisive:
+                reason = (
+                    f"ln Bayes factor {behind:.1f} behind the best "
+                    f"(> {self.decisive:.1f}, decisive)"
+                )
+            elif behind > 0 and self.sampler == "auto":
+                reason = (
+                    f"a runner-up (ln Bayes factor {behind:.1f} behind the best): its Laplace "
+                    "summary stands; --sampler emcee samples it"
+                )
+            if reason:
                 res.shape_sampler = {
                     **(res.shape_sampler or {}),
                     "status": "skipped",
-                    "reason": f"ln Bayes factor {behind:.1f} behind the best "
-                    f"(> {self.decisive:.1f}, decisive)",
+                    "reason": reason,
                 }
-                res.reason += f"; shape not sampled: {res.shape_sampler['reason']}"
+                res.reason += f"; shape not sampled: {reason}"
             else:
                 res.sample_shape()
             res.sample_shape = None
@@ -693,39 +711,38 @@ class BayesianFit(Estimator):
         return True
 
     def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
-        """Run emcee where the closed form does not apply (or on request), skipping forms
-        decisively behind; say for each form how its posterior was found."""
+        """Run emcee where no exact posterior is known (or on request): for the chosen
+        law only, unless on request (runners-up keep the closed form, their evidence
+        exact), and never for forms decisively behind; say for each form how its
+        posterior was found."""
         top = max(r.ln_evidence for r in results)
         for res in results:
             assert res.posterior is not None
             behind = top - res.ln_evidence
-            needs = res.posterior.outside > CUT_THRESHOLD or self.sampler == "emcee"
-            if not needs:
-                if self.sampler == "auto":
-                    text = (
-                        "exact posterior (closed form); positivity bound cuts "
-                        f"{res.posterior.outside:.1e} of it"
-                    )
-                    # a shaped law keeps how its shape was marginalised
-                    res.reason = f"{res.reason}; {text}" if res.family is not None else text
-                continue
+            exact = res.posterior.diagnostics.get("exact", False)
             cut = res.posterior.outside
-            if self.sampler == "auto" and res.family is None:
-                # the bounded posterior of a law linear in its coefficients is known: its
-                # exact draws by rejection need no chain
-                exact = ExactPosterior(res.stats, res.prior).truncated(rng)  # type: ignore[arg-type]
-                if exact is not None:
-                    res.posterior = exact
-                    res.reason = (
-                        f"exact posterior with the positivity bound, which cuts {100 * cut:.2g} "
-                        f"% of the closed form: {exact.samples.shape[0]} independent draws"
-                    )
-                    continue
-            if behind > self.decisive and len(results) > 1:
+            if exact and self.sampler == "auto":
+                how = (
+                    "exact posterior (closed form); positivity bound cuts "
+                    f"{res.posterior.outside:.1e} of it"
+                    if res.posterior.outside <= CUT_THRESHOLD
+                    else f"exact posterior with the positivity bound, which cuts "
+                    f"{100 * cut:.2g} % of the closed form: independent draws by rejection"
+                )
+                # a law with shape parameters keeps how its shape was integrated
+                res.reason = f"{res.reason}; {how}" if res.family is not None else how
+                continue
+            runner_up = behind > 0 and self.sampler == "auto"
+            if (behind > self.decisive or runner_up) and len(results) > 1:
                 res.status = "skipped"
                 text = (
                     f"not sampled: ln Bayes factor {behind:.1f} behind the best "
                     f"(> {self.decisive:.1f}, decisive)"
+                    if behind > self.decisive
+                    else f"not sampled: a runner-up (ln Bayes factor {behind:.1f} behind the "
+                    "best), so its intervals are the closed form's, which the positivity "
+                    f"bound cuts by {100 * cut:.2g} %; its evidence is exact; --sampler emcee "
+                    "samples it"
                 )
                 res.reason = f"{res.reason}; {text}" if res.family is not None else text
                 continue
@@ -968,6 +985,9 @@ class _Context:
     columns: dict[str, Array]
     paths: dict[str, tuple[Array, Array]]
     rng: np.random.Generator
+    #: first passes of laws with shape parameters, by law and shape: they do not depend
+    #: on the data weight, so a fit scored again at another weight reuses them
+    shaped_passes: dict[tuple[str, tuple[float, ...]], _FirstPass] = field(default_factory=dict)
 
 
 def _bic(res: ModelResult, n: int) -> float:

@@ -276,6 +276,21 @@ class ExactPosterior:
             samples=samples,
         )
 
+    def bounded(self, rng: np.random.Generator, cut: float = 1e-3) -> Posterior:
+        """The posterior as exact as it is known: the closed form where the positivity
+        bound cuts no more than ``cut`` of it, else exact draws under the bound
+        (:meth:`truncated`). ``diagnostics["exact"]`` says whether either applied; if
+        not (the bound keeps too little for rejection), a sampler is needed."""
+        post = self.summary(rng)
+        if post.outside > cut:
+            draws = self.truncated(rng)
+            if draws is None:
+                post.diagnostics["exact"] = False
+                return post
+            post = draws
+        post.diagnostics["exact"] = True
+        return post
+
     def truncated(self, rng: np.random.Generator, draws: int = 4000) -> Posterior | None:
         """The posterior with the positivity bound applied, from independent exact draws.
 

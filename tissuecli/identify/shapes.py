@@ -391,5 +391,8 @@ def mix(posteriors: list[Posterior], weights: Array, rng: np.random.Generator) -
         outside=float(w @ np.array([q.outside for q in posteriors])),
         method="+".join(sorted({q.method for q in posteriors})) + " (mixture over the shape)",
         samples=samples,
-        diagnostics={"shape_nodes": len(posteriors)},
+        diagnostics={
+            "shape_nodes": len(posteriors),
+            "exact": all(q.diagnostics.get("exact", False) for q in posteriors),
+        },
     )
