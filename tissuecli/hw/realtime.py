@@ -449,6 +449,22 @@ class LoopProcess:
         messages go to ``on_message``. After ``timeout_s`` (s; 0 at once) the loop is
         asked to stop, and killed if it has not ended ``grace_s`` later.
         """
+        try:
+            return self._wait(stop, on_message, timeout_s, grace_s)
+        except BaseException:
+            # interrupted here (Ctrl-C without a stop flag): the loop ends cleanly too
+            if self.process is not None and self.process.poll() is None:
+                self.send(("stop",))
+                self.join(grace_s)
+            raise
+
+    def _wait(
+        self,
+        stop: StopFlag | None,
+        on_message: Callable[[Any], None] | None,
+        timeout_s: float | None,
+        grace_s: float,
+    ) -> Any:
         asked = False
         give_up = math.inf if timeout_s is None else time.monotonic() + timeout_s
         while True:
