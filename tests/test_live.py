@@ -84,6 +84,21 @@ def test_a_forceps_that_goes_ends_live_with_the_recording_kept(tmp_path: Path) -
     assert read_session(tmp_path / "live.h5", "s1").time.size > 3000
 
 
+@pytest.mark.slow
+def test_a_display_that_goes_ends_live_with_the_recording_kept(tmp_path: Path) -> None:
+    with (
+        SimulatorProcess("forceps", tmp_path / "f") as forceps,
+        SimulatorProcess("display", tmp_path / "d") as display,
+    ):
+        assert display.process is not None
+        threading.Timer(5.0, display.process.send_signal, (signal.SIGKILL,)).start()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceLost, match="display was lost.*saved"):
+            live(str(forceps.link), str(display.link), tmp_path / "live.h5", "s1", 30.0)
+        assert time.monotonic() - t0 < 15.0  # the recording stopped with the display
+    assert read_session(tmp_path / "live.h5", "s1").time.size > 3000
+
+
 def _ended(pid: int) -> bool:
     """The process is gone or a zombie."""
     try:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import DeviceError, InputError, RenderError
+from ..core.errors import DeviceError, DeviceLost, InputError, RenderError
 from ..core.tissue import Tissue
 from ..hw.link import DEFAULT_BAUD
 from ..hw.protocol import Encoder
@@ -420,7 +420,13 @@ def live(
         except Exception:  # noqa: BLE001  (the recorder's error is the one to report)
             pass
         raise
-    loop = haptic.finish()
+    try:
+        loop = haptic.finish()
+    except DeviceLost as exc:  # the display went: the recording is complete up to then
+        raise DeviceLost(
+            f"the display was lost ({exc}); the recording stopped with it and its "
+            f"{result.samples} samples are saved in {result.path}, session {result.session}"
+        ) from None
     first = loop["first_render"]
     summary: dict[str, Any] = {
         "recording": {
