@@ -155,6 +155,41 @@ def test_stop_flag_ends_with_zero_volts_received_by_the_display(display, tmp_pat
     assert counters["commands"] == s["commands_sent"]
 
 
+def test_a_play_in_a_process_of_its_own_logs_reports_and_stops_on_the_flag(display, tmp_path):
+    d = display()
+    stop, statuses = StopFlag(), []
+    threading.Timer(1.5, stop.set, args=(signal.SIGINT,)).start()  # the loop starts first
+    log = tmp_path / "p.h5"
+    s = play(
+        INSIDE,
+        str(d.link),
+        30.0,
+        log=log,
+        stop=stop,
+        name="apart",
+        loop="process",
+        on_status=statuses.append,
+        status_interval_s=0.2,
+    )
+    assert s["realtime"]["loop"] == "process" and s["stop_reason"] == "interrupted by signal"
+    assert statuses and statuses[-1]["frames"] <= s["frames"]
+    cols, attrs = formats.read_group(log, "plays/apart")
+    assert len(cols["time"]) == s["frames"] > 200 and attrs["complete"]
+    counters = d.stop()
+    assert counters["last_command_volts"] == 0.0
+    assert counters["commands"] == s["commands_sent"]
+
+
+def test_a_play_in_a_process_raises_what_the_loop_raised(display):
+    d = display()
+    with pytest.raises(RenderError, match="cannot render"):
+        play(STIFF, str(d.link), RUN_S, loop="process")
+    threading.Timer(1.5, d.proc.kill).start()
+    with pytest.raises(PlayLost, match="0 V") as info:
+        play(INSIDE, str(d.link), 30.0, loop="process")
+    assert info.value.summary["verdict"] == "display lost"
+
+
 def test_watchdog_zeroes_the_voltage_when_the_host_dies(display):
     d = display()
     host = subprocess.Popen(

@@ -1,4 +1,5 @@
-"""Elevated scheduling of the haptic loop's thread, its fallback, and waiting with a spin."""
+"""Elevated scheduling of the haptic loop's thread, its fallback, waiting with a spin, and a
+loop in a process of its own."""
 
 from __future__ import annotations
 
@@ -8,8 +9,17 @@ import time
 
 import pytest
 
+from tissuecli.core.errors import DeviceLost
 from tissuecli.hw import realtime
-from tissuecli.hw.realtime import Elevation, elevate, fallback_message, run_in_thread, wait_until
+from tissuecli.hw.realtime import (
+    Elevation,
+    LoopProcess,
+    Parent,
+    elevate,
+    fallback_message,
+    run_in_thread,
+    wait_until,
+)
 
 
 def _in_thread(fn):  # type: ignore[no-untyped-def]
@@ -75,3 +85,19 @@ def test_run_in_thread_returns_and_raises_what_the_thread_did() -> None:
 
     with pytest.raises(ValueError, match="boom"):
         run_in_thread(fail, "haptic")
+
+
+def test_a_loop_process_returns_its_result_and_raises_its_error() -> None:
+    # builtins pickle by name: the target gets the Parent first, then the arguments
+    proc = LoopProcess(isinstance, (Parent,), "test loop").start()
+    assert proc.pid is not None and proc.pid != os.getpid()
+    assert proc.wait(timeout_s=30.0) is True  # it was handed its Parent
+    with pytest.raises(TypeError):
+        LoopProcess(divmod, (0,), "test loop").start().wait(timeout_s=30.0)
+
+
+def test_a_loop_process_killed_is_said_in_one_error() -> None:
+    proc = LoopProcess(time.sleep, (), "test loop").start()  # sleep(parent): a TypeError
+    proc.kill()
+    with pytest.raises(DeviceLost, match="test loop process ended without a result"):
+        proc.wait()

@@ -3,12 +3,13 @@
 The forceps is recorded exactly as ``record`` does (the same crash-safe file and
 acquisition loop, :func:`tissuecli.app.record.record`, in the calling thread), and its
 online identification (the recorder's own :class:`~tissuecli.identify.online.OnlineFit`)
-is rendered on the display by the haptic loop of ``play``, in a thread of its own with
+is rendered on the display by the haptic loop of ``play``, in a process of its own
+(:class:`HapticLoop`: an interpreter the recorder and the fit do not share) with
 elevated scheduling. The display stays at 0 V until the estimate is confident; each
-new estimate is handed over through :meth:`Controller.retarget` (a blend that creates
-no energy) and every voltage through a
-:class:`~tissuecli.render.passivity.PassivityController`. Confidence lost, the
-forceps silent or either device gone: 0 V.
+new estimate is handed over (:mod:`tissuecli.render.handover`) and blended in through
+:meth:`Controller.retarget` (a blend that creates no energy), and every voltage goes
+through a :class:`~tissuecli.render.passivity.PassivityController`. Confidence lost,
+the forceps silent, either device or this process gone: 0 V.
 """
 
 from __future__ import annotations
@@ -16,8 +17,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -26,14 +25,16 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import DeviceLost, InputError
+from ..core.errors import DeviceError, DeviceLost, InputError, RenderError
 from ..core.tissue import Tissue
 from ..hw.link import DEFAULT_BAUD
 from ..hw.protocol import Encoder
-from ..hw.realtime import StopFlag
+from ..hw.realtime import LoopProcess, Parent, StopFlag
 from ..hw.stream import Stream
 from ..render.check import check
 from ..render.controller import Controller, Step
+from ..render.handover import TISSUE, read_tissue_message, tissue_message
+from ..render.law import Gains
 from ..render.passivity import PassivityController
 from ..render.profile import DisplayProfile
 from .play import _jsonable, _open_display, _Player
@@ -41,10 +42,15 @@ from .record import RecordStatus, SampleBlock, record
 
 #: The forceps silent this long (no sample block) and the display goes to 0 V, s.
 FORCEPS_SILENCE_S = 0.1
+#: The recorder tells the loop the forceps is alive at most this often, s (a message
+#: per sample block would be needless work for the loop).
+HEARTBEAT_S = 0.02
 #: The display silent this long is taken as lost, s: longer than ``play``'s 0.1 s, as
 #: the recorder shares the machine (the display's own watchdog cuts the solenoid after
 #: 5 periods without a command whatever the host does).
 DISPLAY_SILENCE_S = 0.5
+#: How long the loop process may take to start and open the display, s.
+OPEN_TIMEOUT_S = 30.0
 #: A new estimate is handed to the display when a coefficient moved by more than this
 #: fraction of its value (or the law changed), at most every RETARGET_INTERVAL_S.
 RETARGET_CHANGE = 0.05
@@ -52,36 +58,45 @@ RETARGET_INTERVAL_S = 0.25
 #: A grasp starts when the force first exceeds this, N (the delay to first rendering
 #: is counted from there).
 GRASP_START_N = 0.1
-#: The interpreter's switch interval while both loops run, s (Python's default 5 ms is
-#: five periods of the haptic loop).
-SWITCH_INTERVAL_S = 2e-4
 
 
 class _LivePlayer(_Player):
-    """``play``'s loop with a tissue that arrives (and changes) while it runs."""
+    """``play``'s loop with a tissue that arrives (and changes) while it runs, handed
+    over by the process that started it."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.pending: tuple[Tissue, Any] | None = None  # (tissue, gains), from the recorder
-        self.active = False  # a confident, renderable estimate and a live forceps
-        self.last_sample = math.inf  # monotonic time of the last forceps block
+        self.active = False  # a confident, renderable estimate
+        self.last_sample = -math.inf  # monotonic time of the forceps' last block
         self.pc = PassivityController(self.profile, 1.0 / self.period)
         self.first_render: float | None = None
         self.rendered: Tissue | None = None
+        self.handovers = 0
+        self.refused = ""
         cap = 1 << 16
         self.trace = np.zeros((cap, 4))  # xp, vp, ap, observed force of rendered frames
         self.n_trace = 0
 
-    def step(self, x: float, volts: float, dt: float) -> Step:
-        pending = self.pending
-        if pending is not None:
-            self.pending = None
-            tissue, gains = pending
+    def handle(self, message: Any) -> None:
+        kind = message[0]
+        if kind == TISSUE:
+            tissue, gains = read_tissue_message(message)
             if self.ctrl is None:
                 self.ctrl = Controller(tissue, self.profile, 1.0 / self.period, gains)
             else:
-                self.ctrl.retarget(tissue)
+                try:
+                    self.ctrl.retarget(tissue)
+                except RenderError as exc:  # keep rendering the law it has
+                    self.refused = str(exc)
+                    return
             self.rendered = tissue
+            self.handovers += 1
+        elif kind == "active":
+            self.active = bool(message[1])
+        elif kind == "forceps":
+            self.last_sample = float(message[1])
+
+    def step(self, x: float, volts: float, dt: float) -> Step:
         fresh = time.monotonic() - self.last_sample < FORCEPS_SILENCE_S
         if self.ctrl is None:
             self.pc.observe(x, volts)
@@ -108,6 +123,174 @@ class _LivePlayer(_Player):
         return super().summary(stream)
 
 
+def _live_loop(
+    parent: Parent,
+    display_url: str,
+    baudrate: int,
+    rate_hz: float,
+    profile: DisplayProfile | None,
+    realtime: bool,
+) -> dict[str, Any]:
+    """The haptic loop of ``live``, in its own process: open the display, tell the
+    parent its profile, render what it hands over until it stops or goes."""
+    link, info, profile = _open_display(display_url, baudrate, rate_hz, profile)
+    try:
+        parent.send(("opened", profile))
+        player = _LivePlayer(
+            link,
+            None,  # type: ignore[arg-type]  (a controller once a tissue arrives)
+            profile,
+            rate_hz,
+            float(info.get("clock_hz", 1e6)),
+            None,
+            realtime,
+            lambda m: parent.send(("message", m)),
+            parent,
+        )
+        player.where = "process"
+        stream = Stream(
+            link,
+            Encoder,
+            stop=parent.stop,
+            idle_timeout_s=DISPLAY_SILENCE_S,
+            status_interval_s=1.0,
+            before_stop=lambda: player.send(0.0),
+        )
+        render = player.run(
+            stream, None, lambda s: parent.send(("status", {"energy_j": player.pc.energy_j}))
+        )
+    finally:
+        link.close()
+    return {
+        "render": _jsonable(render),
+        "passivity": player.pc.summary(),
+        "first_render": player.first_render,
+        "rendered": player.rendered.describe() if player.rendered is not None else None,
+        "handovers": player.handovers,
+        "refused": player.refused,
+        "trace": player.trace[: player.n_trace].copy(),
+    }
+
+
+class HapticLoop:
+    """The haptic loop of ``live`` in a process of its own, seen from the recorder's.
+
+    Starting it opens the display (:attr:`profile` is what it reports). Then
+    :meth:`render` hands over a tissue, :meth:`set_active` switches rendering on and
+    off (0 V while off), :meth:`forceps_alive` says the forceps has just sent samples
+    (0 V when it has not for :data:`FORCEPS_SILENCE_S`), :meth:`poll` collects what the
+    loop said, and :meth:`finish` stops it and returns its figures. If this process
+    dies, the loop sees its pipe close and sends 0 V.
+
+    Parameters
+    ----------
+    display_url : str
+        The display's port.
+    rate_hz : float
+        Its loop rate, Hz.
+    profile : DisplayProfile, optional
+        Its constants (default: what it reports).
+    baudrate : int
+        Line rate, bit/s.
+    realtime : bool
+        Ask for SCHED_FIFO, locked memory and one CPU in the loop process.
+    stop : StopFlag, optional
+        Watched while the display opens.
+    on_message : callable, optional
+        Told once if elevated scheduling is refused.
+    """
+
+    def __init__(
+        self,
+        display_url: str,
+        rate_hz: float = 1000.0,
+        profile: DisplayProfile | None = None,
+        baudrate: int = DEFAULT_BAUD,
+        realtime: bool = True,
+        stop: StopFlag | None = None,
+        on_message: Callable[[str], None] | None = None,
+    ) -> None:
+        self.on_message = on_message
+        self.energy_j = 0.0
+        self.active = False
+        self.last_beat = -math.inf
+        self.result: dict[str, Any] | None = None
+        self.error: BaseException | None = None
+        self.proc = LoopProcess(
+            _live_loop, (display_url, baudrate, rate_hz, profile, realtime), "haptic loop"
+        ).start()
+        opened: DisplayProfile | None = None
+        deadline = time.monotonic() + OPEN_TIMEOUT_S
+        try:
+            while opened is None:
+                if stop or time.monotonic() > deadline:
+                    self.proc.wait(timeout_s=0.0)
+                    why = "interrupted" if stop else f"not within {OPEN_TIMEOUT_S:g} s"
+                    raise DeviceError(f"the display at {display_url} did not start its loop: {why}")
+                for message in self.proc.receive(0.05):
+                    if message[0] == "opened":
+                        opened = message[1]
+                    else:
+                        self._take(message)
+                if self.error is not None:
+                    raise self.error
+                if self.proc.ended and opened is None:
+                    self.proc.wait(timeout_s=0.0)  # raises why it ended
+        except BaseException:
+            self.proc.kill()
+            raise
+        self.profile: DisplayProfile = opened
+
+    def _take(self, message: Any) -> None:
+        kind = message[0]
+        if kind == "status":
+            self.energy_j = float(message[1]["energy_j"])
+        elif kind == "message" and self.on_message is not None:
+            self.on_message(message[1])
+        elif kind == "done":
+            self.result = message[1]
+        elif kind == "error":
+            self.error = message[1]
+
+    def poll(self) -> bool:
+        """Collect what the loop said, without waiting; False once it has ended."""
+        for message in self.proc.receive(0.0):
+            self._take(message)
+        return not (self.proc.ended or self.result is not None or self.error is not None)
+
+    def render(self, tissue: Tissue, gains: Gains) -> None:
+        """Hand ``tissue`` over, to be rendered with ``gains`` (the first one's stay)."""
+        self.proc.send(tissue_message(tissue, gains))
+
+    def set_active(self, active: bool) -> None:
+        if active != self.active:
+            self.active = active
+            self.proc.send(("active", active))
+
+    def forceps_alive(self, now: float | None = None) -> None:
+        """The forceps sent samples at ``now`` (monotonic s, default now)."""
+        now = time.monotonic() if now is None else now
+        if now - self.last_beat >= HEARTBEAT_S:
+            self.last_beat = now
+            self.proc.send(("forceps", now))
+
+    def finish(self) -> dict[str, Any]:
+        """Stop the loop (0 V, STOP) and return its figures; raise what ended it, if
+        something did (the display lost)."""
+        self.set_active(False)
+        if self.result is None and self.error is None:
+            try:
+                self.result = self.proc.wait(on_message=self._take, timeout_s=0.0)
+            except BaseException as exc:  # noqa: BLE001  (raised below, once)
+                self.error = exc
+        else:
+            self.proc.join()
+        if self.error is not None:
+            raise self.error
+        assert self.result is not None
+        return self.result
+
+
 def live(
     forceps_url: str,
     display_url: str,
@@ -120,7 +303,7 @@ def live(
     forgetting_s: float = 5.0,
     baudrate: int = DEFAULT_BAUD,
     stop: StopFlag | None = None,
-    loop: str = "elevated",
+    realtime: bool = True,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     on_message: Callable[[str], None] | None = None,
     fit_offline: bool = True,
@@ -145,8 +328,8 @@ def live(
         Forgetting time of the online identification, s.
     stop : StopFlag, optional
         Set by SIGINT/SIGTERM: both loops end cleanly.
-    loop : str
-        The haptic loop's kind (:data:`tissuecli.app.play.LOOPS`).
+    realtime : bool
+        Ask for elevated scheduling in the haptic loop's process (``--no-realtime``).
     on_status : callable, optional
         Called about once a second with the running figures.
     on_message : callable, optional
@@ -160,51 +343,36 @@ def live(
         ``recording`` (path, session, samples, duration_s), ``estimate`` (the last
         online estimate), ``render`` (the haptic loop's figures as ``play`` gives
         them), ``passivity`` (energy observed, dissipated), ``first_render_delay_s``
-        (grasp start to the first voltage rendered), ``offline`` (the law fitted to the
-        recording) and ``tracking_rms_n`` (RMS of the force the display rendered minus
-        what that law gives at the display's motion), ``stop_reason``.
+        (grasp start to the first voltage rendered), ``handovers`` (estimates handed to
+        the loop), ``offline`` (the law fitted to the recording) and ``tracking_rms_n``
+        (RMS of the force the display rendered minus what that law gives at the
+        display's motion), ``stop_reason``.
     """
     _check_args(duration_s)
     if session is None:
         session = "live-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     stop = stop if stop is not None else StopFlag()
-    link, info, profile = _open_display(display_url, baudrate, rate_hz, profile)
-    player = _LivePlayer(
-        link, None, profile, rate_hz, float(info.get("clock_hz", 1e6)), None, loop, on_message
-    )  # type: ignore[arg-type]
-    haptic_stop = StopFlag()
-    stream = Stream(
-        link,
-        Encoder,
-        stop=haptic_stop,
-        idle_timeout_s=DISPLAY_SILENCE_S,
-        before_stop=lambda: player.send(0.0),
-    )
-    box: dict[str, Any] = {}
-
-    def haptic() -> None:
-        try:
-            box["summary"] = player.run(stream, None, None)
-        except BaseException as exc:  # handed over below
-            box["error"] = exc
-            stop.set(signal.SIGTERM)  # the display gone: end the recording too
+    haptic = HapticLoop(display_url, rate_hz, profile, baudrate, realtime, stop, on_message)
+    profile = haptic.profile
 
     grasp: dict[str, float] = {}
     state: dict[str, Any] = {"estimate": None, "handed": None, "at": -math.inf, "note": ""}
 
     def on_samples(block: SampleBlock) -> None:
         now = time.monotonic()
-        player.last_sample = now
+        haptic.forceps_alive(now)
         if "start" not in grasp:
             above = np.nonzero(block.force > GRASP_START_N)[0]
             if above.size:
                 grasp["start"] = now - float(block.host_time[-1] - block.host_time[above[0]])
 
     def on_record_status(status: RecordStatus) -> None:
+        if not haptic.poll():
+            stop.set(signal.SIGTERM)  # the display gone: end the recording too
         est = status.estimate
         state["estimate"] = est
         if est is None or not est.confident:
-            player.active = False
+            haptic.set_active(False)
             return
         now = time.monotonic()
         handed = state["handed"]
@@ -217,11 +385,11 @@ def live(
             tissue = est.tissue()
             verdict = check(tissue, profile, rate_hz)
             if verdict.renderable:
-                player.pending = (tissue, verdict.gains)
+                haptic.render(tissue, verdict.gains)
                 state["handed"], state["at"], state["note"] = est, now, ""
             else:
                 state["note"] = "not renderable: " + "; ".join(verdict.reasons)
-        player.active = state["handed"] is not None and not state["note"]
+        haptic.set_active(state["handed"] is not None and not state["note"])
         if on_status is not None and now >= state.get("next", 0.0):
             state["next"] = now + 1.0
             on_status(
@@ -229,19 +397,12 @@ def live(
                     "elapsed_s": status.elapsed_s,
                     "samples": status.samples,
                     "estimate": est.describe(),
-                    "rendering": player.active,
-                    "energy_j": player.pc.energy_j,
+                    "rendering": haptic.active,
+                    "energy_j": haptic.energy_j,
                 }
             )
 
-    thread = threading.Thread(target=haptic, name="haptic loop", daemon=True)
-    result = None
-    # the recorder and the online fit share the interpreter with the haptic loop: hand it
-    # the interpreter every 0.2 ms instead of every 5 ms
-    switch = sys.getswitchinterval()
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
-        thread.start()
         result = record(
             forceps_url,
             out,
@@ -253,18 +414,20 @@ def live(
             on_samples=on_samples,
             forgetting_s=forgetting_s,
         )
-    except DeviceLost:
-        player.active = False
+    except BaseException:
+        try:
+            haptic.finish()
+        except Exception:  # noqa: BLE001  (the recorder's error is the one to report)
+            pass
         raise
-    finally:
-        player.active = False
-        haptic_stop.set(0)
-        thread.join(5.0)
-        link.close()
-        sys.setswitchinterval(switch)
-    if "error" in box:
-        raise box["error"]
-    render = _jsonable(box.get("summary", {}))
+    try:
+        loop = haptic.finish()
+    except DeviceLost as exc:  # the display went: the recording is complete up to then
+        raise DeviceLost(
+            f"the display was lost ({exc}); the recording stopped with it and its "
+            f"{result.samples} samples are saved in {result.path}, session {result.session}"
+        ) from None
+    first = loop["first_render"]
     summary: dict[str, Any] = {
         "recording": {
             "path": result.path,
@@ -273,23 +436,22 @@ def live(
             "duration_s": result.duration_s,
         },
         "estimate": state["estimate"].as_dict() if state["estimate"] is not None else None,
-        "rendered": player.rendered.describe() if player.rendered is not None else None,
-        "render": render,
-        "passivity": player.pc.summary(),
+        "rendered": loop["rendered"],
+        "handovers": loop["handovers"],
+        "render": loop["render"],
+        "passivity": loop["passivity"],
         "first_render_delay_s": (
-            player.first_render - grasp["start"]
-            if player.first_render is not None and "start" in grasp
-            else None
+            first - grasp["start"] if first is not None and "start" in grasp else None
         ),
         "stop_reason": result.stop_reason,
-        "note": state["note"],
+        "note": state["note"] or loop["refused"],
     }
     if fit_offline:
-        summary.update(_offline_score(out, session, player))
+        summary.update(_offline_score(out, session, loop["trace"]))
     return _jsonable(summary)
 
 
-def _offline_score(out: Any, session: str, player: _LivePlayer) -> dict[str, Any]:
+def _offline_score(out: Any, session: str, trace: np.ndarray) -> dict[str, Any]:
     """The law fitted to the whole recording, and the RMS of the force the display
     rendered against that law's force at the display's own motion."""
     from ..formats.sessions import read_session
@@ -304,9 +466,9 @@ def _offline_score(out: Any, session: str, player: _LivePlayer) -> dict[str, Any
         return {"offline": None}
     tissue = Tissue(best.model, *(float(c) for c in best.posterior.mean))
     scored: dict[str, Any] = {"offline": tissue.describe(), "tracking_rms_n": None}
-    n = player.n_trace
+    n = len(trace)
     if n:
-        xp, vp, ap, f = player.trace[:n].T
+        xp, vp, ap, f = trace.T
         err = f - tissue.force(xp, vp, ap)
         scored["tracking_rms_n"] = float(np.sqrt(np.mean(err**2)))
         scored["rendered_frames"] = n

@@ -34,6 +34,8 @@ from ..hw.realtime import (
     SPIN_S,
     Deadlines,
     Elevation,
+    LoopProcess,
+    Parent,
     StopFlag,
     elevate,
     fallback_message,
@@ -45,6 +47,7 @@ from ..hw.realtime import (
 from ..hw.stream import Stream
 from ..render.check import GRASP_FORCE_N, CheckResult, check
 from ..render.controller import Controller, Step, tracking_bound
+from ..render.handover import tissue_data, tissue_from_data
 from ..render.profile import PAPER_DISPLAY, DisplayProfile, profile_from_dict
 
 if TYPE_CHECKING:
@@ -73,14 +76,16 @@ TRACKING_ALLOWANCE_M = 4e-4
 MAX_SATURATED_FRACTION = 0.05
 MAX_UNRENDERABLE_FRACTION = 0.3
 
-#: How the host loop keeps time (docs/rendering.md, "The loop"): ``"elevated"`` runs it
-#: in a thread of its own under SCHED_FIFO with memory locked and one CPU, sleeping
-#: until :data:`~tissuecli.hw.realtime.SPIN_S` before each expected frame and spinning
-#: through it; ``"thread"`` runs it in its own thread, sleeping in ``select``, without
-#: elevated scheduling or the spin (``--no-realtime``, and the fallback when the system
-#: refuses elevation); ``"plain"`` is the loop before these, in the calling thread
-#: (kept for side-by-side benchmarks).
-LOOPS = ("elevated", "thread", "plain")
+#: Where the host loop runs (docs/rendering.md, "Keeping time"): ``"thread"`` in a
+#: thread of its own, ``"process"`` in a process of its own
+#: (:class:`~tissuecli.hw.realtime.LoopProcess`: an interpreter it shares with nothing,
+#: as ``live`` needs beside its recorder), ``"plain"`` in the calling thread, never
+#: elevated (the loop before these, kept for side-by-side benchmarks). With
+#: ``realtime`` the thread or process runs under SCHED_FIFO with memory locked and one
+#: CPU, sleeping until :data:`~tissuecli.hw.realtime.SPIN_S` before each expected frame
+#: and spinning through it; without (``--no-realtime``, and the fallback when the
+#: system refuses elevation) it sleeps in ``select``.
+LOOPS = ("thread", "process", "plain")
 
 
 class PlayFaults(RenderError):
@@ -91,6 +96,9 @@ class PlayFaults(RenderError):
         super().__init__(message)
         self.summary = summary
 
+    def __reduce__(self) -> tuple[Any, ...]:  # from a loop process, summary and all
+        return type(self), (str(self), self.summary)
+
 
 class PlayLost(DeviceLost):
     """The display went silent during the play; 0 V was sent. ``summary`` holds the
@@ -100,6 +108,9 @@ class PlayLost(DeviceLost):
     def __init__(self, message: str, summary: dict[str, Any]) -> None:
         super().__init__(message)
         self.summary = summary
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return type(self), (str(self), self.summary)
 
 
 def play_faults(summary: Mapping[str, Any], rate_hz: float) -> list[str]:
@@ -257,7 +268,8 @@ def play(
     idle_timeout_s: float = 0.1,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     status_interval_s: float = 1.0,
-    loop: str = "elevated",
+    loop: str = "thread",
+    realtime: bool = True,
     on_message: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Render ``tissue`` on the display at ``url`` for ``duration_s`` seconds.
@@ -289,8 +301,11 @@ def play(
         A display silent this long is taken as lost, s.
     on_status : callable, optional
         Called every ``status_interval_s`` with the running figures.
-    loop : {"elevated", "thread", "plain"}
-        How the host loop keeps time (see :data:`LOOPS`).
+    loop : {"thread", "process", "plain"}
+        Where the host loop runs (see :data:`LOOPS`).
+    realtime : bool
+        Ask for elevated scheduling (SCHED_FIFO, locked memory, one CPU) and spin
+        through each expected frame; ignored by ``"plain"``.
     on_message : callable, optional
         Told, once per process, when elevated scheduling was refused.
 
@@ -328,6 +343,85 @@ def play(
         from ..formats.playlog import check_log  # h5py only when a log is asked for
 
         check_log(log, rate_hz)  # a foreign file or a full drive: refused before the display
+    options: dict[str, Any] = dict(
+        rate_hz=rate_hz,
+        log=log,
+        name=name,
+        profile=profile,
+        force=force,
+        baudrate=baudrate,
+        idle_timeout_s=idle_timeout_s,
+        status_interval_s=status_interval_s,
+        realtime=realtime and loop != "plain",
+    )
+    if loop == "process":
+        proc = LoopProcess(
+            _play_loop, (tissue_data(tissue), url, duration_s, options), "haptic loop"
+        ).start()
+
+        def relay(message: Any) -> None:
+            if message[0] == "status" and on_status is not None:
+                on_status(message[1])
+            elif message[0] == "message" and on_message is not None:
+                on_message(message[1])
+
+        summary: dict[str, Any] = proc.wait(stop, relay)
+        return summary
+    return _render(
+        tissue,
+        url,
+        duration_s,
+        stop=stop,
+        on_status=on_status,
+        on_message=on_message,
+        in_thread=loop == "thread",
+        **options,
+    )
+
+
+def _play_loop(
+    parent: Parent,
+    tissue: tuple[Any, ...],
+    url: str,
+    duration_s: float | None,
+    options: dict[str, Any],
+) -> dict[str, Any]:
+    """A play in a loop process: figures and messages to ``parent``, which may stop it."""
+    return _render(
+        tissue_from_data(tissue),
+        url,
+        duration_s,
+        stop=parent.stop,
+        on_status=lambda s: parent.send(("status", s)),
+        on_message=lambda m: parent.send(("message", m)),
+        in_thread=False,
+        inbox=parent,
+        **options,
+    )
+
+
+def _render(
+    tissue: Tissue,
+    url: str,
+    duration_s: float | None,
+    *,
+    rate_hz: float,
+    log: str | os.PathLike[str] | None,
+    name: str | None,
+    stop: StopFlag | None,
+    profile: DisplayProfile | None,
+    force: float,
+    baudrate: int,
+    idle_timeout_s: float,
+    on_status: Callable[[dict[str, Any]], None] | None,
+    status_interval_s: float,
+    in_thread: bool,
+    realtime: bool,
+    on_message: Callable[[str], None] | None,
+    inbox: Parent | None = None,
+) -> dict[str, Any]:
+    """:func:`play` from opening the display on, in this process (its loop in a thread
+    of its own if ``in_thread``)."""
     link, info, profile = _open_display(url, baudrate, rate_hz, profile)
     log_file: PlayLog | None = None
     player: _Player | None = None
@@ -361,8 +455,9 @@ def play(
             rate_hz,
             float(info.get("clock_hz", 1e6)),
             log_file,
-            loop,
+            realtime,
             on_message,
+            inbox,
         )
         stream = Stream(
             link,
@@ -372,12 +467,13 @@ def play(
             status_interval_s=status_interval_s,
             before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
         )
-        if loop == "plain":
-            summary = player.run(stream, duration_s, on_status)
-        else:  # the main thread stays free for signals
+        player.where = "process" if inbox is not None else "thread" if in_thread else "plain"
+        if in_thread:  # the main thread stays free for signals
             summary = run_in_thread(
                 lambda: player.run(stream, duration_s, on_status), "haptic loop"
             )
+        else:
+            summary = player.run(stream, duration_s, on_status)
     except BaseException as exc:
         if log_file is not None:
             reason = (
@@ -455,11 +551,13 @@ class _Player:
         rate_hz: float,
         clock_hz: float,
         log: PlayLog | None,
-        loop: str = "plain",
+        realtime: bool = False,
         on_message: Callable[[str], None] | None = None,
+        inbox: Parent | None = None,
     ) -> None:
         self.link, self.ctrl, self.profile, self.log = link, ctrl, profile, log
-        self.loop, self.on_message = loop, on_message
+        self.realtime, self.on_message, self.inbox = realtime, on_message, inbox
+        self.where = "plain"  # which of LOOPS runs it, for the summary
         self.spin_s = 0.0
         self.elevation = Elevation()
         self.period = 1.0 / rate_hz
@@ -486,7 +584,7 @@ class _Player:
         fd = self.link.fileno()
         self.link.nonblocking()
         restore: Callable[[], None] = lambda: None  # noqa: E731
-        if self.loop == "elevated":
+        if self.realtime:
             self.elevation, restore = elevate()
             message = fallback_message(self.elevation)
             if message is not None and self.on_message is not None:
@@ -498,7 +596,9 @@ class _Player:
             summary = self._loop(stream, duration_s, on_status, period, fd)
         finally:
             restore()
-        summary["realtime"] = {"loop": self.loop, **self.elevation.as_dict()}
+        summary["realtime"] = {"loop": self.where, **self.elevation.as_dict()}
+        if self.inbox is not None and self.inbox.gone:
+            summary["stop_reason"] = "the process that started the loop ended"
         return summary
 
     def _loop(
@@ -512,7 +612,11 @@ class _Player:
         with realtime(), stream:
             clock: Deadlines | None = None
             deadline = stream.t_start + 1.0  # the first frame may take a moment
+            inbox = self.inbox
             while stream.running():
+                if inbox is not None:  # one select a period; the parent's stop and death
+                    for message in inbox.poll():
+                        self.handle(message)
                 got, now = self._receive(stream, deadline, fd)
                 if got:
                     self.send(self.volts)
@@ -541,6 +645,9 @@ class _Player:
         summary["stop_reason"] = stream.reason
         summary["commands_sent"] = self.sent
         return summary
+
+    def handle(self, message: Any) -> None:
+        """A message from the process that started the loop (``live`` sends tissues)."""
 
     def step(self, x: float, volts: float, dt: float) -> Step:
         """The controller's answer to one frame (``live`` adds its own stages here)."""

@@ -68,7 +68,7 @@ def live(
             duration,
             rate_hz=rate,
             stop=StopFlag().install(),
-            loop="thread" if no_realtime else "elevated",
+            realtime=not no_realtime,
             on_status=_status_line,
             on_message=say_once,
         )

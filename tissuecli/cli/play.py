@@ -118,7 +118,7 @@ def play(
             log=log,
             stop=StopFlag().install(),
             on_status=_status_line,
-            loop="thread" if no_realtime else "elevated",
+            realtime=not no_realtime,
             on_message=say_once,
         )
     except (PlayFaults, PlayLost) as exc:  # the figures first, then the one-line error

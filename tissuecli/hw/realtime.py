@@ -1,10 +1,11 @@
 """Real-time primitives of host and device loops: a clean stop on SIGINT/SIGTERM,
 absolute deadlines, waiting on a descriptor (sleeping, then spinning to the deadline),
-a loop free of the garbage collector, and elevated scheduling for the haptic loop's
-thread (SCHED_FIFO, memory locked, one CPU) where the system allows it.
+a loop free of the garbage collector, elevated scheduling for the haptic loop's
+thread (SCHED_FIFO, memory locked, one CPU) where the system allows it, and a loop in a
+process of its own (:class:`LoopProcess`, :class:`Parent`).
 
-Pure standard library; shared by the recorder, the play loop and the simulated
-devices' firmware.
+Standard library and :mod:`tissuecli.core.errors`; shared by the recorder, the play loop
+and the simulated devices' firmware.
 """
 
 from __future__ import annotations
@@ -12,16 +13,23 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import gc
+import math
 import os
 import resource
 import select
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
 from types import FrameType
 from typing import Any, TypeVar
+
+from ..core.errors import DeviceLost
 
 T = TypeVar("T")
 
@@ -271,3 +279,237 @@ def run_in_thread(target: Callable[[], T], name: str) -> T:
     if "error" in box:
         raise box["error"]
     return box["result"]  # type: ignore[no-any-return]
+
+
+class Parent:
+    """A loop process's side of its pipes to the process that started it.
+
+    :meth:`poll` costs one ``select`` and is meant for every period: it returns the
+    messages that have arrived without waiting, and sets :attr:`stop` when the parent
+    asks (a ``("stop",)`` message) or is gone (its pipe closed, or this process
+    reparented: a parent killed with SIGKILL sends nothing). SIGINT and SIGTERM set it
+    too, so Ctrl-C at a terminal, which reaches both processes, ends the loop cleanly.
+
+    Attributes
+    ----------
+    stop : StopFlag
+        Set by the parent's ``("stop",)``, its death, SIGINT or SIGTERM.
+    gone : bool
+        The parent died (it did not ask to stop).
+    """
+
+    def __init__(self, inbox: Connection, outbox: Connection, parent_pid: int) -> None:
+        self.inbox, self.outbox, self.parent_pid = inbox, outbox, parent_pid
+        self.fd = inbox.fileno()
+        self.stop = StopFlag().install()
+        self.gone = False
+
+    def poll(self) -> list[Any]:
+        """The messages that have arrived (without waiting); ``("stop",)`` is taken."""
+        got: list[Any] = []
+        try:
+            while select.select([self.fd], [], [], 0.0)[0]:
+                message = self.inbox.recv()
+                if message == ("stop",):
+                    self.stop.set(signal.SIGTERM)
+                else:
+                    got.append(message)
+        except InterruptedError:
+            pass
+        except (EOFError, OSError):
+            self._lost()
+        if os.getppid() != self.parent_pid:
+            self._lost()
+        return got
+
+    def _lost(self) -> None:
+        if not self.gone:
+            self.gone = True
+            self.stop.set(signal.SIGHUP)
+
+    def send(self, message: Any) -> None:
+        """Send ``message`` to the parent; nothing if it is gone."""
+        if self.gone:
+            return
+        try:
+            self.outbox.send(message)
+        except (OSError, EOFError):
+            self._lost()
+
+
+def _loop_child(inbox_fd: int, outbox_fd: int, parent_pid: int) -> None:
+    """A loop process's body: read ``(target, args)``, run ``target(parent, *args)`` and
+    hand its result or error to the parent."""
+    parent = Parent(
+        Connection(inbox_fd, writable=False), Connection(outbox_fd, readable=False), parent_pid
+    )
+    try:
+        target, args = parent.inbox.recv()
+        result = target(parent, *args)
+    except BaseException as exc:  # handed to the parent, which raises it
+        try:
+            parent.outbox.send(("error", exc))
+        except Exception:  # noqa: BLE001  (an error that does not pickle: its words)
+            parent.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+        return
+    parent.send(("done", result))
+
+
+class LoopProcess:
+    """Run ``target(parent, *args)`` in a process of its own: an interpreter, a garbage
+    collector and a scheduling policy that nothing else in the program shares.
+
+    The process is a fresh interpreter (``python -c``: neither a fork of a threaded
+    program, which can copy a lock half-taken, nor ``multiprocessing``'s spawn, which
+    runs the parent's main script again) that imports this package from where the
+    parent did. Two one-way pipes join them: the parent :meth:`send` s, the loop
+    :meth:`Parent.poll` s once a period; the loop :meth:`Parent.send` s, the parent
+    :meth:`receive` s. ``target``'s result comes back as ``("done", result)`` and what
+    it raises as ``("error", exception)``; :meth:`wait` returns or raises them. When the
+    parent ends, however it ends, the loop sees its pipe close and stops.
+
+    Parameters
+    ----------
+    target : callable
+        A module-level function ``target(parent: Parent, *args)``; ``args`` and its
+        result must pickle.
+    args : tuple
+        Its arguments.
+    name : str
+        What the process is, for messages.
+    """
+
+    def __init__(self, target: Callable[..., Any], args: tuple[Any, ...], name: str) -> None:
+        self.target, self.args, self.name = target, args, name
+        self.process: subprocess.Popen[bytes] | None = None
+        self.ended = False  # the loop's pipe closed: it has exited
+
+    def start(self) -> LoopProcess:
+        """Start the process and hand it ``target`` and ``args``."""
+        to_loop = os.pipe()
+        from_loop = os.pipe()
+        root = os.fspath(Path(__file__).resolve().parents[2])
+        code = (
+            f"import sys; sys.path.insert(0, {root!r}); "
+            "from tissuecli.hw.realtime import _loop_child; "
+            f"_loop_child({to_loop[0]}, {from_loop[1]}, {os.getpid()})"
+        )
+        try:
+            self.process = subprocess.Popen(
+                [sys.executable, "-c", code], pass_fds=(to_loop[0], from_loop[1])
+            )
+        finally:
+            # only the loop holds its ends now, so its exit closes the pipe to us
+            os.close(to_loop[0])
+            os.close(from_loop[1])
+        self._to_loop = Connection(to_loop[1], readable=False)
+        self._from_loop = Connection(from_loop[0], writable=False)
+        self.send((self.target, self.args))
+        return self
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid if self.process is not None else None
+
+    def send(self, message: Any) -> bool:
+        """Send ``message`` to the loop; False if it has ended."""
+        try:
+            self._to_loop.send(message)
+            return True
+        except OSError:
+            return False
+
+    def receive(self, timeout_s: float = 0.0) -> list[Any]:
+        """The loop's messages, waiting up to ``timeout_s`` for the first; sets
+        :attr:`ended` when its pipe closes."""
+        got: list[Any] = []
+        if self.ended:
+            return got
+        try:
+            if self._from_loop.poll(timeout_s):
+                got.append(self._from_loop.recv())
+                while self._from_loop.poll(0.0):
+                    got.append(self._from_loop.recv())
+        except (EOFError, OSError):
+            self.ended = True
+        except InterruptedError:
+            pass
+        return got
+
+    def wait(
+        self,
+        stop: StopFlag | None = None,
+        on_message: Callable[[Any], None] | None = None,
+        timeout_s: float | None = None,
+        grace_s: float = 5.0,
+    ) -> Any:
+        """Until the loop ends: its result, or raise its error.
+
+        ``stop`` set (by a signal in this process) is passed on as ``("stop",)``; other
+        messages go to ``on_message``. After ``timeout_s`` (s; 0 at once) the loop is
+        asked to stop, and killed if it has not ended ``grace_s`` later.
+        """
+        try:
+            return self._wait(stop, on_message, timeout_s, grace_s)
+        except BaseException:
+            # interrupted here (Ctrl-C without a stop flag): the loop ends cleanly too
+            if self.process is not None and self.process.poll() is None:
+                self.send(("stop",))
+                self.join(grace_s)
+            raise
+
+    def _wait(
+        self,
+        stop: StopFlag | None,
+        on_message: Callable[[Any], None] | None,
+        timeout_s: float | None,
+        grace_s: float,
+    ) -> Any:
+        asked = False
+        give_up = math.inf if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            if not asked and (stop or time.monotonic() >= give_up):
+                self.send(("stop",))
+                asked = True
+                give_up = time.monotonic() + grace_s
+            elif asked and time.monotonic() > give_up:
+                self.kill()
+            for message in self.receive(0.05):
+                kind = message[0] if isinstance(message, tuple) and message else None
+                if kind == "done":
+                    self.join()
+                    return message[1]
+                if kind == "error":
+                    self.join()
+                    raise message[1]
+                if on_message is not None:
+                    on_message(message)
+            if self.ended:
+                code = self.join()
+                raise DeviceLost(
+                    f"the {self.name} process ended without a result (exit code {code})"
+                )
+
+    def join(self, timeout_s: float = 5.0) -> int | None:
+        """Wait for the process to exit (killing it after ``timeout_s``); its exit code."""
+        if self.process is None:
+            return None
+        try:
+            self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.kill()
+        self.close()
+        return self.process.returncode
+
+    def kill(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+        self.close()
+
+    def close(self) -> None:
+        """Close this side's pipes (the loop, if still running, then stops)."""
+        self.ended = True
+        for conn in (getattr(self, "_to_loop", None), getattr(self, "_from_loop", None)):
+            if conn is not None:
+                conn.close()

@@ -6,7 +6,8 @@
 - :mod:`~tissuecli.render.controller`: the per-frame host controller;
 - :mod:`~tissuecli.render.gains`: gain design and the sampled loop's stability;
 - :mod:`~tissuecli.render.check`: the renderability verdict;
-- :mod:`~tissuecli.render.offline`: the closed loop without a port.
+- :mod:`~tissuecli.render.offline`: the closed loop without a port;
+- :mod:`~tissuecli.render.handover`: a tissue as plain data, for a loop in another process.
 """
 
 from .check import GRASP_FORCE_N, CheckResult, check, working_depth
