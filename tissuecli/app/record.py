@@ -520,8 +520,9 @@ def record_live(
 
     The address is bound before the device is touched (a port in use is refused first),
     ``on_url`` is called with the page's URL, and the server stops when the recording
-    ends. The recorder only appends each block to the view's bounded state; the pages
-    are served from other threads. The view takes the status at least every
+    ends. The recorder only copies each block into the view's bounded state in shared
+    memory; the pages are served from another process, which ends with this one. The
+    view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
     and once at the end.
     Other parameters as :func:`record`.
@@ -550,22 +551,25 @@ def record_live(
         if on_samples is not None:
             on_samples(block)
 
-    with LiveServer(state, host, port) as server:
-        on_url(server.url)
-        try:
-            return record(
-                url,
-                out,
-                session,
-                on_status=status,
-                on_samples=samples,
-                status_interval_s=min(status_interval_s, LIVE_STATUS_S),
-                **options,
-            )
-        finally:
-            state.finish()
-            if on_status is not None and shown[1] is not None:
-                on_status(shown[1])  # the final status, whenever it came
+    try:
+        with LiveServer(state, host, port) as server:
+            on_url(server.url)
+            try:
+                return record(
+                    url,
+                    out,
+                    session,
+                    on_status=status,
+                    on_samples=samples,
+                    status_interval_s=min(status_interval_s, LIVE_STATUS_S),
+                    **options,
+                )
+            finally:
+                state.finish()
+                if on_status is not None and shown[1] is not None:
+                    on_status(shown[1])  # the final status, whenever it came
+    finally:
+        state.close()
 
 
 #: how often the live view takes the recording's status (and with it the online
