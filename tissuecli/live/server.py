@@ -38,6 +38,9 @@ SOCKET_TIMEOUT_S = 5.0
 START_TIMEOUT_S = 60.0
 #: the server's process checks that the recorder is alive at least this often, s
 PARENT_CHECK_S = 0.5
+#: the server's process runs this much nicer than the recorder: where the two want
+#: one core, the recorder has it
+SERVER_NICE = 10
 
 #: name in the URL -> (file in tissuecli/live/assets, content type)
 ASSETS = {
@@ -185,6 +188,8 @@ def main(argv: list[str]) -> None:
     pipes' descriptors, the recorder's process id, host, port, session.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the recorder's; it stops us
+    if hasattr(os, "nice"):
+        os.nice(SERVER_NICE)
     fd, capacity, order, reply, parent = (int(a) for a in argv[:5])
     host, port, session = argv[5], int(argv[6]), argv[7]
     state = LiveState(session, capacity=capacity, fd=fd)
