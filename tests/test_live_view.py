@@ -279,6 +279,8 @@ def _listening(url: str) -> bool:
         socket.create_connection((host, port), timeout=2).close()
     except ConnectionRefusedError:
         return False
+    except OSError:
+        pass  # accepted, then reset by a server going down: ask again
     return True
 
 
