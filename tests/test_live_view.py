@@ -128,6 +128,17 @@ def test_an_empty_state_is_a_valid_document_and_json_has_no_nan():
     assert json.loads(state.document(max_age_s=0))["estimate"]["law"] == "x+xdot"
 
 
+def test_one_document_serves_every_page_until_it_is_max_age_old():
+    """The work does not grow with the pages or the rate: samples arriving meanwhile
+    wait for the next document."""
+    state = LiveState("s", capacity=1 << 14)
+    state.append(_grasps(1000, 1.0))
+    first = state.document(max_age_s=60)
+    state.append(_grasps(1000, 0.5, start=1.0))
+    assert state.document(max_age_s=60) == first
+    assert json.loads(state.document(max_age_s=0))["samples_seen"] == 1500
+
+
 def test_a_reader_never_shows_samples_written_over_while_it_read_them():
     state = LiveState("s", capacity=3000)
     state.append(_grasps(1000, 0.9))
@@ -265,6 +276,7 @@ def test_a_stalled_or_vanished_client_does_not_block_the_others(served):
         for _ in range(20):
             doc = _state(url)
             seen.append(doc["samples_seen"])
+            time.sleep(0.02)  # a document serves every page for 50 ms
         assert seen[-1] > seen[0]  # numbers change while the others hang
     finally:
         feeding.set()

@@ -101,7 +101,7 @@ class LiveState:
             self._set_estimate_bytes(marshal.dumps(None))
         # the reader's
         self._estimate: tuple[int, Any] = (-1, None)
-        self._cache: tuple[int, float, bytes] | None = None  # (count, made at, document)
+        self._cache: tuple[float, bytes] | None = None  # (made at, document)
         self._cache_lock = threading.Lock()
         self._finalizer = weakref.finalize(self, self._m.release)
 
@@ -196,22 +196,18 @@ class LiveState:
     # -- the pages' side -------------------------------------------------------------
 
     def document(self, max_age_s: float = CACHE_S) -> bytes:
-        """``/api/state`` as JSON bytes, made at most once per ``max_age_s`` while no new
-        sample arrives, so that many pages cost little more than one."""
+        """``/api/state`` as JSON bytes, made at most once per ``max_age_s`` (however
+        many samples arrive meanwhile), so that many pages cost little more than one."""
         import json
 
         with self._cache_lock:
             now = time.monotonic()
             cached = self._cache
-            if (
-                cached is not None
-                and cached[0] == int(self._m.ints[_I_COUNT])
-                and now - cached[1] < max_age_s
-            ):
-                return cached[2]
+            if cached is not None and now - cached[0] < max_age_s:
+                return cached[1]
             state = self.snapshot()
             body = json.dumps(state, allow_nan=False, separators=(",", ":")).encode()
-            self._cache = (state["samples_seen"], now, body)
+            self._cache = (now, body)
             return body
 
     def snapshot(self) -> dict[str, Any]:
