@@ -15,6 +15,14 @@ updates a second, and the sample-to-screen latency: the time a client has the
 document less the time the newest sample in it arrived at the recorder, both on the
 machine's monotonic clock (the recorder and the clients are processes of one
 machine). A page adds its drawing (a frame, at most 17 ms at 60 Hz) to that.
+
+With ``--loop`` it records instead in this process, without the live view, with a
+timer round each part of the acquisition loop, and prints the longest times between
+two blocks of samples (with how much of each the loop's thread ran: little means it
+waited for a core), the garbage collector's longest pause and each part's longest
+call::
+
+    python benchmarks/live_view.py --loop --duration 15 --rates 10000
 """
 
 from __future__ import annotations
@@ -172,6 +180,82 @@ def run(
     return result
 
 
+def loop_parts(rate: float, duration: float, identify: bool, root: Path) -> None:
+    """Record in this process with a timer round each part of the acquisition loop."""
+    import collections
+    import functools
+    import gc
+
+    import tissuecli.app.record as rec
+    import tissuecli.formats.writer as wr
+    import tissuecli.hw.stream as st
+
+    calls: dict[str, list[tuple[float, float]]] = collections.defaultdict(list)
+
+    def timed(cls: type, name: str, label: str) -> None:
+        f = getattr(cls, name)
+
+        @functools.wraps(f)
+        def wrapper(*a: object, **k: object) -> object:
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                calls[label].append((time.monotonic(), time.perf_counter() - t))
+
+        setattr(cls, name, wrapper)
+
+    for cls, name, label in [
+        (st.Stream, "poll", "read the port, waits too"),
+        (rec._Recording, "_take", "a block, all of it"),
+        (wr.SeriesWriter, "append", "writer append"),
+        (wr.SeriesWriter, "flush", "writer flush"),
+        (rec._Online, "__call__", "identification update"),
+        (rec._Online, "estimate", "identification estimate"),
+    ]:
+        timed(cls, name, label)
+    pauses: list[float] = []
+    started: list[float] = []
+    gc.callbacks.append(
+        lambda phase, _: (
+            started.append(time.perf_counter())
+            if phase == "start"
+            else pauses.append(time.perf_counter() - started[-1])
+        )
+    )
+    blocks: list[tuple[float, float]] = []
+    tag = f"loop{int(rate)}{identify}"
+    with SimulatorProcess("forceps", root / f"f{tag}", ["--rate", str(rate)]) as sim:
+        t0 = time.monotonic()
+        r = rec.record(
+            str(sim.link), root / f"{tag}.h5", "bench", duration_s=duration,
+            identify=identify, status_interval_s=0.5, on_status=lambda s: None,
+            on_samples=lambda b: blocks.append((time.monotonic(), time.thread_time())),
+        )  # fmt: skip
+    gc.callbacks.pop()
+    print(
+        f"{rate:g} Hz, identification {'on' if identify else 'off'}, status every 0.5 s: "
+        f"{r.samples} stored, {r.lost_frames} lost, {r.bad_frames} bad"
+    )
+    at = np.array(blocks)
+    wall, ran = np.diff(at[:, 0]), np.diff(at[:, 1])
+    for k in np.argsort(wall)[-3:][::-1]:
+        print(
+            f"  {wall[k] * 1e3:6.0f} ms between blocks at {at[k, 0] - t0:5.2f} s, "
+            f"the loop's thread ran {ran[k] * 1e3:4.0f} ms of it"
+        )
+    print(
+        f"  garbage collector: {len(pauses)} passes, longest {max(pauses, default=0) * 1e3:.0f} ms"
+    )
+    for label, v in calls.items():
+        d = np.array([x for _, x in v])
+        i = int(np.argmax(d))
+        print(
+            f"  {label:24s} {len(d):6d} calls, {d.sum() / duration:6.1%} of the time, "
+            f"longest {d.max() * 1e3:6.1f} ms at {v[i][0] - t0:5.2f} s"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=30.0)
@@ -182,7 +266,16 @@ def main() -> None:
         default="yes,no",
         help="with (yes) and/or without (no) online identification, comma-separated",
     )
+    parser.add_argument(
+        "--loop", action="store_true", help="time the parts of the acquisition loop instead"
+    )
     opts = parser.parse_args()
+    if opts.loop:
+        with tempfile.TemporaryDirectory() as tmp:
+            for rate in (float(r) for r in opts.rates.split(",")):
+                for identify in opts.identify.split(","):
+                    loop_parts(rate, opts.duration, identify == "yes", Path(tmp))
+        return
     print(
         f"{'rate Hz':>7} {'ident':>5} {'live':>4} {'expected':>8} {'stored':>8} {'lost':>5} "
         f"{'bad':>3} {'gap ms':>6} {'CPU rec':>7} {'view':>5} {'sim':>5} "

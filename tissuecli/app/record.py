@@ -272,9 +272,9 @@ class _Online:
 
     Everything slow is kept out of the loop: the modules the fit and its first
     estimate load (SciPy's special functions among them, a few hundred ms) are loaded
-    by :meth:`prepare`, and the fit is fed in batches because each update costs
-    about the same whatever its size (fed every block of a few samples at 10 kHz it
-    took a fifth of a core, in batches of 0.05 s a hundredth).
+    by :meth:`prepare`, and the fit is fed in batches because an update costs much
+    the same whatever its size (fed every block, a few samples at 10 kHz, it took a
+    fifth of the loop's core; in batches of 0.05 s, about a twentieth).
     """
 
     def __init__(self, rate_hz: float, forgetting_s: float) -> None:
