@@ -10,7 +10,9 @@ moves a write index; the status and the estimate are written a few times a secon
 It never waits for a reader: there is no lock, only counters that a reader checks
 (a sequence number odd while the writer is at a record, as a seqlock, and the
 index the writer is about to fill) and reads again where the writer was meanwhile.
-Everything else (decimation, the current grasp, JSON) runs in the reader.
+This relies on the writer's stores becoming visible to the reader in program order,
+as x86-64 guarantees. Everything else (decimation, the current grasp, JSON) runs in
+the reader.
 """
 
 from __future__ import annotations
