@@ -128,6 +128,66 @@ def test_an_empty_state_is_a_valid_document_and_json_has_no_nan():
     assert json.loads(state.document(max_age_s=0))["estimate"]["law"] == "x+xdot"
 
 
+def test_one_document_serves_every_page_until_it_is_max_age_old():
+    """The work does not grow with the pages or the rate: samples arriving meanwhile
+    wait for the next document."""
+    state = LiveState("s", capacity=1 << 14)
+    state.append(_grasps(1000, 1.0))
+    first = state.document(max_age_s=60)
+    state.append(_grasps(1000, 0.5, start=1.0))
+    assert state.document(max_age_s=60) == first
+    assert json.loads(state.document(max_age_s=0))["samples_seen"] == 1500
+
+
+def test_a_reader_never_shows_samples_written_over_while_it_read_them():
+    state = LiveState("s", capacity=3000)
+    state.append(_grasps(1000, 0.9))
+    read = state._read
+    calls = []
+
+    def read_while_the_writer_goes_round(ring, count, n):
+        if not calls:  # the recorder writes 2.5 s into the 3 s ring meanwhile
+            state.append(_grasps(1000, 2.5, start=0.9))
+        calls.append(n)
+        return read(ring, count, n)
+
+    state._read = read_while_the_writer_goes_round
+    doc = state.snapshot()
+    assert doc["samples_seen"] == 3400  # read again, after the writer
+    t = doc["traces"]["time_s"]
+    assert t[-1] == pytest.approx(3.399) and np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(doc["traces"]["force_n"], _grasps(1000, 1.0, 2.4).force, atol=1e-6)
+
+
+def test_another_process_reads_what_the_recorder_writes():
+    """The state's block is shared memory: a process given its descriptor sees the
+    samples, status and estimate written after it started."""
+    import subprocess
+    import sys
+
+    state = LiveState("shared", capacity=5000)
+    fd, session, capacity = state.handle
+    code = (
+        "import sys, json; from tissuecli.live.state import LiveState; "
+        "s = LiveState(sys.argv[2], capacity=int(sys.argv[3]), fd=int(sys.argv[1])); "
+        "sys.stdin.readline(); print(json.dumps(s.snapshot()))"
+    )
+    reader = subprocess.Popen(
+        [sys.executable, "-c", code, str(fd), session, str(capacity)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, pass_fds=(fd,),
+    )  # fmt: skip
+    state.append(_grasps(1000, 2.0))
+    state.set_status(SimpleNamespace(samples=2000, bad_frames=1, lost_frames=2, file_bytes=3))
+    state.set_estimate(SimpleNamespace(as_dict=lambda: {"law": "x+xdot", "mean": [400.0, 3.0]}))
+    state.finish()
+    out, _ = reader.communicate("go\n", timeout=60)
+    doc = json.loads(out)
+    assert doc["session"] == "shared" and doc["samples_seen"] == 2000 and not doc["running"]
+    assert doc["status"]["lost_frames"] == 2 and doc["status"]["file_bytes"] == 3
+    assert doc["estimate"] == {"law": "x+xdot", "mean": [400.0, 3.0]}
+    assert doc["traces"]["time_s"][-1] == pytest.approx(1.999, abs=1e-3)  # a 2 ms bucket
+
+
 # -- the server on its own -------------------------------------------------------------
 
 
@@ -216,12 +276,69 @@ def test_a_stalled_or_vanished_client_does_not_block_the_others(served):
         for _ in range(20):
             doc = _state(url)
             seen.append(doc["samples_seen"])
+            time.sleep(0.02)  # a document serves every page for 50 ms
         assert seen[-1] > seen[0]  # numbers change while the others hang
     finally:
         feeding.set()
         feeder.join()
         half.close()
         mute.close()
+
+
+def _listening(url: str) -> bool:
+    host, port = parse_address(url.removeprefix("http://").rstrip("/"))
+    try:
+        socket.create_connection((host, port), timeout=2).close()
+    except ConnectionRefusedError:
+        return False
+    except OSError:
+        pass  # accepted, then reset by a server going down: ask again
+    return True
+
+
+def _wait_until_closed(url: str, within_s: float = 20.0) -> bool:
+    deadline = time.monotonic() + within_s
+    while _listening(url):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_the_server_serves_from_its_own_process_and_ends_with_the_caller(tmp_path):
+    """A script that serves the view (with no main guard: the server's process runs
+    nothing of it) and is then killed leaves no server and no port listening."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "serve.py"
+    script.write_text(
+        "import os, time\n"
+        "from tissuecli.live.server import LiveServer\n"
+        "from tissuecli.live.state import LiveState\n"
+        "server = LiveServer(LiveState('k'))\n"
+        "print(server.url, server.process.pid, flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        url, pid = proc.stdout.readline().split()
+        assert int(pid) != proc.pid != os.getpid()
+        assert _state(url)["session"] == "k"
+    finally:
+        proc.kill()
+        proc.wait()
+    assert _wait_until_closed(url)
+
+
+def test_closing_the_server_ends_its_process(served):
+    state, url = served
+    server = LiveServer(state)
+    assert _listening(server.url)
+    server.close()
+    assert server.process.returncode == 0 and not _listening(server.url)
+    assert _state(url)["session"] == "bench"  # another server of the same state serves on
 
 
 def test_a_port_in_use_is_refused_in_one_line():
@@ -294,6 +411,24 @@ def test_record_live_serves_changing_numbers_and_stays_lossless(forceps, tmp_pat
     assert (row["samples"], row["frames_lost"]) == (4000, 0)
     with pytest.raises(OSError):
         _get(url, timeout=2)  # the server stopped with the recording
+
+
+def test_a_killed_recorder_leaves_no_server_behind(forceps, tmp_path):
+    import signal
+
+    sim = forceps("--seed", "5")
+    proc = popen("record", "--port", str(sim.link), "--out", str(tmp_path / "g.h5"),
+                 "--session", "s", "--live", "--quiet")  # fmt: skip
+    try:
+        url = _url_of(proc)
+        while not _state(url)["samples_seen"]:
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert _wait_until_closed(url)
 
 
 def test_record_live_refuses_a_port_in_use_before_touching_anything(tmp_path):

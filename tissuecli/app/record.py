@@ -215,6 +215,8 @@ def record(
             limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
         online = _Online(rate_hz, forgetting_s) if identify else None
+        if online is not None:
+            online.prepare()
         listeners = [f for f in (online, on_samples) if f is not None]
 
         def listen(block: SampleBlock) -> None:
@@ -262,33 +264,70 @@ def _check_calibration(cal: Calibration, bits: object) -> None:
 
 
 class _Online:
-    """The online identification as a sample listener: made at the first block (with
-    the device's rate, or the rate of the first samples' stamps), fed every block on
-    its time stamps (lost frames become holes), and switched off by any error."""
+    """The online identification as a sample listener: made before the acquisition
+    loop (with the device's rate; at the first block, from the rate of its stamps, for
+    a device that does not tell it), fed on the samples' time stamps (lost frames
+    become holes) in batches of at least :data:`ONLINE_BATCH_S`, and switched off by
+    any error.
+
+    Everything slow is kept out of the loop: the modules the fit and its first
+    estimate load (SciPy's special functions among them, a few hundred ms) are loaded
+    by :meth:`prepare`, and the fit is fed in batches because an update costs much
+    the same whatever its size (fed every block, a few samples at 10 kHz, it took a
+    fifth of the loop's core; in batches of 0.05 s, about a twentieth).
+    """
 
     def __init__(self, rate_hz: float, forgetting_s: float) -> None:
         self.rate_hz, self.forgetting_s = rate_hz, forgetting_s
         self.fit: Any = None
         self.note = ""
+        self.pending: list[SampleBlock] = []
+
+    def prepare(self) -> None:
+        """Load what the fit needs and make it, if the rate is known; before the loop."""
+        try:
+            from ..identify.online import OnlineFit
+            from ..identify.orthant import normal_cdf
+
+            normal_cdf(np.zeros(1))  # the first estimate's SciPy import, here
+            if math.isfinite(self.rate_hz) and self.rate_hz > 0:
+                self.fit = OnlineFit(rate_hz=self.rate_hz, forgetting_s=self.forgetting_s)
+        except Exception as exc:  # noqa: BLE001  (identification must never cost a recording)
+            self.note = f"online identification stopped: {exc}"
 
     def __call__(self, block: SampleBlock) -> None:
-        if self.note:
+        if self.note or block.time.size == 0:
+            return
+        self.pending.append(block)
+        if block.time[-1] - self.pending[0].time[0] >= ONLINE_BATCH_S:
+            self.feed()
+
+    def feed(self) -> None:
+        """Hand the pending blocks to the fit in one update."""
+        blocks, self.pending = self.pending, []
+        if self.note or not blocks:
             return
         try:
+            t, x, f = (
+                np.concatenate([getattr(b, k) for b in blocks])
+                for k in ("time", "position", "force")
+            )
             if self.fit is None:
                 rate = self.rate_hz
                 if not (math.isfinite(rate) and rate > 0):
-                    if block.time.size < 2:
-                        return  # too few stamps to tell the rate yet
-                    rate = 1.0 / float(np.median(np.diff(block.time)))
+                    if t.size < 2:
+                        self.pending = blocks  # too few stamps to tell the rate yet
+                        return
+                    rate = 1.0 / float(np.median(np.diff(t)))
                 from ..identify.online import OnlineFit
 
                 self.fit = OnlineFit(rate_hz=rate, forgetting_s=self.forgetting_s)
-            self.fit.update(block.position, block.force, time=block.time)
+            self.fit.update(x, f, time=t)
         except Exception as exc:  # noqa: BLE001  (identification must never cost a recording)
             self.note = f"online identification stopped: {exc}"
 
     def estimate(self) -> Any:
+        self.feed()
         if self.fit is None or self.note:
             return None
         try:
@@ -296,6 +335,10 @@ class _Online:
         except Exception as exc:  # noqa: BLE001
             self.note = f"online identification stopped: {exc}"
             return None
+
+
+#: the online identification is fed samples in batches spanning at least this, s
+ONLINE_BATCH_S = 0.05
 
 
 class _Recording:
@@ -520,8 +563,9 @@ def record_live(
 
     The address is bound before the device is touched (a port in use is refused first),
     ``on_url`` is called with the page's URL, and the server stops when the recording
-    ends. The recorder only appends each block to the view's bounded state; the pages
-    are served from other threads. The view takes the status at least every
+    ends. The recorder only copies each block into the view's bounded state in shared
+    memory; the pages are served from another process, which ends with this one. The
+    view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
     and once at the end.
     Other parameters as :func:`record`.
@@ -550,22 +594,25 @@ def record_live(
         if on_samples is not None:
             on_samples(block)
 
-    with LiveServer(state, host, port) as server:
-        on_url(server.url)
-        try:
-            return record(
-                url,
-                out,
-                session,
-                on_status=status,
-                on_samples=samples,
-                status_interval_s=min(status_interval_s, LIVE_STATUS_S),
-                **options,
-            )
-        finally:
-            state.finish()
-            if on_status is not None and shown[1] is not None:
-                on_status(shown[1])  # the final status, whenever it came
+    try:
+        with LiveServer(state, host, port) as server:
+            on_url(server.url)
+            try:
+                return record(
+                    url,
+                    out,
+                    session,
+                    on_status=status,
+                    on_samples=samples,
+                    status_interval_s=min(status_interval_s, LIVE_STATUS_S),
+                    **options,
+                )
+            finally:
+                state.finish()
+                if on_status is not None and shown[1] is not None:
+                    on_status(shown[1])  # the final status, whenever it came
+    finally:
+        state.close()
 
 
 #: how often the live view takes the recording's status (and with it the online

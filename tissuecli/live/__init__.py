@@ -2,7 +2,8 @@
 the force-closure loop of the current grasp, the running estimate and the recording
 status, and the same numbers as JSON at ``/api/state`` (docs/usage.md, docs/formats.md).
 
-``state.py`` holds what is shown (the recorder appends to it); ``server.py`` serves it
-with the standard library's HTTP server; ``assets/`` is the page, with uPlot (MIT)
-vendored so that no request leaves the machine.
+``state.py`` holds what is shown, in memory shared between the recorder (which appends
+to it) and the server; ``server.py`` serves it with the standard library's HTTP server
+from a process of its own; ``assets/`` is the page, with uPlot (MIT) vendored so that
+no request leaves the machine.
 """

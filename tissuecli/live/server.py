@@ -1,19 +1,30 @@
 """The live view's web server: a page, its assets (from this package) and ``/api/state``.
 
-Standard library only (:class:`http.server.ThreadingHTTPServer`): one thread per
-connection, all of them apart from the recorder's acquisition loop, which only
-appends to :class:`~tissuecli.live.state.LiveState`. A page polls ``/api/state``;
-a browser that stops reading holds only its own thread, which gives up after
-:data:`SOCKET_TIMEOUT_S`.
+It runs in a process of its own (a fresh interpreter that holds none of the
+recorder's files or ports, and runs nothing of the caller's main module), so that
+serving pages never takes the recorder's interpreter lock: the recorder only writes
+into the shared :class:`~tissuecli.live.state.LiveState`, and the server reads it. Inside, the
+standard library's :class:`http.server.ThreadingHTTPServer` gives each connection a
+thread; a page polls ``/api/state``; a browser that stops reading holds only its own
+thread, which gives up after :data:`SOCKET_TIMEOUT_S`. The server's process ends with
+the recorder's: on :meth:`LiveServer.close`, or when the pipe to the recorder reads
+end-of-file or its parent changes (the recorder died), closing its socket as it goes.
 """
 
 from __future__ import annotations
 
 import errno
+import os
+import select
+import signal
 import socket
+import subprocess
+import sys
 import threading
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 from ..core.errors import InputError
@@ -23,6 +34,13 @@ from .state import LiveState
 DEFAULT_HOST = "127.0.0.1"
 #: a connection that neither sends nor reads for this long is closed, s
 SOCKET_TIMEOUT_S = 5.0
+#: longest wait for the server's process to start and listen, s
+START_TIMEOUT_S = 60.0
+#: the server's process checks that the recorder is alive at least this often, s
+PARENT_CHECK_S = 0.5
+#: the server's process runs this much nicer than the recorder: where the two want
+#: one core, the recorder has it
+SERVER_NICE = 10
 
 #: name in the URL -> (file in tissuecli/live/assets, content type)
 ASSETS = {
@@ -57,15 +75,16 @@ def load_asset(name: str) -> bytes:
 
 
 class LiveServer:
-    """Serves the live view of ``state`` at ``host:port`` until :meth:`close`.
+    """Serves the live view of ``state`` at ``host:port`` from a process of its own,
+    until :meth:`close`.
 
-    The socket is bound on construction, so that a port in use is refused before a
-    recording begins.
+    The socket is bound on construction (the call returns once the server's process
+    listens), so that a port in use is refused before a recording begins.
 
     Parameters
     ----------
     state : LiveState
-        What the page shows.
+        What the page shows; the server's process attaches to its shared block.
     host : str
         Address to listen on.
     port : int
@@ -79,39 +98,124 @@ class LiveServer:
 
     def __init__(self, state: LiveState, host: str = DEFAULT_HOST, port: int = 0) -> None:
         self.state = state
-        assets = {path: (load_asset(name), kind) for path, (name, kind) in ASSETS.items()}
-        handler = type("Handler", (_Handler,), {"state": state, "assets": assets})
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        server_class = type("Server", (_Server,), {"address_family": family})
+        fd, session, capacity = state.handle
+        # two pipes: ours to it (end-of-file when this process ends, however it ends),
+        # and its one line back (where it listens, or why it cannot)
+        order_r, self._order = os.pipe()
+        reply, reply_w = os.pipe()
+        root = str(Path(__file__).resolve().parents[2])  # this package, whatever sys.path
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            p for p in (root, os.environ.get("PYTHONPATH", "")) if p
+        )}  # fmt: skip
+        code = "import sys; from tissuecli.live.server import main; main(sys.argv[1:])"
+        args = [str(a) for a in (fd, capacity, order_r, reply_w, os.getpid(), host, port)]
         try:
-            self.httpd = server_class((host, port), handler)
-        except OSError as exc:
-            raise InputError(_bind_problem(host, port, exc)) from None
-        self.thread = threading.Thread(
-            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True
-        )
+            self.process = subprocess.Popen(
+                [sys.executable, "-c", code, *args, session],
+                pass_fds=(fd, order_r, reply_w),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                env=env,
+            )
+        except BaseException:
+            os.close(self._order)
+            raise
+        finally:
+            os.close(order_r)
+            os.close(reply_w)
+        try:
+            line = _read_line(reply, START_TIMEOUT_S)
+        finally:
+            os.close(reply)
+        kind, _, value = line.partition(" ")
+        if kind != "listening":
+            self.close()
+            raise InputError(
+                value if kind == "error"
+                else f"--live {host}:{port}: the live view's server did not start"
+            )  # fmt: skip
+        bound_host, bound_port = value.rsplit(" ", 1)
+        self.address = (bound_host, int(bound_port))
 
     @property
     def url(self) -> str:
-        host, port = self.httpd.server_address[:2]
+        host, port = self.address
         shown = f"[{host}]" if ":" in str(host) else str(host)
         return f"http://{shown}:{port}/"
 
     def start(self) -> LiveServer:
-        self.thread.start()
+        """The server serves from construction on; for use as a context manager."""
         return self
 
     def close(self) -> None:
-        """Stop serving and close the socket; pages left open say the recording ended."""
-        if self.thread.is_alive():
-            self.httpd.shutdown()
-        self.httpd.server_close()
+        """Stop serving: the server's process closes its socket and ends."""
+        if self._order >= 0:
+            os.close(self._order)  # end-of-file: stop
+            self._order = -1
+        try:
+            self.process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:  # stuck: its socket goes with it
+            self.process.kill()
+            self.process.wait()
 
     def __enter__(self) -> LiveServer:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _read_line(fd: int, timeout_s: float) -> str:
+    """One line from ``fd``, or what came before end-of-file or the timeout."""
+    data = b""
+    deadline = time.monotonic() + timeout_s
+    while not data.endswith(b"\n"):
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            break
+        chunk = os.read(fd, 4096)
+        if not chunk:
+            break
+        data += chunk
+    return data.decode(errors="replace").strip()
+
+
+def main(argv: list[str]) -> None:
+    """The server's process: map the state, listen, tell the recorder where, serve
+    until the recorder closes its pipe (to stop, or because it died) or is gone.
+
+    ``argv``: the shared block's descriptor, the ring's capacity, the order and reply
+    pipes' descriptors, the recorder's process id, host, port, session.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the recorder's; it stops us
+    if hasattr(os, "nice"):
+        os.nice(SERVER_NICE)
+    fd, capacity, order, reply, parent = (int(a) for a in argv[:5])
+    host, port, session = argv[5], int(argv[6]), argv[7]
+    state = LiveState(session, capacity=capacity, fd=fd)
+    assets = {path: (load_asset(file), kind) for path, (file, kind) in ASSETS.items()}
+    handler = type("Handler", (_Handler,), {"state": state, "assets": assets})
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    server_class = type("Server", (_Server,), {"address_family": family})
+    try:
+        httpd = server_class((host, port), handler)
+    except OSError as exc:
+        os.write(reply, f"error {_bind_problem(host, port, exc)}\n".encode())
+        return
+    bound = httpd.server_address
+    os.write(reply, f"listening {bound[0]} {bound[1]}\n".encode())
+    os.close(reply)
+    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.1})
+    thread.daemon = True
+    thread.start()
+    try:
+        # the recorder never writes: the pipe becomes readable at end-of-file
+        while os.getppid() == parent and not select.select([order], [], [], PARENT_CHECK_S)[0]:
+            pass
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        state.close()
 
 
 def _bind_problem(host: str, port: int, exc: OSError) -> str:

@@ -1,18 +1,30 @@
 """What the live view shows: the newest samples in a bounded ring, the recording status
 and the running estimate, turned into the JSON of ``/api/state`` on request.
 
-The recorder's acquisition loop only calls :meth:`LiveState.append` (a copy into a
-preallocated ring under a lock held for microseconds); everything else (decimation,
-the current grasp, JSON) runs in the server's threads, reading the ring outside the
-lock: samples older than the newest count are never written again until the ring has
-gone round, and it holds many times the longest window shown.
+Everything lives in one block of shared memory (an anonymous file mapped by both
+processes, :func:`os.memfd_create` where there is one: nothing named to leave
+behind) so that the pages are served from another process (``server.py``) and never
+take the recorder's interpreter lock. The recorder's acquisition loop is the only writer:
+:meth:`LiveState.append` copies a block into the preallocated ring with NumPy and
+moves a write index; the status and the estimate are written a few times a second.
+It never waits for a reader: there is no lock, only counters that a reader checks
+(a sequence number odd while the writer is at a record, as a seqlock, and the
+index the writer is about to fill) and reads again where the writer was meanwhile.
+This relies on the writer's stores becoming visible to the reader in program order,
+as x86-64 guarantees. Everything else (decimation, the current grasp, JSON) runs in
+the reader.
 """
 
 from __future__ import annotations
 
+import marshal
 import math
+import mmap
+import os
+import tempfile
 import threading
 import time
+import weakref
 from typing import Any
 
 import numpy as np
@@ -40,10 +52,23 @@ CACHE_S = 0.05
 DECIMALS = (6, 9, 6)
 #: ring capacity, samples: 10 s at 20 kHz (the simulator's highest rate) fits 2.6 times
 CAPACITY = 1 << 19
+#: room for the estimate (marshalled plain data), bytes
+ESTIMATE_BYTES = 1 << 16
+#: the status kept, in its slots of the shared block; the last three are counts
+STATUS_KEYS = ("elapsed_s", "samples", "rate_hz", "bad_frames", "lost_frames", "file_bytes")
+_COUNTS = ("samples", "bad_frames", "lost_frames", "file_bytes")
+
+# The shared block: 16 int64, 16 float64, the three rings, the estimate's bytes.
+_I_RESERVED, _I_COUNT, _I_RING_SEQ, _I_STATUS_SEQ, _I_EST_SEQ, _I_EST_LEN, _I_RUNNING = range(7)
+_F_NEWEST, _F_OFFSET, _F_START, _F_STATUS = 0, 1, 2, 3  # status: 6 slots from _F_STATUS
+_HEADER = 16 * 8 * 2
+#: a reader gives up waiting for a writer that stopped within a record after this, s
+_READ_TRIES = 10_000
 
 
 class LiveState:
-    """The shared state between the recorder (one writer) and the pages (many readers).
+    """The shared state between the recorder (one writer) and the pages (many readers,
+    in this process or another).
 
     Parameters
     ----------
@@ -51,26 +76,49 @@ class LiveState:
         Session being recorded, shown on the page.
     capacity : int
         Samples kept; the windows shown are at most a third of it.
+    fd : int, optional
+        Map the shared block of an existing state, open as this file descriptor (the
+        server's process does), instead of creating one; ``session`` and ``capacity``
+        must be the creator's (:attr:`handle` gives them).
     """
 
-    def __init__(self, session: str = "", *, capacity: int = CAPACITY) -> None:
+    def __init__(
+        self, session: str = "", *, capacity: int = CAPACITY, fd: int | None = None
+    ) -> None:
         self.session = session
         self.capacity = int(capacity)
-        self._time = np.zeros(self.capacity)
-        self._position = np.zeros(self.capacity)
-        self._force = np.zeros(self.capacity)
-        self._lock = threading.Lock()
-        self._count = 0  # samples appended so far; sample i sits at i % capacity
-        self._newest_host = math.nan  # CLOCK_MONOTONIC when the newest sample arrived, s
-        self._host_offset = math.inf  # monotonic time of the recorder's host_time 0, s
-        self._t_start = time.monotonic()
-        self._status: dict[str, Any] = {}
-        self._estimate: dict[str, Any] | None = None
-        self._running = True
-        self._cache: tuple[int, float, bytes] | None = None  # (count, made at, document)
+        self.owner = fd is None
+        self._m = _Block(self.capacity, fd)
+        # the writer's own copies of its counters: it never reads the shared block
+        self._count = 0
+        self._ring_seq = self._status_seq = self._est_seq = 0
+        self._host_offset = math.inf
+        self._estimate_source: Any = None
+        if self.owner:
+            self._m.ints[:] = 0
+            self._m.ints[_I_RUNNING] = 1
+            self._m.floats[:] = math.nan
+            self._m.floats[_F_OFFSET] = math.inf  # monotonic time of the recorder's host_time 0, s
+            self._m.floats[_F_START] = time.monotonic()
+            self._set_estimate_bytes(marshal.dumps(None))
+        # the reader's
+        self._estimate: tuple[int, Any] = (-1, None)
+        self._cache: tuple[float, bytes] | None = None  # (made at, document)
         self._cache_lock = threading.Lock()
+        self._finalizer = weakref.finalize(self, self._m.release)
 
-    # -- the recorder's side: quick, no allocation beyond the block itself ------------
+    @property
+    def handle(self) -> tuple[int, str, int]:
+        """What another process needs to map the block: ``LiveState(session,
+        capacity=..., fd=...)`` with these ``(fd, session, capacity)``, the descriptor
+        passed on to it (``subprocess.Popen(pass_fds=...)``)."""
+        return self._m.fd, self.session, self.capacity
+
+    def close(self) -> None:
+        """Let go of the shared block: it is freed once no process maps it."""
+        self._finalizer()
+
+    # -- the recorder's side: quick, no lock, no allocation beyond the block itself -----
 
     def append(self, block: Any) -> None:
         """Add a block of samples (``time``, ``position``, ``force``, ``host_time``, SI).
@@ -88,60 +136,109 @@ class LiveState:
         if n > self.capacity:  # only the newest fit
             block = _tail(block, self.capacity)
             n = self.capacity
-        with self._lock:
-            i = (self._count + total - n) % self.capacity  # where the first kept one goes
-            first = min(n, self.capacity - i)
-            for ring, values in (
-                (self._time, block.time),
-                (self._position, block.position),
-                (self._force, block.force),
-            ):
-                ring[i : i + first] = values[:first]
-                ring[: n - first] = values[first:]
-            self._host_offset = min(self._host_offset, now - host_last)
-            self._newest_host = self._host_offset + host_last
-            self._count += total
+        m = self._m
+        ints, floats = m.ints, m.floats
+        # readers of the slots about to be written see them taken before they change
+        ints[_I_RESERVED] = self._count + total
+        i = (self._count + total - n) % self.capacity  # where the first kept one goes
+        first = min(n, self.capacity - i)
+        for ring, values in (
+            (m.time, block.time),
+            (m.position, block.position),
+            (m.force, block.force),
+        ):
+            ring[i : i + first] = values[:first]
+            ring[: n - first] = values[first:]
+        self._host_offset = min(self._host_offset, now - host_last)
+        self._count += total
+        self._ring_seq += 1
+        ints[_I_RING_SEQ] = self._ring_seq  # odd: the count and times are changing
+        ints[_I_COUNT] = self._count
+        floats[_F_OFFSET] = self._host_offset
+        floats[_F_NEWEST] = self._host_offset + host_last
+        self._ring_seq += 1
+        ints[_I_RING_SEQ] = self._ring_seq
 
     def set_status(self, status: Any) -> None:
         """Keep the recorder's latest status (a :class:`~tissuecli.app.record.RecordStatus`
         or anything with its attributes); a number that is not finite is kept as 0."""
-        keep = ("elapsed_s", "samples", "rate_hz", "bad_frames", "lost_frames", "file_bytes")
-        values = {k: getattr(status, k) for k in keep if hasattr(status, k)}
-        self._status = {k: v if math.isfinite(v) else 0 for k, v in values.items()}
+        values = [getattr(status, k, math.nan) for k in STATUS_KEYS]
+        # NaN marks a quantity not given; one given but not finite is 0
+        kept = [
+            math.nan if not hasattr(status, k) else (float(v) if math.isfinite(v) else 0.0)
+            for k, v in zip(STATUS_KEYS, values, strict=True)
+        ]
+        self._status_seq += 1
+        self._m.ints[_I_STATUS_SEQ] = self._status_seq
+        self._m.floats[_F_STATUS : _F_STATUS + len(STATUS_KEYS)] = kept
+        self._status_seq += 1
+        self._m.ints[_I_STATUS_SEQ] = self._status_seq
 
     def set_estimate(self, estimate: Any | None) -> None:
-        """Keep the latest running estimate (an object with ``as_dict()``, or None)."""
-        self._estimate = None if estimate is None else estimate.as_dict()
+        """Keep the latest running estimate (an object with ``as_dict()``, or None);
+        the same object again costs nothing."""
+        if estimate is self._estimate_source:
+            return
+        self._estimate_source = estimate
+        data = marshal.dumps(None if estimate is None else estimate.as_dict())
+        self._set_estimate_bytes(data if len(data) <= ESTIMATE_BYTES else marshal.dumps(None))
+
+    def _set_estimate_bytes(self, data: bytes) -> None:
+        self._est_seq += 1
+        self._m.ints[_I_EST_SEQ] = self._est_seq
+        self._m.blob[: len(data)] = np.frombuffer(data, np.uint8)
+        self._m.ints[_I_EST_LEN] = len(data)
+        self._est_seq += 1
+        self._m.ints[_I_EST_SEQ] = self._est_seq
 
     def finish(self) -> None:
         """The recording has ended: the page says so and stops asking."""
-        self._running = False
+        self._m.ints[_I_RUNNING] = 0
 
     # -- the pages' side -------------------------------------------------------------
 
     def document(self, max_age_s: float = CACHE_S) -> bytes:
-        """``/api/state`` as JSON bytes, made at most once per ``max_age_s`` while no new
-        sample arrives, so that many pages cost little more than one."""
+        """``/api/state`` as JSON bytes, made at most once per ``max_age_s`` (however
+        many samples arrive meanwhile), so that many pages cost little more than one."""
         import json
 
         with self._cache_lock:
             now = time.monotonic()
             cached = self._cache
-            if cached is not None and cached[0] == self._count and now - cached[1] < max_age_s:
-                return cached[2]
+            if cached is not None and now - cached[0] < max_age_s:
+                return cached[1]
             state = self.snapshot()
             body = json.dumps(state, allow_nan=False, separators=(",", ":")).encode()
-            self._cache = (state["samples_seen"], now, body)
+            self._cache = (now, body)
             return body
 
     def snapshot(self) -> dict[str, Any]:
         """The state as a JSON-ready dict (schema in docs/formats.md); SI units."""
-        with self._lock:
-            count, newest_host, offset = self._count, self._newest_host, self._host_offset
+        ints, floats = self._m.ints, self._m.floats
+        for _ in range(_READ_TRIES):
+            count, newest_host, offset = self._consistent(
+                _I_RING_SEQ,
+                lambda: (int(ints[_I_COUNT]), float(floats[_F_NEWEST]), float(floats[_F_OFFSET])),
+            )
+            windows = self._windows(count)
+            if windows is not None:
+                break
+        else:  # the writer went round the ring while every attempt read it
+            windows = self._windows(0)
+            assert windows is not None
+        traces, loop = windows
+        values = self._consistent(
+            _I_STATUS_SEQ, lambda: floats[_F_STATUS : _F_STATUS + len(STATUS_KEYS)].copy()
+        )
+        status: dict[str, Any] = {
+            k: int(v) if k in _COUNTS else float(v)
+            for k, v in zip(STATUS_KEYS, values, strict=True)
+            if not math.isnan(v)
+        }
+        running = bool(ints[_I_RUNNING])
         now = time.monotonic()
-        status = dict(self._status)
-        elapsed = now - offset if math.isfinite(offset) else now - self._t_start
-        if self._running:
+        elapsed = now - offset if math.isfinite(offset) else now - float(floats[_F_START])
+        if running:
             # what the ring knows is newer than the recorder's last status (the
             # same quantities: samples kept, their mean rate since the stream began)
             samples = max(int(status.get("samples", 0)), count)
@@ -149,11 +246,10 @@ class LiveState:
             status.update(samples=samples, elapsed_s=elapsed, rate_hz=rate)
         for key in ("rate_hz", "bad_frames", "lost_frames", "file_bytes"):
             status.setdefault(key, 0)
-        traces, loop = self._windows(count)
         return {
             "schema": SCHEMA,
             "session": self.session,
-            "running": self._running,
+            "running": running,
             "samples_seen": count,
             "server_monotonic_s": now,
             "newest_sample_monotonic_s": _finite(newest_host),
@@ -161,21 +257,56 @@ class LiveState:
             "status": status,
             "traces": traces,
             "loop": loop,
-            "estimate": self._estimate,
+            "estimate": self._read_estimate(),
         }
 
-    def _windows(self, count: int) -> tuple[dict[str, Any], dict[str, Any]]:
-        """The traces of the last TRACE_S and the loop of the current grasp, decimated."""
+    def _consistent(self, seq: int, read: Any) -> Any:
+        """``read()`` of a record the writer did not change meanwhile (its sequence
+        number even and the same before and after)."""
+        ints = self._m.ints
+        for _ in range(_READ_TRIES):
+            before = int(ints[seq])
+            if not before & 1:
+                value = read()
+                if int(ints[seq]) == before:
+                    return value
+            time.sleep(0)  # the writer is within the record: let it finish
+        return read()  # a writer that died within the record: what is there
+
+    def _read_estimate(self) -> Any:
+        """The estimate's plain data, decoded once per new estimate."""
+        seq = int(self._m.ints[_I_EST_SEQ])
+        if seq != self._estimate[0]:
+
+            def read() -> tuple[int, bytes]:
+                n = int(self._m.ints[_I_EST_LEN])
+                return int(self._m.ints[_I_EST_SEQ]), self._m.blob[
+                    : min(n, ESTIMATE_BYTES)
+                ].tobytes()
+
+            seq, data = self._consistent(_I_EST_SEQ, read)
+            try:
+                self._estimate = (seq, marshal.loads(data))
+            except (EOFError, ValueError, TypeError):
+                self._estimate = (seq, None)
+        return self._estimate[1]
+
+    def _windows(self, count: int) -> tuple[dict[str, Any], dict[str, Any]] | None:
+        """The traces of the last TRACE_S and the loop of the current grasp, decimated;
+        None if the writer overwrote samples while they were read."""
         empty = {"time_s": [], "position_m": [], "force_n": []}
         if count < 2:
             return {"window_s": TRACE_S, **empty}, {"start_s": None, **empty, "closing": []}
-        # the samples of the windows; never more than a third of the ring, so the
-        # recorder cannot overwrite them while they are read
-        newest = self._time[(count - 1) % self.capacity]
+        # the samples of the windows, copied; never more than a third of the ring, so
+        # the recorder does not come round to them unless this reader stalls for long
         span = self._span(count, min(count, self.capacity // 3))
         t, x, f = (
-            self._read(ring, count, span) for ring in (self._time, self._position, self._force)
+            self._read(ring, count, span)
+            for ring in (self._m.time, self._m.position, self._m.force)
         )
+        if int(self._m.ints[_I_RESERVED]) - self.capacity > count - span:
+            return None  # the oldest of them were written over while being copied
+        newest = t[-1]
         start_index = count - span  # global index of t[0]
         series = zip((t, x, f), DECIMALS, strict=True)
         tt, xt, ft = (_means(a, start_index, TRACE_POINTS, d) for a, d in series)
@@ -199,23 +330,64 @@ class LiveState:
 
     def _span(self, count: int, limit: int) -> int:
         """How many of the newest samples lie within TRACE_S (at most ``limit``)."""
-        t_new = self._time[(count - 1) % self.capacity]
+        t_new = self._m.time[(count - 1) % self.capacity]
         lo, hi = 1, limit  # binary search on age: ring order is time order
         while lo < hi:
             mid = (lo + hi) // 2
-            if t_new - self._time[(count - 1 - mid) % self.capacity] >= TRACE_S:
+            if t_new - self._m.time[(count - 1 - mid) % self.capacity] >= TRACE_S:
                 hi = mid
             else:
                 lo = mid + 1
         return lo
 
     def _read(self, ring: Array, count: int, n: int) -> Array:
-        """The ``n`` newest values of ``ring`` in time order: a view, or a copy where
-        they wrap round the ring's end."""
+        """A copy of the ``n`` newest values of ``ring`` in time order."""
         end = count % self.capacity
         if n <= end:
-            return ring[end - n : end]
+            return ring[end - n : end].copy()
         return np.concatenate((ring[self.capacity - (n - end) :], ring[:end]))
+
+
+class _Block:
+    """The shared block and the arrays over it, in one place so that they can all be
+    dropped before it is unmapped.
+
+    Created (``fd`` None) as an anonymous file for a ring of ``capacity`` samples, or
+    mapped from the open descriptor ``fd`` of one.
+    """
+
+    def __init__(self, capacity: int, fd: int | None) -> None:
+        size = _HEADER + 3 * 8 * capacity + ESTIMATE_BYTES
+        self.file: Any = None
+        if fd is None:
+            if hasattr(os, "memfd_create"):  # Linux: memory, no name
+                fd = os.memfd_create("tissuecli-live")
+            else:  # elsewhere a temporary file, removed at once
+                self.file = tempfile.TemporaryFile()
+                fd = self.file.fileno()
+            os.ftruncate(fd, size)  # reads as zeros
+        self.fd = fd
+        self.map = mmap.mmap(fd, size)
+        self.ints = np.frombuffer(self.map, np.int64, 16, 0)
+        self.floats = np.frombuffer(self.map, np.float64, 16, 16 * 8)
+        rings = np.frombuffer(self.map, np.float64, 3 * capacity, _HEADER)
+        self.time, self.position, self.force = rings.reshape(3, -1)
+        self.blob = np.frombuffer(self.map, np.uint8, ESTIMATE_BYTES, size - ESTIMATE_BYTES)
+
+    def release(self) -> None:
+        """Unmap the block and close its descriptor."""
+        self.ints = self.floats = self.time = self.position = self.force = self.blob = None  # type: ignore[assignment]
+        try:
+            self.map.close()
+        except BufferError:
+            pass  # a reader still holds an array of it: unmapped with the process
+        if self.file is not None:
+            self.file.close()
+        else:
+            try:
+                os.close(self.fd)
+            except OSError:
+                pass
 
 
 def _tail(block: Any, n: int) -> Any:
