@@ -135,11 +135,8 @@ def term(name: str) -> Term:
         raise InputError(f"unknown term {name[:30]!r}; choose among: {', '.join(TERMS)}") from None
 
 
-@register
-class Linear(Term):
-    """x: Hookean stiffness, K in N/m."""
-
-    name, symbol, unit, label, role, variable = "x", "K", "N/m", "x", "stiffness", "x"
+class _Proportional(Term):
+    """A term equal to its variable (a spring's x, a damper's xdot, a mass's xddot)."""
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.asarray(u, dtype=float)
@@ -149,6 +146,13 @@ class Linear(Term):
 
     def derivative(self, u: ArrayLike) -> Array:
         return np.ones_like(np.asarray(u, dtype=float))
+
+
+@register
+class Linear(_Proportional):
+    """x: Hookean stiffness, K in N/m."""
+
+    name, symbol, unit, label, role, variable = "x", "K", "N/m", "x", "stiffness", "x"
 
 
 @register
@@ -169,19 +173,10 @@ class Cubic(Term):
 
 
 @register
-class Viscous(Term):
+class Viscous(_Proportional):
     """xdot: Newtonian damping, S in N s/m."""
 
     name, symbol, unit, label, role, variable = "xdot", "S", "N s/m", "ẋ", "damping", "v"
-
-    def __call__(self, u: ArrayLike) -> Array:
-        return np.asarray(u, dtype=float)
-
-    def scalar(self, u: float) -> float:
-        return u
-
-    def derivative(self, u: ArrayLike) -> Array:
-        return np.ones_like(np.asarray(u, dtype=float))
 
 
 @register
@@ -226,19 +221,10 @@ class Coulomb(Term):
 
 
 @register
-class Inertia(Term):
+class Inertia(_Proportional):
     """xddot: moving mass, M in kg."""
 
     name, symbol, unit, label, role, variable = "xddot", "M", "kg", "ẍ", "inertia", "a"
-
-    def __call__(self, u: ArrayLike) -> Array:
-        return np.asarray(u, dtype=float)
-
-    def scalar(self, u: float) -> float:
-        return u
-
-    def derivative(self, u: ArrayLike) -> Array:
-        return np.ones_like(np.asarray(u, dtype=float))
 
 
 @register

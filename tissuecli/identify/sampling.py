@@ -115,6 +115,43 @@ def _ensemble(
     return sampler
 
 
+def _run_chain(
+    sampler: Any,
+    p0: Array,
+    chunk: int,
+    min_steps: int,
+    max_steps: int,
+    progress: Callable[[int, float], None] | None,
+    give_up_early: bool = False,
+) -> tuple[Array, bool, Array]:
+    """Run an emcee sampler from ``p0`` until the chain is longer than 50 integrated
+    autocorrelation times (emcee's rule) and ``min_steps``, or ``max_steps``.
+
+    Returns the autocorrelation time per parameter (steps), whether the rule was met,
+    and the flat chain after a burn-in of 2 tau, thinned by tau / 2.
+    """
+    tau = np.full(p0.shape[1], np.inf)
+    state: Any = p0
+    while sampler.iteration < max_steps:
+        # runs grow with the chain, so the autocorrelation time (O(n log n) over the
+        # whole chain) is estimated O(log n) times, not once per chunk
+        steps = min(max(chunk, sampler.iteration // 4), max_steps - sampler.iteration)
+        state = sampler.run_mcmc(state, steps, progress=False, skip_initial_state_check=True)
+        tau = sampler.get_autocorr_time(tol=0)
+        if progress is not None:
+            progress(sampler.iteration, float(np.max(tau)))
+        if sampler.iteration >= max(min_steps, 50 * np.max(tau)):
+            break
+        if give_up_early and sampler.iteration >= max_steps // 4:
+            if 50 * np.max(tau) > 2 * max_steps:
+                break  # would need more than twice the budget: say so now, not at the budget
+    top = float(np.max(tau))
+    converged = bool(sampler.iteration >= 50 * top)
+    burn = int(min(2 * top, sampler.iteration // 2))
+    thin = max(1, int(top / 2))
+    return tau, converged, sampler.get_chain(discard=burn, thin=thin, flat=True)
+
+
 def run_emcee(
     stats: SufficientStats,
     prior: Prior,
@@ -135,24 +172,10 @@ def run_emcee(
     target = PowerPosterior(stats, prior)
     p0 = _start(exact, target, walkers, rng)
     sampler = _ensemble(target, walkers, p0.shape[1], rng)
-    tau = np.full(p0.shape[1], np.inf)
-    state = p0
-    while sampler.iteration < max_steps:
-        # runs grow with the chain, so the autocorrelation time (O(n log n) over the
-        # whole chain) is estimated O(log n) times, not once per chunk
-        steps = min(max(chunk, sampler.iteration // 4), max_steps - sampler.iteration)
-        state = sampler.run_mcmc(state, steps, progress=False, skip_initial_state_check=True)
-        tau = sampler.get_autocorr_time(tol=0)
-        if progress is not None:
-            progress(sampler.iteration, float(np.max(tau)))
-        if sampler.iteration >= max(min_steps, 50 * np.max(tau)):
-            break
-        if sampler.iteration >= max_steps // 4 and 50 * np.max(tau) > 2 * max_steps:
-            break  # would need more than twice the budget: say so now, not at the budget
-    converged = sampler.iteration >= 50 * np.max(tau)
-    burn = int(min(2 * np.max(tau), sampler.iteration // 2))
-    thin = max(1, int(np.max(tau) / 2))
-    chain = target.to_si(sampler.get_chain(discard=burn, thin=thin, flat=True))
+    tau, converged, chain = _run_chain(
+        sampler, p0, chunk, min_steps, max_steps, progress, give_up_early=True
+    )
+    chain = target.to_si(chain)
     beta = chain[:, :-1]
     inside = exact.orthant_mass()
     bounded = int(np.sum(prior.bounded))
@@ -174,7 +197,9 @@ def run_emcee(
             "tau": [float(t) for t in tau],
             "acceptance": float(np.mean(sampler.acceptance_fraction)),
             "converged": bool(converged),
-            "independent_samples": int(beta.shape[0] * thin / max(np.max(tau), 1)),
+            "independent_samples": int(
+                beta.shape[0] * max(1, int(np.max(tau) / 2)) / max(np.max(tau), 1)
+            ),
         },
     )
 
@@ -322,21 +347,9 @@ def sample_shapes(
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     sampler = emcee.EnsembleSampler(walkers, d, target, moves=moves)
     sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
-    state: Any = p0
-    tau = np.full(d, np.inf)
-    while sampler.iteration < max_steps:
-        steps = min(max(chunk, sampler.iteration // 4), max_steps - sampler.iteration)
-        state = sampler.run_mcmc(state, steps, progress=False, skip_initial_state_check=True)
-        tau = sampler.get_autocorr_time(tol=0)
-        if progress is not None:
-            progress(sampler.iteration, float(np.max(tau)))
-        if sampler.iteration >= max(min_steps, 50 * np.max(tau)):
-            break
+    tau, converged, draws = _run_chain(sampler, p0, chunk, min_steps, max_steps, progress)
     top = float(np.max(tau))
-    converged = bool(sampler.iteration >= 50 * top)
-    burn = int(min(2 * top, sampler.iteration // 2))
     thin = max(1, int(top / 2))
-    draws = sampler.get_chain(discard=burn, thin=thin, flat=True)
     return draws, {
         "steps": int(sampler.iteration),
         "walkers": int(walkers),
