@@ -13,30 +13,18 @@ from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.formats.params import document, tissue_from_dict
 from tissuecli.identify import BayesianFit, fit_session
+from tissuecli.sim.families import FAMILIES as ALL
 from tissuecli.sim.synth import random_session
 
 FAMILIES = {
-    "standard linear solid": Tissue(
-        Law.of(["x", "maxwell", "xdot", "xddot"]).bind({"tau1": 0.5}), 300.0, 200.0, 2.0, 0.05
-    ),
-    "Hunt-Crossley": Tissue(
-        Law.of(["contact", "contact*xdot", "xddot"]).bind({"n": 1.5, "x0": 1e-3}),
-        5000.0,
-        3e4,
-        0.05,
-    ),
-    "friction and offset": Tissue(
-        Law.of(["x", "xdot", "sign(xdot)", "xddot", "offset"]), 350.0, 3.0, 0.1, 0.05, 0.2
-    ),
-    "hardening": Tissue(Law.of(["x", "x^3", "xdot", "xddot"]), 200.0, 5e6, 3.0, 0.05),
-    "two branches": Tissue(
-        Law.of(["x", "maxwell", "maxwell", "xdot", "xddot"]).bind({"tau1": 0.1, "tau2": 2.0}),
-        300.0,
-        150.0,
-        150.0,
-        2.0,
-        0.05,
-    ),
+    name: ALL[name]
+    for name in (
+        "one branch",
+        "Hunt-Crossley",
+        "friction+offset",
+        "hardening x+x^3",
+        "two branches",
+    )
 }
 
 THREE = Tissue(
