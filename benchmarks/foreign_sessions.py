@@ -4,8 +4,9 @@ For each seed, one simulated session (the default tissue, 20 s at 333 Hz) is fit
 clean and after each damage of :mod:`tissuecli.sim.loggers`; the table gives, per
 coefficient, the RMS relative error over the seeds of each version, the ratio to
 the clean one (the acceptance bound is 1.5), and the RMS z-score (error over
-posterior SD: 1 for calibrated intervals). Two more rows compare grasps between
-free motion on a 0.3 N offset sensor with the same squeezes in one long contact,
+posterior SD: 1 for calibrated intervals). Three more rows compare grasps between
+free motion on a 0.3 N offset sensor with the same squeezes in one long contact
+(with the free jaws inside the closure sensor's range, and opening beyond its end),
 and a 100 kg / 200 N stage fitted with no options.
 
 Usage::
@@ -50,13 +51,17 @@ def _errors(est: BayesianFit, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return (post.mean[:k] - truth) / truth, (post.mean[:k] - truth) / post.sd[:k]
 
 
-def _grasping(seed: int) -> tuple[Session, Session]:
+def _grasping(seed: int) -> tuple[Session, Session, Session]:
+    """Grasps with the free jaws (2 mm open) inside the closure range, the same grasps
+    with the default range (-0.5 mm: the free jaws clip), and the squeezes in contact."""
     op = Operator.random(np.random.default_rng(seed))
     sensors = Sensors(position_range_m=(-3e-3, 15e-3), force_offset_n=0.3)
     grasping = GraspingOperator(squeeze=op, grasp_s=3.0, free_s=1.0, ramp_s=0.3)
     s, _ = synthesize(ForcepsModel(sensors=sensors, seed=seed, operator=grasping), 20.0)
+    clip = Sensors(force_offset_n=0.3)
+    k, _ = synthesize(ForcepsModel(sensors=clip, seed=seed, operator=grasping), 20.0)
     c, _ = synthesize(ForcepsModel(sensors=sensors, seed=seed, operator=op), 15.0)
-    return s, c
+    return s, k, c
 
 
 def _stage(seed: int) -> Session:
@@ -76,9 +81,16 @@ def main(argv: list[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarra
     rows: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"clean": []}
     for name in DAMAGE:
         rows[name] = []
-    rows["one long contact + offset"], rows["grasps + offset"], rows["100 kg stage"] = [], [], []
+    for name in ("one long contact + offset", "grasps + offset", "grasps, jaws clipped between"):
+        rows[name] = []
+    rows["100 kg stage"] = []
     # each row is compared with the clean session, grasps with the same squeezes in contact
-    reference = {**dict.fromkeys(DAMAGE, "clean"), "grasps + offset": "one long contact + offset"}
+    reference = {
+        **dict.fromkeys(DAMAGE, "clean"),
+        **dict.fromkeys(
+            ("grasps + offset", "grasps, jaws clipped between"), "one long contact + offset"
+        ),
+    }
     law = "x+xdot+xddot"
     for seed in range(args.seeds):
         clean = random_session(DEFAULT_TISSUE, rate_hz=RATE, seed=seed, duration_s=20.0)[0]
@@ -86,9 +98,10 @@ def main(argv: list[str] | None = None) -> dict[str, tuple[np.ndarray, np.ndarra
         rng = np.random.default_rng(1000 + seed)
         for name, damage in DAMAGE.items():
             rows[name].append(_errors(BayesianFit(law).fit(damage(clean, rng)), truth))
-        grasps, contact = _grasping(seed)
+        grasps, clipped, contact = _grasping(seed)
         both = np.array([*truth, 0.3])
         rows["grasps + offset"].append(_errors(BayesianFit().fit(grasps), both))
+        rows["grasps, jaws clipped between"].append(_errors(BayesianFit().fit(clipped), both))
         rows["one long contact + offset"].append(_errors(BayesianFit().fit(contact), both))
         stage_truth = np.array([20000.0, 1000.0, 100.0])
         rows["100 kg stage"].append(_errors(BayesianFit().fit(_stage(seed)), stage_truth))

@@ -234,7 +234,7 @@ class BayesianFit(Estimator):
             ready.warnings,
             ready.contact,
         )
-        sigma_x = self._position_noise(session) if self.eiv else 0.0
+        sigma_x = self._position_noise(session, ready.trusted) if self.eiv else 0.0
         y = kin.force
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
@@ -334,15 +334,19 @@ class BayesianFit(Estimator):
         self.warnings_ = warnings
         return self
 
-    def _position_noise(self, session: Session) -> float:
-        """Position noise SD (m) from the spectrum's flat top, floored by the ADC step.
+    def _position_noise(self, session: Session, trusted: NDArray[np.bool_]) -> float:
+        """Position noise SD (m) from the spectrum's flat top over the ``trusted``
+        samples, floored by the ADC step.
 
         Quantisation with little dither is not white and hides from the flat top, so
-        the ADC step sets a floor: step / sqrt(12).
+        the ADC step sets a floor: step / sqrt(12). Clipped and lost samples are left
+        out: flat at an end of the ADC, or interpolated, they carry no noise (free jaws
+        clipped for 31 % of a grasping session read the noise 20 % low, and left M 2 %
+        low, 5 posterior SDs).
         """
         fs = 1.0 / float(np.median(np.diff(session.time)))
         step = session.adc.step("position") if session.adc is not None else 0.0
-        return max(position_noise_sd(session.position, fs), step / np.sqrt(12))
+        return max(position_noise_sd(session.position, fs, trusted), step / np.sqrt(12))
 
     def _stats(
         self, model: Law, fp: _FirstPass, fit: _Context

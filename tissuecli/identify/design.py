@@ -8,14 +8,15 @@ from numpy.typing import NDArray
 
 from ..core.terms import Law, Term
 from .derivatives import Kinematics
-from .spectrum import power_spectrum
+from .spectrum import valid_spectrum
 
 Array = NDArray[np.float64]
 
 
-def position_noise_sd(x: Array, fs: float) -> float:
-    """SD of white noise on position from the flat top of its spectrum (m)."""
-    freqs, p = power_spectrum(x - x.mean(), fs, int(min(x.size, 4096)))
+def position_noise_sd(x: Array, fs: float, valid: NDArray[np.bool_] | None = None) -> float:
+    """SD of white noise on position from the flat top of its spectrum (m), over the
+    stretches of ``valid`` samples when given (clipped samples carry no noise)."""
+    freqs, p = valid_spectrum(x - x.mean(), fs, 4096, valid)
     top = p[freqs > fs / 4]
     return float(np.sqrt(np.median(top) * fs / 2)) if top.size else 0.0
 

@@ -159,10 +159,14 @@ class _Fixed(Differentiator):
                 f"SavitzkyGolay(window=...)): {exc}"
             ) from None
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
         return self._kernels
 
-    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+    def half_kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[Array, Array, Array, float] | None:
         return self._half
 
 

@@ -65,6 +65,9 @@ class Prepared:
     measured_fraction : float
         Fraction of the grid that holds measurements rather than bridged stand-ins: one
         sample of the fit counts this much.
+    trusted : ndarray of bool, shape (n,)
+        Grid samples that hold measurements, neither lost nor clipped, in contact or
+        not: what the sensors' noise is read from.
     """
 
     session: Session
@@ -72,6 +75,7 @@ class Prepared:
     warnings: list[str]
     contact: Contact
     measured_fraction: float
+    trusted: NDArray[np.bool_]
 
 
 def prepare(
@@ -139,6 +143,7 @@ def prepare(
     clipped = adc_ends(session)
     for _, mask in clipped:
         valid &= ~mask
+    trusted = valid & present
     contact = find_contact(session)
     chosen = _chosen_grasps(contact, grasps)
     if not contact.all_contact and grasps != "none":
@@ -175,7 +180,7 @@ def prepare(
             "out for lost or clipped samples in their window"
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
-    return Prepared(session, kin, warnings, contact, measured)
+    return Prepared(session, kin, warnings, contact, measured, trusted)
 
 
 def _short_runs(mask: NDArray[np.bool_], longest: int) -> NDArray[np.bool_]:

@@ -18,11 +18,14 @@ Array = NDArray[np.float64]
 BATCH_SAMPLES = 1 << 20
 
 
-def power_spectrum(x: Array, fs: float, nperseg: int) -> tuple[Array, Array]:
+def power_spectrum(
+    x: Array, fs: float, nperseg: int, valid: NDArray[np.bool_] | None = None
+) -> tuple[Array, Array]:
     """Welch's one-sided power spectral density of ``x``, units^2/Hz.
 
     Periodic Hann windows of ``nperseg`` samples overlapping by half, each segment's
     mean removed, periodograms averaged: ``scipy.signal.welch(x, fs, nperseg=nperseg)``.
+    With ``valid``, only the segments made wholly of valid samples are averaged.
 
     Parameters
     ----------
@@ -32,6 +35,8 @@ def power_spectrum(x: Array, fs: float, nperseg: int) -> tuple[Array, Array]:
         Sample rate, Hz.
     nperseg : int
         Segment length, samples.
+    valid : ndarray of bool, shape (n,), optional
+        The samples to trust; at least one segment must be wholly valid.
 
     Returns
     -------
@@ -43,11 +48,46 @@ def power_spectrum(x: Array, fs: float, nperseg: int) -> tuple[Array, Array]:
     x = np.asarray(x, dtype=float)
     step = nperseg - nperseg // 2
     segments = sliding_window_view(x, nperseg)[::step]
+    if valid is not None:
+        whole = np.min(sliding_window_view(np.asarray(valid, bool), nperseg)[::step], axis=1)
+        if not np.any(whole):
+            raise ValueError(f"no segment of {nperseg} samples is wholly valid")
+        segments = segments[whole]
     window = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(nperseg) / nperseg)
     spectra = np.fft.rfft((segments - segments.mean(axis=1, keepdims=True)) * window, axis=1)
     psd = np.mean(spectra.real**2 + spectra.imag**2, axis=0) / (fs * np.sum(window**2))
     psd[1 : nperseg // 2 + (nperseg % 2)] *= 2  # one-sided: all but DC (and Nyquist) twice
     return np.fft.rfftfreq(nperseg, 1.0 / fs), psd
+
+
+def valid_spectrum(
+    x: Array, fs: float, nperseg: int, valid: NDArray[np.bool_] | None, least: int = 7
+) -> tuple[Array, Array]:
+    """Welch's spectrum of ``x`` (:func:`power_spectrum`) over the segments made wholly of
+    ``valid`` samples, their length halved from ``nperseg`` (down to 256 samples) until
+    at least ``least`` of them are.
+
+    Clipped or interpolated samples are not the signal: a record clipped at one end of
+    its ADC is flat and noiseless there, with a kink where it enters the clip. Left in,
+    they lower the noise floor and spread the signal's band. When no segment of 256
+    samples is wholly valid, or ``valid`` is None or all True, the whole record is used.
+    """
+    x = np.asarray(x, dtype=float)
+    nperseg = min(nperseg, x.size)
+    if valid is None or np.all(valid):
+        return power_spectrum(x, fs, nperseg)
+    valid = np.asarray(valid, bool)
+    size = nperseg
+    while True:
+        step = size - size // 2
+        whole = np.min(sliding_window_view(valid, size)[::step], axis=1)
+        count = int(np.count_nonzero(whole))
+        if count >= least or size // 2 < min(256, nperseg):
+            break
+        size //= 2
+    if count == 0:
+        return power_spectrum(x, fs, nperseg)
+    return power_spectrum(x, fs, size, valid)
 
 
 def convolve_valid(u: Array, kernel: Array) -> Array:

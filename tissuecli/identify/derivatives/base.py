@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from ...core.errors import FitError
 from ...core.terms import Term
-from ..spectrum import convolve_valid, power_spectrum
+from ..spectrum import convolve_valid, valid_spectrum
 
 Array = NDArray[np.float64]
 
@@ -118,10 +118,17 @@ class Differentiator(ABC):
     name: ClassVar[str]
 
     @abstractmethod
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
-        """Kernels for x, v, a (odd length, for ``np.convolve``), cutoff in Hz, description."""
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
+        """Kernels for x, v, a (odd length, for ``np.convolve``), cutoff in Hz, description.
 
-    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+        A width chosen from the data reads the spectrum of the ``valid`` samples' stretches.
+        """
+
+    def half_kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[Array, Array, Array, float] | None:
         """Kernels ``g_h, g_h', g_h''`` with ``g_h * g_h = g`` and g_h's variance (s^2), if any."""
         return None
 
@@ -136,7 +143,7 @@ class Differentiator(ABC):
         convolution, but nothing that depends on them is kept.
         """
         dt = sample_interval(time)
-        (k0, k1, k2), cutoff, method = self.kernels(x, dt)
+        (k0, k1, k2), cutoff, method = self.kernels(x, dt, valid)
         if 2 * k0.size > x.size:
             raise FitError(
                 f"{x.size} samples are too few for a {k0.size}-sample derivative filter; "
@@ -160,7 +167,7 @@ class Differentiator(ABC):
             out = convolve_valid(u, k)
             return out if rows is None else out[rows]
 
-        half = self.half_kernels(x, dt)
+        half = self.half_kernels(x, dt, valid)
         return Kinematics(
             half=half,
             time=time[keep],
@@ -192,7 +199,9 @@ class Frozen(Differentiator):
         self.fitted = fitted
         self.dt = float(np.median(np.diff(fitted.time)))
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
         if abs(dt / self.dt - 1.0) > 1e-3:
             raise FitError(
                 f"these samples come every {dt * 1e3:.4g} ms, the fitted ones every "
@@ -201,7 +210,9 @@ class Frozen(Differentiator):
         k = self.fitted
         return k.kernels, k.cutoff_hz, k.method
 
-    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float] | None:
+    def half_kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[Array, Array, Array, float] | None:
         return self.fitted.half
 
 
@@ -221,7 +232,9 @@ def sample_interval(time: Array) -> float:
     return dt
 
 
-def signal_band_hz(x: Array, fs: float, snr_db: float = 20.0) -> float:
+def signal_band_hz(
+    x: Array, fs: float, snr_db: float = 20.0, valid: NDArray[np.bool_] | None = None
+) -> float:
     """Highest frequency at which the position spectrum stands ``snr_db`` above its noise floor.
 
     The floor is the median of the Welch spectrum between ``min(100 Hz, fs/4)`` and
@@ -235,10 +248,17 @@ def signal_band_hz(x: Array, fs: float, snr_db: float = 20.0) -> float:
     peaks of the quantisation noise, which at 8 bits stands 10-12 dB above the
     floor at 10-200 Hz, crossed the 20 dB line in 3 sessions of 20 and put the
     cutoff at 19-65 Hz instead of about 12 Hz, costing M up to 400 Cramer-Rao bounds.
+
+    With ``valid``, only segments made wholly of valid samples count (shorter ones if
+    needed, :func:`~tissuecli.identify.spectrum.valid_spectrum`): jaws clipped at an end
+    of the ADC between grasps put a kink in the record at each grasp, whose spectrum
+    doubled the band (10 to 20 Hz at 1 kHz, 14 to 30 Hz at 10 kHz) and so the
+    acceleration's noise.
     """
-    longest = 2 ** np.floor(np.log2(max(x.size / 4, 1)))
+    n = x.size if valid is None else max(int(np.count_nonzero(valid)), 1)
+    longest = 2 ** np.floor(np.log2(max(n / 4, 1)))
     nperseg = int(min(x.size, max(256, min(2 ** np.ceil(np.log2(4 * fs)), longest))))
-    f, p = power_spectrum(x - np.mean(x), fs, nperseg)
+    f, p = valid_spectrum(x - np.mean(x), fs, nperseg, valid)
     sel = (f >= min(100.0, fs / 4)) & (f <= min(1000.0, fs / 2))
     floor = np.median(p[sel]) if np.any(sel) else np.min(p)
     above = np.flatnonzero((p > floor * 10 ** (snr_db / 10)) & (f > 0))

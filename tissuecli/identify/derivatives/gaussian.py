@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .base import Array, Differentiator, register, signal_band_hz
 
@@ -32,14 +33,18 @@ class Gaussian(Differentiator):
         self.sigma_s = sigma_s
         self.cutoff_ratio = cutoff_ratio
 
-    def width(self, x: Array, dt: float) -> float:
-        """Kernel SD in s for this position record."""
+    def width(self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None) -> float:
+        """Kernel SD in s for this position record (its ``valid`` samples)."""
         fs = 1.0 / dt
-        sigma = self.sigma_s or 0.1325 / min(self.cutoff_ratio * signal_band_hz(x, fs), 0.4 * fs)
+        sigma = self.sigma_s or 0.1325 / min(
+            self.cutoff_ratio * signal_band_hz(x, fs, valid=valid), 0.4 * fs
+        )
         return max(sigma, 1.5 * dt)  # narrower kernels alias: their spectrum reaches Nyquist
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
-        sigma = self.width(x, dt)
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
+        sigma = self.width(x, dt, valid)
         h = 2 * _half_span(sigma, dt)  # room for the two half-kernel passes of nonlinear damping
         g, g1, g2 = gaussian_kernels(sigma, dt, h)
         return (
@@ -48,7 +53,9 @@ class Gaussian(Differentiator):
             f"gaussian(sigma={sigma * 1e3:.3g} ms, {2 * h + 1} taps)",
         )
 
-    def half_kernels(self, x: Array, dt: float) -> tuple[Array, Array, Array, float]:
+    def half_kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[Array, Array, Array, float]:
         """``g_h``, ``g_h'``, ``g_h''`` with ``g_h * g_h = g``, and g_h's variance (s^2).
 
         Half the smoothing, for nonlinear damping.
@@ -56,7 +63,7 @@ class Gaussian(Differentiator):
         ``g * f1(v)`` is what the filtered force holds; ``g_h * f1(g_h' * x)`` matches it
         exactly for a linear f1 and far better than ``f1(g' * x)`` for a nonlinear one.
         """
-        sigma = self.width(x, dt)
+        sigma = self.width(x, dt, valid)
         h = _half_span(sigma, dt)  # two passes fit inside the full kernel's span
         g, g1, g2 = gaussian_kernels(sigma / np.sqrt(2), dt, h)
         return g, g1, g2, sigma**2 / 2

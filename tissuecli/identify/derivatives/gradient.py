@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .base import Array, Differentiator, register
 
@@ -17,7 +18,9 @@ class FiniteDifference(Differentiator):
 
     name = "gradient"
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
         k0 = np.array([0.0, 0.0, 1.0, 0.0, 0.0])
         k1 = np.array([0.0, 0.5, 0.0, -0.5, 0.0]) / dt
         k2 = np.array([0.25, 0.0, -0.5, 0.0, 0.25]) / dt**2

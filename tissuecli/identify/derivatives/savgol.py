@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .base import Array, Differentiator, register, signal_band_hz
 
@@ -30,12 +31,14 @@ class SavitzkyGolay(Differentiator):
         self.polyorder = polyorder
         self.cutoff_ratio = cutoff_ratio
 
-    def kernels(self, x: Array, dt: float) -> tuple[tuple[Array, Array, Array], float, str]:
+    def kernels(
+        self, x: Array, dt: float, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[tuple[Array, Array, Array], float, str]:
         fs, p = 1.0 / dt, self.polyorder
         if self.window:
             window = self.window | 1
         else:
-            fc = min(self.cutoff_ratio * signal_band_hz(x, fs), 0.45 * fs)
+            fc = min(self.cutoff_ratio * signal_band_hz(x, fs, valid=valid), 0.45 * fs)
             window = 2 * int(np.ceil(((p + 1) * fs / (2 * fc) + 4.6) / 3.2)) + 1
         window = max(window, p + 2 + (p + 1) % 2)
         from scipy.signal import savgol_coeffs  # only when Savitzky-Golay is asked for
