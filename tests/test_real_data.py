@@ -73,3 +73,7 @@ def test_a_cutting_punch_is_not_a_tissue_law(fitted, name: str) -> None:
     the fit says so (R^2 well below 1, worse on held-out cuts)."""
     v = fitted[name]["validation"]
     assert v["r2_fitted"] < 0.5 and v["r2_held_out"] < v["r2_fitted"]
+    # ...but the chosen law, at the coefficients the file gives it, still explains more
+    # of the force it was fitted to than the force's mean (R^2 > 0): coefficients
+    # that do not belong to the bound law's shape put the fitted R^2 at -1.5
+    assert v["r2_fitted"] > 0.2

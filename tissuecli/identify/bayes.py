@@ -566,8 +566,17 @@ class BayesianFit(Estimator):
         evaluate: Callable[[dict[str, float]], tuple[float, tuple[Any, ...]]],
         fit: _Context,
     ) -> ModelResult:
-        """The result of a law with shape parameters, bound at ``point``."""
-        fp, st, prior, corr, flags, _ = evaluate(point)[1]
+        """The result of a law with shape parameters, bound at ``point``.
+
+        Its coefficients' means are those given the shape at ``point``: a coefficient's
+        meaning can hang on the shape (a contact stiffness is in N/m^n), so an average
+        over shapes would not predict the force the bound law gives. Their SDs and
+        intervals stay those of ``post``, which carry the shape's uncertainty.
+        """
+        fp, st, prior, corr, flags, exact = evaluate(point)[1]
+        if post.diagnostics.get("shape_nodes", 1) > 1:
+            post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
+            post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
         return ModelResult(
             model=law.bind(point),
             ln_evidence=post.ln_evidence,
