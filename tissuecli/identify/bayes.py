@@ -382,19 +382,7 @@ class BayesianFit(Estimator):
                     f"position-noise correction (noise {fit.sigma_x * 1e6:.3g} um); its "
                     "interval does not include that correction's own uncertainty"
                 )
-        return ModelResult(
-            model=model,
-            ln_evidence=post.ln_evidence,
-            posterior=post,
-            cond=fp.cond,
-            cond_scaled=fp.cond_scaled,
-            residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
-            gram=fp.gram,
-            correction=corr,
-            stats=st,
-            prior=prior,
-            flags=flags,
-        )
+        return _result(model, post, fp, fit, st, prior, corr, flags)
 
     def _exact_shaped(self, law: Law, fit: _Context) -> ModelResult:
         """A law with shape parameters: its exact evidence at every node of the shape's
@@ -577,20 +565,7 @@ class BayesianFit(Estimator):
         if post.diagnostics.get("shape_nodes", 1) > 1:
             post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
             post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
-        return ModelResult(
-            model=law.bind(point),
-            ln_evidence=post.ln_evidence,
-            posterior=post,
-            cond=fp.cond,
-            cond_scaled=fp.cond_scaled,
-            residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
-            gram=fp.gram,
-            correction=corr,
-            stats=st,
-            prior=prior,
-            flags=list(flags),
-            family=law,
-        )
+        return _result(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
 
     def _candidates(
         self,
@@ -1001,6 +976,34 @@ class _Context:
     #: first passes of laws with shape parameters, by law and shape: they do not depend
     #: on the data weight, so a fit scored again at another weight reuses them
     shaped_passes: dict[tuple[str, tuple[float, ...]], _FirstPass] = field(default_factory=dict)
+
+
+def _result(
+    model: Law,
+    post: Posterior,
+    fp: _FirstPass,
+    fit: _Context,
+    st: SufficientStats,
+    prior: Prior,
+    corr: Array | None,
+    flags: list[str],
+    family: Law | None = None,
+) -> ModelResult:
+    """A law's result from its posterior and its least-squares pass over ``fit``."""
+    return ModelResult(
+        model=model,
+        ln_evidence=post.ln_evidence,
+        posterior=post,
+        cond=fp.cond,
+        cond_scaled=fp.cond_scaled,
+        residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
+        gram=fp.gram,
+        correction=corr,
+        stats=st,
+        prior=prior,
+        flags=flags,
+        family=family,
+    )
 
 
 def _bic(res: ModelResult, n: int) -> float:
