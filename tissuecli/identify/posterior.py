@@ -140,6 +140,7 @@ class ExactPosterior:
 
     def __init__(self, stats: SufficientStats, prior: Prior, nodes: int = 401) -> None:
         self.stats, self.prior = stats, prior
+        self._inside: float | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
@@ -213,7 +214,13 @@ class ExactPosterior:
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
-        posterior is narrow)."""
+        posterior is narrow). Computed once: the evidence, the summary and the exact
+        draws all need it, and the lattice is the costly part of a posterior."""
+        if self._inside is None:
+            self._inside = self._orthant_mass()
+        return self._inside
+
+    def _orthant_mass(self) -> float:
         mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
         on = self.prior.bounded
         if not np.any(on):
@@ -238,11 +245,7 @@ class ExactPosterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
         w, mus, covs, idx = self.mixture()
         inside = self.orthant_mass()
-        ln_z = (
-            self.ln_z_untruncated
-            + np.log(max(inside, 1e-300))
-            + int(np.sum(self.prior.bounded)) * np.log(2)
-        )
+        ln_z = self.ln_evidence()
         mean = w @ mus
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
         cov = second - np.outer(mean, mean)

@@ -178,8 +178,7 @@ def run_emcee(
     chain = target.to_si(chain)
     beta = chain[:, :-1]
     inside = exact.orthant_mass()
-    bounded = int(np.sum(prior.bounded))
-    ln_z = exact.ln_z_untruncated + np.log(max(inside, 1e-300)) + bounded * np.log(2)
+    ln_z = exact.ln_evidence()
     return Posterior(
         mean=beta.mean(axis=0),
         sd=beta.std(axis=0, ddof=1),
