@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tests.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
+from tests.app.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
 from tissuecli import formats  # noqa: E402
 from tissuecli.app.record import record  # noqa: E402
 from tissuecli.core.clock import fit_clock_map, fit_clock_map_lsq  # noqa: E402

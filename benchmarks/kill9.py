@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/kill9.py --kills 200 [--interval 0.05] [--block 50] [--no-fsync]
 
-Each trial starts the test suite's writer (tests/_writer_child.py) on a new
+Each trial starts the test suite's writer (tests/formats/_writer_child.py) on a new
 file, lets it commit a random number of flushes, sends SIGKILL, then opens the
 file with plain ``h5py.File(path, "r")`` through ``read_session`` and compares
 every committed row with the values the writer wrote.
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "formats"))
 
 from _writer_child import expected_rows  # noqa: E402
 
@@ -33,7 +33,7 @@ from tissuecli.formats.sessions import read_session  # noqa: E402
 def trial(path: Path, args: argparse.Namespace, rng: random.Random) -> str:
     cmd = [
         sys.executable,
-        str(ROOT / "tests" / "_writer_child.py"),
+        str(ROOT / "tests" / "formats" / "_writer_child.py"),
         str(path),
         "--interval",
         str(args.interval),

@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/malformed_files.py [--examples 2000] [--seed 0] [--cli 40]
 
-Draws files from the test suite's generator (tests/_malformed.py: datasets of text,
+Draws files from the test suite's generator (tests/formats/_malformed.py: datasets of text,
 compound records, booleans, complex numbers, references, single values or two
 columns; missing datasets, groups or dangling links in their place; counters stored
 as text; files cut at a random byte or made of random bytes) and runs the library
@@ -27,7 +27,7 @@ import traceback
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "formats"))
 
 from _malformed import clean, specs, write_spec  # noqa: E402
 from hypothesis import HealthCheck, given, seed, settings  # noqa: E402

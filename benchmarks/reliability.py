@@ -9,7 +9,7 @@ Usage::
 Each case runs the command line as a user would (``python -m tissuecli ...`` in its own
 process), in a fresh temporary directory, against simulated devices where one is
 needed: ``tissuecli simulate forceps|display`` in their own processes, or the test
-suite's scripted forceps (``tests/fakedevice.py``: valid-CRC frames with absurd
+suite's scripted forceps (``tests/app/fakedevice.py``: valid-CRC frames with absurd
 content behind a real pty). For every case the script records
 
 * the exit code of each command that matters (joined by ``/``);
@@ -56,14 +56,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "formats"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from storage_faults import Tmpfs  # noqa: E402
 
-from tests.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
-from tests.test_inputs import REPRODUCED, _params  # noqa: E402
-from tests.test_malformed_files import _replace, _session_file  # noqa: E402
+from tests.app.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
+from tests.formats.test_inputs import REPRODUCED, _params  # noqa: E402
+from tests.formats.test_malformed_files import _replace, _session_file  # noqa: E402
 from tissuecli.app.play import play_faults  # noqa: E402
 from tissuecli.core.errors import TissueError  # noqa: E402
 from tissuecli.core.tissue import DEFAULT_TISSUE  # noqa: E402

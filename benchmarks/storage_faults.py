@@ -5,7 +5,7 @@ Usage::
     python benchmarks/storage_faults.py [--trials 100] [--seed 0]
     sudo python benchmarks/storage_faults.py --tmpfs --trials 20   # also a real full disk
 
-Part 1 (no root needed): the test suite's writer child (tests/_writer_child.py) runs
+Part 1 (no root needed): the test suite's writer child (tests/formats/_writer_child.py) runs
 under a random file-size limit (RLIMIT_FSIZE, SIGXFSZ ignored: writes past it fail
 with EFBIG), either as shipped ("guarded": room is checked before every flush) or
 with the checks turned off ("unguarded": HDF5 itself runs into the limit, which
@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "formats"))
 
 from _writer_child import expected_rows  # noqa: E402
 
@@ -50,7 +50,7 @@ from tissuecli.core.errors import TissueError  # noqa: E402
 from tissuecli.core.session import Session  # noqa: E402
 from tissuecli.formats.sessions import read_session, write_session  # noqa: E402
 
-CHILD = ROOT / "tests" / "_writer_child.py"
+CHILD = ROOT / "tests" / "formats" / "_writer_child.py"
 
 
 def one_line(stderr: str) -> str | None:

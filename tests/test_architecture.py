@@ -78,3 +78,23 @@ def test_commands_load_only_what_they_use(code: str, absent: tuple[str, ...]) ->
         [sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True
     ).stdout.split()
     assert out == [], f"{code} loaded {out}"
+
+
+#: test modules about the project as a whole rather than one subpackage
+CROSS_CUTTING = {"test_architecture.py", "test_bench.py", "test_docs.py", "test_reliability.py"}
+
+
+def test_tests_mirror_the_package() -> None:
+    """A subpackage's tests live in the folder of the same name under tests/; only the
+    whole-project checks stay at the top."""
+    subpackages = {p.parent.name for p in (ROOT / "tissuecli").glob("*/__init__.py")}
+    misplaced = []
+    for path in (ROOT / "tests").rglob("test_*.py"):
+        where = path.relative_to(ROOT / "tests").parts
+        if len(where) == 1 and where[0] in CROSS_CUTTING:
+            continue
+        if len(where) != 2 or where[0] not in subpackages:
+            misplaced.append(str(path.relative_to(ROOT)))
+    assert not misplaced, f"tests outside tests/<subpackage>/: {misplaced}"
+    folders = {p.name for p in (ROOT / "tests").iterdir() if p.is_dir() and p.name[0] not in "._"}
+    assert folders <= subpackages, f"test folders with no subpackage: {folders - subpackages}"

@@ -6,7 +6,7 @@ import json
 
 from tissuecli import formats
 
-from .conftest import tissuecli
+from ..conftest import tissuecli
 
 
 def test_demo_runs_every_step_and_keeps_its_files(tmp_path):

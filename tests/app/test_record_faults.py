@@ -1,6 +1,6 @@
 """record against a device that cannot be trusted, over a real pseudo-terminal.
 
-A scripted forceps (tests/fakedevice.py) answers IDENTIFY with any Info and streams
+A scripted forceps (tests/app/fakedevice.py) answers IDENTIFY with any Info and streams
 valid-CRC frames whose content is absurd: random stamps, clock jumps and steps,
 backwards clocks, sequence restarts, gaps, repeats, garbage between frames. Every
 outcome must be a clean one-line error or a saved session with strictly increasing
@@ -30,7 +30,7 @@ from tissuecli.core.errors import DeviceError, DeviceLost, InputError, TissueErr
 from tissuecli.hw.link import check_identity, check_info
 from tissuecli.hw.realtime import StopFlag
 
-from .conftest import assert_clean_error, popen
+from ..conftest import assert_clean_error, popen
 from .fakedevice import CLOCK_HZ, RATE_HZ, TICKS, FakeForceps, good_info, sample_frames
 
 M32 = 0xFFFFFFFF
@@ -64,7 +64,7 @@ def record_from(
 
 def offline(seqs: list[int], clocks: list[int], limit: float) -> tuple[TimeBase[int], np.ndarray]:
     """What the time base decides on the same frames in one go, and the ticks it keeps
-    (decisions do not depend on how the stream is cut, tests/test_clock.py)."""
+    (decisions do not depend on how the stream is cut, tests/core/test_clock.py)."""
     tb: TimeBase[int] = TimeBase(CLOCK_HZ / RATE_HZ, limit_ticks=limit)
     out = tb.feed([(s, c, i, 0.0) for i, (s, c) in enumerate(zip(seqs, clocks, strict=True))])
     if not tb.done:

@@ -21,9 +21,9 @@ from tissuecli.core.errors import InputError
 from tissuecli.live.server import ASSETS, LiveServer, load_asset, parse_address
 from tissuecli.live.state import LOOP_S, TRACE_POINTS, TRACE_S, LiveState
 
-from .conftest import assert_clean_error, popen, tissuecli
+from ..conftest import assert_clean_error, popen, tissuecli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 STATUS_KEYS = {"elapsed_s", "samples", "rate_hz", "bad_frames", "lost_frames", "file_bytes"}
 TOP_KEYS = {
     "schema",

@@ -19,7 +19,7 @@ from tissuecli.identify import fit_session
 from tissuecli.identify.predict import predict_band
 from tissuecli.sim.synth import random_session
 
-from .conftest import assert_clean_error
+from ..conftest import assert_clean_error
 
 SLS = Tissue(Law.of(["x", "maxwell", "xdot", "xddot"]).bind({"tau1": 0.5}), 300.0, 200.0, 2.0, 0.05)
 

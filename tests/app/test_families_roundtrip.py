@@ -25,7 +25,7 @@ from tissuecli.render.law import Branch, split_law
 from tissuecli.sim.finger import OperatorForce
 from tissuecli.sim.synth import CLOCK_HZ, ForcepsModel, Sensors, random_session
 
-from .conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli
 
 #: A recovered parameter lies within this many posterior SDs of the truth. The posterior
 #: is Gaussian to a good approximation here, so 4 SD fails a correct fit with

@@ -20,7 +20,7 @@ from tissuecli.formats.params import tissue_to_dict
 from tissuecli.formats.sessions import write_session
 from tissuecli.sim.synth import ForcepsModel, synthesize
 
-from .conftest import assert_clean_error
+from ..conftest import assert_clean_error
 
 
 def run(*args: object):

@@ -15,7 +15,7 @@ from tissuecli.app.record import record
 from tissuecli.core.errors import DeviceError, SessionExists
 from tissuecli.sim.synth import CLOCK_HZ, ForcepsModel, Sensors
 
-from .conftest import assert_clean_error, popen, tissuecli
+from ..conftest import assert_clean_error, popen, tissuecli
 
 
 def _wait_for_rows(path: Path, rows: int, timeout: float = 10.0) -> None:

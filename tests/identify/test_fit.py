@@ -22,7 +22,7 @@ from tissuecli.identify.posterior import SufficientStats as Stats
 from tissuecli.identify.sampling import run_emcee, stepping_stone
 from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
-from .conftest import assert_clean_error
+from ..conftest import assert_clean_error
 
 TISSUES = [
     Tissue(Law.paper("x", "xdot"), 350.0, 3.0, 0.05),

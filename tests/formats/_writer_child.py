@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 # run as a script from tests/: make the package importable without installing it
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from tissuecli.core.errors import StorageError  # noqa: E402
 from tissuecli.formats import writer as _writer  # noqa: E402

@@ -36,8 +36,9 @@ from tissuecli.formats.sessions import (
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _writer_child import CALIBRATION, expected_rows  # noqa: E402
-from conftest import assert_clean_error, tissuecli  # noqa: E402
 from test_storage import assert_expected, make_session  # noqa: E402
+
+from ..conftest import assert_clean_error, tissuecli  # noqa: E402
 
 CHILD = Path(__file__).with_name("_writer_child.py")
 

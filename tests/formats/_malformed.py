@@ -1,6 +1,6 @@
 """HDF5 session files that are not what they seem, drawn by hypothesis.
 
-Shared by ``tests/test_malformed_files.py`` and ``benchmarks/malformed_files.py``. A
+Shared by ``tests/formats/test_malformed_files.py`` and ``benchmarks/malformed_files.py``. A
 drawn :class:`Spec` is written with plain h5py (never through tissuecli's writer), so
 anything HDF5 can hold can turn up: datasets of text, compound records, booleans,
 complex numbers, references, single values or two columns; missing datasets, groups or

@@ -24,8 +24,9 @@ from tissuecli.formats.sessions import list_sessions, read_session, write_sessio
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _malformed import Spec, clean, specs, write_spec  # noqa: E402
-from conftest import assert_clean_error, tissuecli  # noqa: E402
 from test_storage import make_raw, make_session  # noqa: E402
+
+from ..conftest import assert_clean_error, tissuecli  # noqa: E402
 
 SETTINGS = settings(
     max_examples=200,

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from tissuecli import formats
 from tissuecli.cli import cli
 
-from .conftest import assert_clean_error
+from ..conftest import assert_clean_error
 
 
 def run(*args: str):

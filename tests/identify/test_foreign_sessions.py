@@ -34,7 +34,7 @@ from tissuecli.sim.synth import (
     synthesize,
 )
 
-from .conftest import assert_clean_error
+from ..conftest import assert_clean_error
 
 PAPER_LAW = "x+xdot+xddot"
 RATE_333 = 1000 / 3.003  # a logger's "333 Hz"

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from tissuecli.cli import cli
 
-from .conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli
 
 
 def _commands() -> list[tuple[list[str], click.Command]]:

@@ -18,7 +18,7 @@ from tissuecli.core.timebase import regularise
 from tissuecli.core.units import STANDARD_GRAVITY, parse_quantity, parse_units
 from tissuecli.formats.recording import read_recording
 
-from .conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli
 
 N = 400
 T = np.arange(N) * 1e-3
