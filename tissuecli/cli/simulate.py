@@ -1,4 +1,5 @@
-"""``tissuecli simulate forceps|display``: simulated devices behind real serial ports."""
+"""``tissuecli simulate forceps|display|study``: simulated devices behind real serial ports,
+and a simulated tissue study written as sessions."""
 
 from __future__ import annotations
 
@@ -163,3 +164,74 @@ def simulate_display(
         f"{counters['watchdog_trips']} watchdog trips",
         err=True,
     )
+
+
+@simulate.command("study")
+@click.option(
+    "--out", required=True, type=click.Path(dir_okay=False), help="New HDF5 file to write."
+)
+@click.option(
+    "--groups",
+    type=click.IntRange(2, 4),
+    default=4,
+    show_default=True,
+    help="Tissue groups (fat, liver, kidney, tumour: 250-520 N/m).",
+)
+@click.option("--specimens", type=click.IntRange(1), default=10, show_default=True,
+              help="Specimens per group.")  # fmt: skip
+@click.option("--sessions", type=click.IntRange(1), default=10, show_default=True,
+              help="Sessions per specimen.")  # fmt: skip
+@click.option(
+    "--specimen-sd",
+    type=click.FloatRange(0),
+    default=0.1,
+    show_default=True,
+    help="SD of ln(coefficient) between specimens of a group.",
+)
+@click.option(
+    "--session-sd",
+    type=click.FloatRange(0),
+    default=0.03,
+    show_default=True,
+    help="SD of ln(coefficient) between sessions of a specimen.",
+)
+@duration_option("Length of each session in s [default: 4].")
+@seed_option("Seed of the study.")
+def simulate_study(
+    out: str,
+    groups: int,
+    specimens: int,
+    sessions: int,
+    specimen_sd: float,
+    session_sd: float,
+    duration: float | None,
+    seed: int,
+) -> None:
+    """Write a simulated tissue study: tissue groups, specimens that differ, sessions of
+    each, labelled with tissue, specimen and operator, for `fit`, `compare` and
+    `classify` to work on.
+
+    \b
+    Example:
+        tissuecli simulate study --out study.h5 --specimens 4 --sessions 3
+        tissuecli fit study.h5 --catalogue tissues.db
+    """
+    from ..app.study import write_study
+    from ..sim.study import GROUPS, StudyDesign
+
+    design = StudyDesign(
+        groups=dict(list(GROUPS.items())[:groups]),
+        specimens=specimens,
+        sessions=sessions,
+        specimen_sd=specimen_sd,
+        session_sd=session_sd,
+        duration_s=duration or 4.0,
+        seed=seed,
+    )
+
+    def show(i: int, total: int) -> None:
+        if i == total or i % 10 == 0:
+            click.echo(f"\rsimulated {i}/{total} sessions", err=True, nl=i == total)
+
+    n = write_study(out, design, progress=show)
+    click.echo(f"{n} sessions of {groups} tissues x {specimens} specimens written to {out}")

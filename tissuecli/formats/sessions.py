@@ -116,6 +116,8 @@ ATTR_KINDS = {
     "rate_hz": "number",
     "clock_hz": "number",
     "tissue": "text",
+    "specimen": "text",
+    "operator": "text",
     "note": "text",
     "source": "text",
     "start_utc": "text",
