@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
+from typing import Any
 
 import click
 
 from .base import cli
+from .batch import batch_options, run_batch
 from .options import (
-    file_argument,
     force_option,
     reading,
     recording_options,
@@ -45,8 +46,8 @@ def _grasps(text: str) -> str | list[int]:
 
 
 @cli.command()
-@file_argument()
-@session_option("Session to fit [default: the only one].")
+@click.argument("files", nargs=-1, required=True, type=click.Path())
+@session_option("Session to fit [default: every session of the file].")
 @recording_options()
 @click.option(
     "--out",
@@ -123,8 +124,9 @@ def _grasps(text: str) -> str | list[int]:
 @click.option("--end", type=float, default=None, help="Fit up to this time, s.")
 @seed_option("Seed of the sampler.")
 @force_option()
+@batch_options()
 def fit(
-    file: str,
+    files: tuple[str, ...],
     session: str | None,
     columns: str | None,
     units: str | None,
@@ -144,12 +146,22 @@ def fit(
     end: float | None,
     seed: int,
     force: bool,
+    catalogue: str | None,
+    manifest: str | None,
+    jobs: int | None,
+    scheduler: str | None,
+    on_error: str | None,
+    refit: bool,
 ) -> None:
     """Identify the tissue law K f0(x) + S f1(xdot) + M xddot = F (and laws beyond it:
     offset, friction) from a session, choosing among the candidate laws by evidence.
 
-    FILE is a tissuecli HDF5 file, or any recording `import` reads (text table,
-    .mat, .npz), read on the fly with --columns, --units, --jaw-length and --rate.
+    FILES are tissuecli HDF5 files, or any recording `import` reads (text table,
+    .mat, .npz), read on the fly with --columns, --units, --jaw-length and --rate;
+    folders and patterns ('data/**/*.h5') name every file in them. Several
+    sessions are fitted in parallel (--jobs, or --scheduler for a Dask cluster)
+    into a catalogue (--catalogue); a session already there with the same
+    settings is not fitted again.
 
     Where grasps alternate with free jaw motion, the grasps are found against the
     free-jaw force and fitted alone.
@@ -163,16 +175,11 @@ def fit(
         tissuecli fit grasp.h5 --start 12.5 --end 40
         tissuecli fit data/phantom_EF30_0T_A1.csv --forms "x+x^3+offset" \\
             --columns "time=Time (s),force=Load (N),position=Compression (mm)"
+        tissuecli fit study.h5 'more/*.h5' --catalogue tissues.db --jobs 2
     """
-    from ..app.fit import fit_file, summary_lines
+    from ..app.batch import expand_inputs
 
-    outcome = fit_file(
-        file,
-        session,
-        out=out,
-        report=report,
-        force=force,
-        reading=reading(columns, units, jaw_length, rate),
+    settings: dict[str, Any] = dict(
         grasps=_grasps(grasps),
         start_s=start,
         end_s=end,
@@ -184,6 +191,36 @@ def fit(
         window_s=window,
         force_scale=force_scale,
         seed=seed,
+    )
+    items = expand_inputs(files, session)
+    if len(items) > 1 or catalogue or manifest or jobs or scheduler:
+        if out or report:
+            raise click.UsageError(
+                "--out and --report write one fit: give one input without --catalogue, "
+                "or keep many fits in a --catalogue"
+            )
+        run_batch(
+            items,
+            catalogue=catalogue,
+            manifest=manifest,
+            jobs=jobs,
+            scheduler=scheduler,
+            on_error=on_error or "continue",
+            refit=refit,
+            reading=reading(columns, units, jaw_length, rate),
+            settings=settings,
+        )
+        return
+    from ..app.fit import fit_file, summary_lines
+
+    outcome = fit_file(
+        items[0].file,
+        items[0].session,
+        out=out,
+        report=report,
+        force=force,
+        reading=reading(columns, units, jaw_length, rate),
+        **settings,
         progress=_sampling_progress() if sys.stderr.isatty() else None,
     )
     for line in summary_lines(outcome):

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from .base import cli
+from .base import cli, end_live_line, live_line
 from .options import duration_option, link_option, profile_option, rate_option, seed_option
 
 
@@ -177,10 +177,20 @@ def simulate_display(
     show_default=True,
     help="Tissue groups (fat, liver, kidney, tumour: 250-520 N/m).",
 )
-@click.option("--specimens", type=click.IntRange(1), default=10, show_default=True,
-              help="Specimens per group.")  # fmt: skip
-@click.option("--sessions", type=click.IntRange(1), default=10, show_default=True,
-              help="Sessions per specimen.")  # fmt: skip
+@click.option(
+    "--specimens",
+    type=click.IntRange(1),
+    default=10,
+    show_default=True,
+    help="Specimens per group.",
+)
+@click.option(
+    "--sessions",
+    type=click.IntRange(1),
+    default=10,
+    show_default=True,
+    help="Sessions per specimen.",
+)
 @click.option(
     "--specimen-sd",
     type=click.FloatRange(0),
@@ -231,7 +241,8 @@ def simulate_study(
 
     def show(i: int, total: int) -> None:
         if i == total or i % 10 == 0:
-            click.echo(f"\rsimulated {i}/{total} sessions", err=True, nl=i == total)
+            live_line(f"simulated {i}/{total} sessions")
 
     n = write_study(out, design, progress=show)
+    end_live_line()
     click.echo(f"{n} sessions of {groups} tissues x {specimens} specimens written to {out}")
