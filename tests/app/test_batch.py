@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tissuecli.app.batch import Input, content_sha256, expand_inputs, fit_batch
+from tissuecli.app.batch import DaskExecutor, Input, content_sha256, expand_inputs, fit_batch
 from tissuecli.app.study import write_study
 from tissuecli.core.errors import InputError
 from tissuecli.formats.catalogue import Catalogue
@@ -141,7 +141,7 @@ def test_a_dask_cluster_gives_the_same_catalogue(study: Path, tmp_path: Path) ->
     assert _fits(tmp_path / "one.db") == _fits(tmp_path / "dask.db")
 
 
-def test_unreachable_scheduler_is_one_line(study: Path) -> None:
+def test_unreachable_scheduler_is_one_line() -> None:
     pytest.importorskip("distributed")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
-        fit_batch([str(study)], scheduler="tcp://127.0.0.1:9", **FAST)
+        DaskExecutor("tcp://127.0.0.1:9", timeout_s=1.0)

@@ -255,13 +255,13 @@ class DaskExecutor(Executor):
     """The workers of a running Dask distributed cluster (``tcp://HOST:PORT``), through
     joblib's dask backend."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, *, timeout_s: float = 20.0) -> None:
         try:
             from distributed import Client
         except ImportError:
             raise InputError("--scheduler needs Dask: pip install 'tissuecli[dask]'") from None
         try:
-            self.client = Client(address, timeout="20s", set_as_default=False)
+            self.client = Client(address, timeout=f"{timeout_s}s", set_as_default=False)
         except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
         self.address = address
