@@ -194,8 +194,10 @@ def estimates(
     return Estimates.of(values, var, groups, specimens), names, notes
 
 
-def _model(e: Estimates, scale: str) -> Hierarchy:
-    return Hierarchy(prior_sd=LOG_PRIOR_SD if scale == "log" else None).fit(e)
+def _model(e: Estimates, scale: str, prior_sd: float | None) -> Hierarchy:
+    if prior_sd is None and scale == "log":
+        prior_sd = LOG_PRIOR_SD
+    return Hierarchy(prior_sd=prior_sd).fit(e)
 
 
 # -- compare -------------------------------------------------------------------------------
@@ -209,11 +211,16 @@ def compare_catalogue(
     settings_id: str | None = None,
     quantity: str = "force:x=3mm,v=20mm/s",
     scale: str = "log",
+    prior_sd: float | None = None,
     report: str | os.PathLike[str] | None = None,
     json_out: str | os.PathLike[str] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
     """Compare the catalogue's groups (sessions labelled ``by``) on one quantity.
+
+    ``prior_sd`` is the SD of the group means' prior on the modelled scale (default:
+    :data:`LOG_PRIOR_SD` on the log scale; on the linear scale the values' own spread,
+    see :class:`~tissuecli.identify.hierarchy.Hierarchy`).
 
     Returns
     -------
@@ -232,7 +239,7 @@ def compare_catalogue(
     est, names, notes = estimates(entries, by, q, scale)
     if len(est.groups) < 2:
         raise InputError(f"only one {by} ({est.groups[0]}) among the fits: nothing to compare")
-    h = _model(est, scale)
+    h = _model(est, scale, prior_sd)
     back = math.exp if scale == "log" else (lambda u: u)
     groups = []
     for gi, g in enumerate(est.groups):
@@ -378,6 +385,7 @@ def classify_file(
     settings_id: str | None = None,
     quantities: Sequence[str] = ("force:x=3mm,v=0", "force:x=3mm,v=20mm/s"),
     scale: str = "log",
+    prior_sd: float | None = None,
 ) -> tuple[list[str], list[tuple[str, list[float]]]]:
     """Fit each session of ``path`` with the catalogue's settings and give the
     probability of each group.
@@ -406,7 +414,7 @@ def classify_file(
             raise InputError(
                 "the quantities cover different groups; choose quantities every fit has"
             )
-        models.append(_model(est, scale))
+        models.append(_model(est, scale, prior_sd))
     assert names is not None
     from ..formats.params import _finite as finite_tree
     from ..formats.params import document

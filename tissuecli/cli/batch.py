@@ -223,13 +223,26 @@ def quantity_option() -> Decorator:
 
 
 def scale_option() -> Decorator:
-    return click.option(
-        "--scale",
-        type=click.Choice(["log", "linear"]),
-        default="log",
-        show_default=True,
-        help="Model the quantity's logarithm (tissues differ by factors) or the quantity.",
-    )
+    """``--scale`` and ``--prior-sd``: the modelled scale and the group means' prior."""
+
+    def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
+        fn = click.option(
+            "--prior-sd",
+            type=click.FloatRange(min=0, min_open=True),
+            default=None,
+            help="SD of the prior of the group means, on the modelled scale: how far apart "
+            "you expect tissues to be [default: 1 on the log scale, a factor e; on the "
+            "linear scale twice the values' spread]. The Bayes factors depend on it.",
+        )(fn)
+        return click.option(
+            "--scale",
+            type=click.Choice(["log", "linear"]),
+            default="log",
+            show_default=True,
+            help="Model the quantity's logarithm (tissues differ by factors) or the quantity.",
+        )(fn)
+
+    return apply
 
 
 def selection_options() -> Decorator:
@@ -285,6 +298,7 @@ def compare(
     settings_id: str | None,
     quantity: str,
     scale: str,
+    prior_sd: float | None,
     report: str | None,
     json_out: str | None,
     force: bool,
@@ -309,6 +323,7 @@ def compare(
         settings_id=settings_id,
         quantity=quantity,
         scale=scale,
+        prior_sd=prior_sd,
         report=report,
         json_out=json_out,
         force=force,
@@ -341,6 +356,7 @@ def classify(
     settings_id: str | None,
     quantities: tuple[str, ...],
     scale: str,
+    prior_sd: float | None,
 ) -> None:
     """The probability of each tissue group for a new grasp: FILE's sessions are fitted
     with the catalogue's settings and set against the hierarchical model of the
@@ -361,6 +377,7 @@ def classify(
         settings_id=settings_id,
         quantities=quantities or ("force:x=3mm,v=0", "force:x=3mm,v=20mm/s"),
         scale=scale,
+        prior_sd=prior_sd,
     )
     width = max([len("session"), *(len(r[0]) for r in rows)])
     click.echo(
