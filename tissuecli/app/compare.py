@@ -383,7 +383,7 @@ def classify_file(
     by: str = "tissue",
     where: Iterable[str] = (),
     settings_id: str | None = None,
-    quantities: Sequence[str] = ("force:x=3mm,v=0", "force:x=3mm,v=20mm/s"),
+    quantities: Sequence[str] = ("force:x=3mm,v=20mm/s",),
     scale: str = "log",
     prior_sd: float | None = None,
 ) -> tuple[list[str], list[tuple[str, list[float]]]]:

@@ -343,8 +343,9 @@ def compare(
     "--quantity",
     "quantities",
     multiple=True,
-    help="Quantities to classify by, as compare's --quantity (repeatable) "
-    "[default: force:x=3mm,v=0 and force:x=3mm,v=20mm/s].",
+    help="Quantities to classify by, as compare's --quantity (repeatable; taken as "
+    "independent given the tissue, so give ones that vary independently, e.g. K and S) "
+    "[default: force:x=3mm,v=20mm/s].",
 )
 @scale_option()
 def classify(
@@ -375,7 +376,7 @@ def classify(
         by=by,
         where=where,
         settings_id=settings_id,
-        quantities=quantities or ("force:x=3mm,v=0", "force:x=3mm,v=20mm/s"),
+        quantities=quantities or ("force:x=3mm,v=20mm/s",),
         scale=scale,
         prior_sd=prior_sd,
     )
