@@ -657,7 +657,8 @@ def test_bound_to_every_interface_ip_literals_pass_and_foreign_names_do_not():
     from tissuecli.live.server import allowed_host
 
     bound = ("0.0.0.0", "0.0.0.0")
-    assert allowed_host("192.168.1.5:8050", bound) and allowed_host(f"{socket.gethostname()}:1", bound)
+    assert allowed_host("192.168.1.5:8050", bound)
+    assert allowed_host(f"{socket.gethostname()}:1", bound)
     assert not allowed_host("rebind.attacker.example:8050", bound)
 
 
@@ -724,7 +725,7 @@ def test_a_flood_of_requests_and_half_open_connections_keeps_the_recording_lossl
         host, port = parse_address(url.removeprefix("http://").rstrip("/"))
         while not _state(url)["samples_seen"]:
             time.sleep(0.05)
-        for k in range(200):
+        for _ in range(200):
             try:
                 sock = socket.create_connection((host, port), timeout=2)
                 sock.sendall(b"GET /api/st")  # half a request, never finished
