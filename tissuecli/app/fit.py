@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from ..core.progress import as_progress
 from ..formats.atomic import write_text_atomic
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import write_params
@@ -55,14 +56,20 @@ def fit_file(
         [path],
         force=force,
     )
-    data, read = load_session(path, session, **(reading or {}))
-    if read is not None:
-        data.meta["import_report"] = read.lines()
-    outcome = fit_session(data, **options)
-    if out is not None:
-        write_params(out, outcome)
-    if report is not None:
-        write_report(report, outcome)
+    progress = as_progress(options.get("progress"))
+    try:
+        progress.stage(f"reading {os.fspath(path)}")
+        data, read = load_session(path, session, **(reading or {}))
+        if read is not None:
+            data.meta["import_report"] = read.lines()
+        outcome = fit_session(data, **options)
+        if out is not None:
+            write_params(out, outcome)
+        if report is not None:
+            progress.stage("writing the report")
+            write_report(report, outcome)
+    finally:
+        progress.close()
     return outcome
 
 

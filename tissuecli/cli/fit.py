@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-from collections.abc import Callable
-
 import click
 
 from .base import cli
@@ -16,22 +13,6 @@ from .options import (
     seed_option,
     session_option,
 )
-
-
-def _sampling_progress() -> Callable[[str, int, float], None]:
-    """A progress line while emcee runs: form, steps, and steps needed (50 tau)."""
-
-    def show(form: str, steps: int, tau: float) -> None:
-        need = max(1000, int(50 * tau))
-        done = min(1.0, steps / need)
-        bar = "#" * int(20 * done) + "-" * (20 - int(20 * done))
-        click.echo(
-            f"\rsampling {form:<28} [{bar}] {steps:>6} steps (need ~{need})",
-            err=True,
-            nl=done >= 1.0,
-        )
-
-    return show
 
 
 def _grasps(text: str) -> str | list[int]:
@@ -165,6 +146,7 @@ def fit(
             --columns "time=Time (s),force=Load (N),position=Compression (mm)"
     """
     from ..app.fit import fit_file, summary_lines
+    from .progress import TerminalProgress
 
     outcome = fit_file(
         file,
@@ -184,7 +166,7 @@ def fit(
         window_s=window,
         force_scale=force_scale,
         seed=seed,
-        progress=_sampling_progress() if sys.stderr.isatty() else None,
+        progress=TerminalProgress.for_terminal(),
     )
     for line in summary_lines(outcome):
         click.echo(line)

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import FitError
+from ..core.progress import Progress, as_progress
 from ..core.session import Session
 from .bayes import BayesianFit
 from .contact import Contact
@@ -191,7 +192,7 @@ def fit_session(
     start_s: float | None = None,
     end_s: float | None = None,
     hold_out: float = 0.0,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Progress | Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
     """Identify the tissue in a session.
 
@@ -221,8 +222,9 @@ def fit_session(
     hold_out : float
         Fraction of the (windowed) session, at its end, kept out of the fit and
         predicted to score it (:class:`HeldOut`); 0 holds nothing out.
-    progress : callable, optional
-        ``progress(form, steps, tau)`` while sampling.
+    progress : Progress or callable, optional
+        Told each stage (see :class:`~tissuecli.core.progress.Progress`); a bare
+        callable is called ``progress(form, steps, tau)`` while sampling.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose bayes, pinv or both")
@@ -249,6 +251,7 @@ def fit_session(
             progress=progress,
         ).fit(part)
     if method in ("pinv", "both"):
+        as_progress(progress).stage("windowed pseudoinverse")
         pinv_forms = (
             forms if forms != "all" else (est.best_.model.name if est is not None else "x,xdot")
         )
@@ -257,5 +260,7 @@ def fit_session(
         ).fit(part)
     fitted = est if est is not None else pinv
     assert fitted is not None
+    if rest is not None:
+        as_progress(progress).stage("scoring the held-out part")
     validation = held_out(fitted, rest, float(rest.time[0])) if rest is not None else None
     return FitOutcome(session, est, pinv, grasps, validation)
