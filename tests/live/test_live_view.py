@@ -21,6 +21,7 @@ from tissuecli.core.errors import InputError
 from tissuecli.live.server import ASSETS, LiveServer, load_asset, parse_address
 from tissuecli.live.state import LOOP_S, TRACE_POINTS, TRACE_S, LiveState
 
+from ..browser import Browser as _Browser
 from ..conftest import assert_clean_error, popen, tissuecli
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -452,66 +453,6 @@ def test_record_refuses_a_bad_live_address_in_one_line(tmp_path, live):
 
 
 # -- a real browser ----------------------------------------------------------------------
-
-
-class _Browser:
-    """Headless Chromium driven over the DevTools protocol (a websocket, JSON messages)."""
-
-    def __init__(self, profile: Path, width: int = 1280, height: int = 900) -> None:
-        import re
-        import shutil
-        import subprocess
-
-        import websocket  # the test extra websocket-client
-
-        exe = shutil.which("chromium") or shutil.which("chromium-browser")
-        if exe is None:
-            pytest.fail("the browser test needs Chromium: apt-get install -y chromium")
-        self.proc = subprocess.Popen(
-            [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-             "--remote-debugging-port=0", f"--user-data-dir={profile}",
-             f"--window-size={width},{height}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
-            if found:
-                break
-        else:
-            raise AssertionError("Chromium did not start its DevTools endpoint")
-        port = found.group(1)
-        targets = json.loads(_get(f"http://127.0.0.1:{port}/json/list"))
-        page = next(t for t in targets if t["type"] == "page")
-        self.ws = websocket.create_connection(
-            page["webSocketDebuggerUrl"], timeout=30, suppress_origin=True
-        )
-        self.next_id = 0
-        self.events: list[dict] = []
-        for domain in ("Runtime", "Log", "Network", "Page"):
-            self.call(f"{domain}.enable")
-
-    def call(self, method: str, **params: object) -> dict:
-        self.next_id += 1
-        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv())
-            if msg.get("id") == self.next_id:
-                assert "error" not in msg, msg
-                return msg.get("result", {})
-            self.events.append(msg)
-
-    def evaluate(self, expression: str) -> object:
-        result = self.call(
-            "Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True
-        )
-        assert "exceptionDetails" not in result, result
-        return result["result"].get("value")
-
-    def close(self) -> None:
-        self.ws.close()
-        self.proc.terminate()
-        self.proc.wait(timeout=10)
 
 
 #: what the page shows, read from its elements: status values and the estimate's rows

@@ -53,8 +53,10 @@ def _grasps(text: str) -> str | list[int]:
     "--forms",
     default="all",
     show_default=True,
-    help="Candidate laws: 'all' (x or x^3 with xdot or xdot|xdot|, each with and without a "
-    "force offset), 'paper' (the paper's four), or one law: x,xdot or terms joined by +, "
+    help="Candidate laws: 'all' (the 24 linear laws: x, x^3 or both, with xdot or "
+    "xdot|xdot|, with or without dry friction and a force offset, all with xddot; then a "
+    "search adding contact and relaxation branches: about 30 laws), 'linear' (the 24), "
+    "'paper' (the paper's four), or one law: x,xdot or terms joined by +, "
     "e.g. x+x^3+xdot+sign(xdot)+offset.",
 )
 @click.option(

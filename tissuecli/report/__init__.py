@@ -35,6 +35,7 @@ from .sections import (
     CSS,
     comparison,
     diagnostics,
+    folded,
     header,
     how_to_read,
     matching,
@@ -43,6 +44,7 @@ from .sections import (
     pinv_info,
     pinv_table,
     provenance,
+    session_table,
     warnings_box,
 )
 
@@ -74,12 +76,23 @@ def render_report(outcome: FitOutcome) -> str:
             f"<p>Only the form {esc(pinv.model_.name)} was fitted, by the windowed "
             "pseudoinverse, so there is no comparison between forms.</p>" + pinv_info(pinv)
         )
+    # what a reader needs first (the law, its parameters, the plots) is open; the
+    # rest is one click away, folded, so that the page reads in a minute
     sections = [
         ("parameters", "Parameters", params + warnings_box(outcome)),
+        ("plots", "Plots", '<div class="plots">' + "".join(_plots(outcome, s)) + "</div>"),
         ("comparison", "Model comparison", compare),
-        ("plots", "Plots", "".join(_plots(outcome, s))),
-        ("diagnostics", "Diagnostics", diagnostics(outcome)),
-        ("reading", "How to read this report", how_to_read(outcome)),
+        (
+            "diagnostics",
+            "Session and diagnostics",
+            folded("The session, the filter, the grasps and the sampler",
+                   session_table(outcome, s) + diagnostics(outcome)),
+        ),  # fmt: skip
+        (
+            "reading",
+            "How to read this report",
+            folded("What each part means", how_to_read(outcome)),
+        ),
     ]
     nav = " · ".join(f'<a href="#{a}">{esc(t)}</a>' for a, t, _ in sections)
     parts = [header(outcome, s), f'<p class="small">Contents: {nav}</p>']
@@ -196,7 +209,7 @@ def _plots(outcome: FitOutcome, s: Series) -> list[str]:
     for k, (fig, anchor, title, alt, caption) in enumerate(figs):
         parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
         if anchor == "plot-windows" and est is not None:
-            parts.append(pinv_table(pinv, est))  # type: ignore[arg-type]
+            parts.append(f'<div class="span">{pinv_table(pinv, est)}</div>')  # type: ignore[arg-type]
     return parts
 
 
