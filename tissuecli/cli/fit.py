@@ -42,6 +42,27 @@ def _grasps(text: str) -> str | list[int]:
     help="Write a self-contained HTML report with plots.",
 )
 @click.option(
+    "--draws",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the chosen law's posterior draws (CSV, one column per parameter with its "
+    "unit; pandas and ArviZ read it) and the structure probabilities beside it "
+    "(FILE's stem + .structures.csv).",
+)
+@click.option(
+    "--plots",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Write the report's plots as files into this directory (created if missing).",
+)
+@click.option(
+    "--plot-format",
+    type=click.Choice(["png", "svg", "pdf"]),
+    default=None,
+    help="Format of the plot files [default: png]; without --plots, they go beside "
+    "--report, in REPORT's stem + _plots.",
+)
+@click.option(
     "--method",
     type=click.Choice(["bayes", "pinv", "both"]),
     default="bayes",
@@ -115,6 +136,9 @@ def fit(
     rate: float | None,
     out: str | None,
     report: str | None,
+    draws: str | None,
+    plots: str | None,
+    plot_format: str | None,
     method: str,
     forms: str,
     sampler: str,
@@ -144,17 +168,25 @@ def fit(
         tissuecli fit grasp.h5 --forms x,xdot         # one law, no model choice
         tissuecli fit grasp.h5 --grasps 2,3 --hold-out 0.3
         tissuecli fit grasp.h5 --start 12.5 --end 40
+        tissuecli fit grasp.h5 --draws draws.csv --report r.html --plot-format svg
         tissuecli fit data/phantom_EF30_0T_A1.csv --forms "x+x^3+offset" \\
             --columns "time=Time (s),force=Load (N),position=Compression (mm)"
     """
-    from ..app.fit import fit_file, summary_lines
+    from ..app.fit import fit_file, plots_beside, summary_lines
     from .progress import TerminalProgress
 
+    if plot_format is not None and plots is None:
+        if report is None:
+            raise click.UsageError("--plot-format needs --plots DIR or --report FILE")
+        plots = plots_beside(report)
     outcome = fit_file(
         file,
         session,
         out=out,
         report=report,
+        draws=draws,
+        plots=plots,
+        plot_format=plot_format or "png",
         force=force,
         reading=reading(columns, units, jaw_length, rate),
         grasps=_grasps(grasps),
@@ -172,6 +204,11 @@ def fit(
     )
     for line in summary_lines(outcome):
         click.echo(line)
-    for path, what in ((out, "parameters"), (report, "report")):
+    if draws:
+        from ..formats.draws import structures_path
+
+        click.echo(f"posterior draws written to {draws}, structure probabilities to "
+                   f"{structures_path(draws)}")  # fmt: skip
+    for path, what in ((out, "parameters"), (report, "report"), (plots, "plots")):
         if path:
             click.echo(f"{what} written to {path}")

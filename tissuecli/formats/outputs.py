@@ -98,6 +98,43 @@ def check_outputs(
             )
 
 
+def check_directory_outputs(
+    directory: StrPath, names: Sequence[str], option: str, *, force: bool = False
+) -> None:
+    """Refuse, before any work, a directory of outputs that cannot take ``names``: it
+    is a file, its parent is missing or not writable, or one of the names in it exists
+    (without ``force``) or is not a regular file.
+
+    Raises
+    ------
+    InputError
+    """
+    path = Path(directory)
+    if path.exists() or path.is_symlink():
+        if not path.is_dir():
+            raise InputError(f"{option} {path} is not a directory; give a directory path")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise InputError(f"cannot write {option} {path}: the directory is not writable")
+        for name in names:
+            inside = path / name
+            _refuse_special(inside, option)
+            if inside.is_dir():
+                raise InputError(f"{option}: {inside} is a directory; remove it or choose another")
+            if (inside.exists() or inside.is_symlink()) and not force:
+                raise InputError(
+                    f"{option}: {inside} exists; choose another directory, or pass --force "
+                    "to replace it"
+                )
+        return
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(
+            f"cannot write {option} {path}: directory {parent} does not exist; create it first"
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write {option} {path}: directory {parent} is not writable")
+
+
 _KINDS = (
     (stat.S_ISFIFO, "a named pipe (FIFO)"),
     (stat.S_ISCHR, "a character device"),

@@ -48,7 +48,15 @@ from .sections import (
     warnings_box,
 )
 
-__all__ = ["render_report"]
+__all__ = ["PLOT_FORMATS", "PLOT_NAMES", "plot_files", "render_report"]
+
+#: formats the plots are exported in (``fit --plot-format``)
+PLOT_FORMATS = ("png", "svg", "pdf")
+#: every plot a report may have, by file name (without extension), in report order
+PLOT_NAMES = (
+    "plot-time", "plot-loop", "plot-residuals", "plot-residual-map", "plot-elastic",
+    "plot-relaxation", "plot-corner", "plot-windows",
+)  # fmt: skip
 
 
 def render_report(outcome: FitOutcome) -> str:
@@ -109,11 +117,41 @@ def render_report(outcome: FitOutcome) -> str:
     )
 
 
+def plot_files(outcome: FitOutcome, fmt: str = "png") -> dict[str, bytes]:
+    """The report's plots as files: name (``plot-time.png``, ...) -> bytes, in ``fmt``
+    (one of :data:`PLOT_FORMATS`), at the report's resolution for PNG."""
+    import io
+
+    from .figures import DPI
+
+    if fmt not in PLOT_FORMATS:
+        raise ValueError(f"plot format {fmt!r}: choose one of {', '.join(PLOT_FORMATS)}")
+    files = {}
+    for fig, anchor, *_ in _figures(outcome, series(outcome), [])[0]:
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=DPI)
+        files[f"{anchor}.{fmt}"] = buf.getvalue()
+    return files
+
+
 def _plots(outcome: FitOutcome, s: Series) -> list[str]:
     """The figures, lettered in order, each with what to look for; the pseudoinverse's
     table follows its figure."""
+    figs, parts = _figures(outcome, s, [])
     est, pinv = outcome.bayes, outcome.pinv
-    parts: list[str] = []
+    for k, (fig, anchor, title, alt, caption) in enumerate(figs):
+        parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
+        if anchor == "plot-windows" and est is not None:
+            parts.append(f'<div class="span">{pinv_table(pinv, est)}</div>')  # type: ignore[arg-type]
+    return parts
+
+
+def _figures(
+    outcome: FitOutcome, s: Series, parts: list[str]
+) -> tuple[list[tuple[Figure, str, str, str, str]], list[str]]:
+    """The figures (figure, anchor, title, alt text, caption), in order; ``parts`` gains
+    a note where a figure cannot be drawn."""
+    est, pinv = outcome.bayes, outcome.pinv
     figs = [
         (
             time_figure(s),
@@ -206,11 +244,7 @@ def _plots(outcome: FitOutcome, s: Series) -> list[str]:
                 ),
             )
         )
-    for k, (fig, anchor, title, alt, caption) in enumerate(figs):
-        parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
-        if anchor == "plot-windows" and est is not None:
-            parts.append(f'<div class="span">{pinv_table(pinv, est)}</div>')  # type: ignore[arg-type]
-    return parts
+    return figs, parts
 
 
 def _residual_caption(s: Series) -> str:
