@@ -183,3 +183,47 @@ def test_outputs_never_destroy_a_file(files, name: str, relation: str, force: bo
             assert after[other] == before[other]
         if result.exit_code != 0:
             assert_clean_error(result)
+
+
+#: outputs that gain a group (appended to): they too must be regular files
+APPENDING = {
+    "record --out": ("record", "--port", "/nonexistent/port", "--out", "OUT"),
+    "import --out": ("import", "{csv}", "--out", "OUT"),
+    "play --log": ("play", "{params}", "--port", "/nonexistent/port", "--log", "OUT"),
+}
+
+
+def _special(kind: str, path: Path) -> str:
+    """Make `path` a FIFO or a dangling link; the words the refusal must use."""
+    if kind == "fifo":
+        os.mkfifo(path)
+        return "is a named pipe (FIFO), not a regular file"
+    os.symlink(path.parent / "nowhere" / "file", path)
+    return "is a symbolic link to"
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dangling"])
+@pytest.mark.parametrize("name", [*COMMANDS, *APPENDING])
+def test_a_fifo_or_a_dangling_link_is_refused_in_one_line_before_work(
+    name: str, kind: str, files, tmp_path: Path
+) -> None:
+    """Without this, writing to a FIFO waits for a reader forever and a dangling link
+    creates the file wherever it points; either is refused at once, --force or not."""
+    from ..conftest import tissuecli
+
+    h5, params = files
+    csv = tmp_path / "in.csv"
+    csv.write_text("time,force,position\n0,0,0\n0.001,0.1,0.0001\n")
+    out = tmp_path / "out"
+    words = _special(kind, out)
+    argv = COMMANDS.get(name) or APPENDING[name]
+    argv = [str(out) if a == "OUT" else a.format(h5=h5, params=params, csv=csv) for a in argv]
+    result = tissuecli(*argv, *(["--force"] if name in COMMANDS else []), timeout=30)
+    assert_clean_error(result, words)
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_a_device_is_refused_as_an_output(files) -> None:
+    _, params = files
+    result = run("play", params, "--check", "--summary", "/dev/null", "--force")
+    assert_clean_error(result, "/dev/null is a character device, not a regular file")

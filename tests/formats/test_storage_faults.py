@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -292,8 +293,14 @@ def test_a_writer_stops_when_free_space_runs_low(
     w = session_writer(path, "crash", meta={}, calibration=CALIBRATION, flush_interval_s=0)
     w.append(expected_rows(0, 100))
     _free(monkeypatch, 1_000_000)
-    with pytest.raises(StorageError, match="disk full; the 100 rows"):
+    with pytest.raises(StorageError) as err:
         w.append(expected_rows(100, 5000))
+    # the free space, the need and the rule behind it, then what was kept
+    assert re.search(
+        r"disk full \(1\.0 MB free; the next write needs 1\.[0-9] MB: its data plus 1\.0 MB "
+        r"kept in reserve so that the file closes intact\); the 100 rows",
+        str(err.value),
+    ), err.value
     assert len(read_session(path)) == 100
 
 

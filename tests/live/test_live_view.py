@@ -21,6 +21,7 @@ from tissuecli.core.errors import InputError
 from tissuecli.live.server import ASSETS, LiveServer, load_asset, parse_address
 from tissuecli.live.state import LOOP_S, TRACE_POINTS, TRACE_S, LiveState
 
+from ..browser import Browser as _Browser
 from ..conftest import assert_clean_error, popen, tissuecli
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -257,9 +258,9 @@ def test_a_stalled_or_vanished_client_does_not_block_the_others(served):
     mute = socket.socket()
     mute.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
     mute.connect((host, port))
-    mute.sendall(b"GET /api/state HTTP/1.1\r\nHost: x\r\n\r\n" * 200)
+    mute.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n" * 200)
     gone = socket.create_connection((host, port))
-    gone.sendall(b"GET /api/state HTTP/1.1\r\nHost: x\r\n\r\n")
+    gone.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
     gone.close()
     feeding = threading.Event()
 
@@ -454,66 +455,6 @@ def test_record_refuses_a_bad_live_address_in_one_line(tmp_path, live):
 # -- a real browser ----------------------------------------------------------------------
 
 
-class _Browser:
-    """Headless Chromium driven over the DevTools protocol (a websocket, JSON messages)."""
-
-    def __init__(self, profile: Path, width: int = 1280, height: int = 900) -> None:
-        import re
-        import shutil
-        import subprocess
-
-        import websocket  # the test extra websocket-client
-
-        exe = shutil.which("chromium") or shutil.which("chromium-browser")
-        if exe is None:
-            pytest.fail("the browser test needs Chromium: apt-get install -y chromium")
-        self.proc = subprocess.Popen(
-            [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-             "--remote-debugging-port=0", f"--user-data-dir={profile}",
-             f"--window-size={width},{height}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            found = re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line)
-            if found:
-                break
-        else:
-            raise AssertionError("Chromium did not start its DevTools endpoint")
-        port = found.group(1)
-        targets = json.loads(_get(f"http://127.0.0.1:{port}/json/list"))
-        page = next(t for t in targets if t["type"] == "page")
-        self.ws = websocket.create_connection(
-            page["webSocketDebuggerUrl"], timeout=30, suppress_origin=True
-        )
-        self.next_id = 0
-        self.events: list[dict] = []
-        for domain in ("Runtime", "Log", "Network", "Page"):
-            self.call(f"{domain}.enable")
-
-    def call(self, method: str, **params: object) -> dict:
-        self.next_id += 1
-        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv())
-            if msg.get("id") == self.next_id:
-                assert "error" not in msg, msg
-                return msg.get("result", {})
-            self.events.append(msg)
-
-    def evaluate(self, expression: str) -> object:
-        result = self.call(
-            "Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True
-        )
-        assert "exceptionDetails" not in result, result
-        return result["result"].get("value")
-
-    def close(self) -> None:
-        self.ws.close()
-        self.proc.terminate()
-        self.proc.wait(timeout=10)
-
-
 #: what the page shows, read from its elements: status values and the estimate's rows
 _READ_PAGE = """JSON.stringify({
   state: liveView.state, updatesPerS: liveView.updatesPerS, latencyMs: liveView.latencyMs,
@@ -613,3 +554,162 @@ def test_a_real_browser_shows_the_recording_as_api_state_does(forceps, tmp_path)
     if os.environ.get("TISSUECLI_SCREENSHOT") != "1":
         target = tmp_path / target.name
     target.write_bytes(png)
+
+
+# -- who may ask, and how many at once ---------------------------------------------------
+
+
+def _raw(host: str, port: int, request: bytes, timeout: float = 5.0) -> bytes:
+    """One request on a connection of its own; the whole answer until the server closes
+    or the first response's body is complete."""
+    with socket.create_connection((host, port), timeout=timeout) as sock:
+        sock.sendall(request)
+        data = b""
+        while True:
+            head, sep, body = data.partition(b"\r\n\r\n")
+            if sep:
+                length = [
+                    int(line.split(b":")[1]) for line in head.split(b"\r\n")
+                    if line.lower().startswith(b"content-length:")
+                ]  # fmt: skip
+                if length and len(body) >= length[0]:
+                    return data
+            chunk = sock.recv(65536)
+            if not chunk:
+                return data
+            data += chunk
+
+
+@pytest.mark.parametrize(
+    ("header", "allowed"),
+    [
+        ("127.0.0.1:8050", True), ("localhost:8050", True), ("[::1]:8050", True),
+        ("LOCALHOST", True), (None, True), ("attacker.example:8050", False),
+        ("127.0.0.1.attacker.example", False), ("192.168.1.5:8050", False), ("", False),
+    ],
+)  # fmt: skip
+def test_the_host_allow_list_on_loopback(header, allowed):
+    from tissuecli.live.server import allowed_host
+
+    assert allowed_host(header, ("127.0.0.1", "127.0.0.1")) is allowed
+
+
+def test_bound_to_every_interface_ip_literals_pass_and_foreign_names_do_not():
+    from tissuecli.live.server import allowed_host
+
+    bound = ("0.0.0.0", "0.0.0.0")
+    assert allowed_host("192.168.1.5:8050", bound)
+    assert allowed_host(f"{socket.gethostname()}:1", bound)
+    assert not allowed_host("rebind.attacker.example:8050", bound)
+
+
+@pytest.mark.parametrize("host", ["attacker.example", "attacker.example:80", "10.0.0.9"])
+def test_a_foreign_host_header_is_refused_with_403(served, host):
+    state, url = served
+    h, port = parse_address(url.removeprefix("http://").rstrip("/"))
+    answer = _raw(h, port, f"GET /api/state HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+    assert answer.startswith(b"HTTP/1.1 403"), answer[:80]
+    assert b'"session"' not in answer  # nothing of the recording
+    ok = _raw(h, port, f"GET /api/state HTTP/1.1\r\nHost: {h}:{port}\r\n\r\n".encode())
+    assert ok.startswith(b"HTTP/1.1 200") and b'"session": "bench"' in ok.replace(b'":"', b'": "')
+
+
+def test_a_server_beyond_loopback_warns_and_loopback_does_not():
+    from tissuecli.live.server import exposure_warning
+
+    assert exposure_warning("http://127.0.0.1:8050/") is None
+    assert exposure_warning("http://[::1]:8050/") is None
+    assert exposure_warning("http://localhost:8050/") is None
+    assert "without authentication" in exposure_warning("http://0.0.0.0:8050/")
+    assert "192.168.1.5" in exposure_warning("http://192.168.1.5:8050/")
+
+
+def test_connections_beyond_the_cap_get_503_with_retry_after_and_the_page_recovers(served):
+    from tissuecli.live.server import MAX_CONNECTIONS, RETRY_AFTER_S
+
+    state, url = served
+    host, port = parse_address(url.removeprefix("http://").rstrip("/"))
+    idle = [socket.create_connection((host, port)) for _ in range(MAX_CONNECTIONS)]
+    try:
+        time.sleep(0.3)  # accepted: each holds a thread waiting for its request
+        answer = _raw(host, port, b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert answer.startswith(b"HTTP/1.1 503"), answer[:80]
+        assert f"Retry-After: {RETRY_AFTER_S}".encode() in answer
+    finally:
+        for sock in idle:
+            sock.close()
+    deadline = time.monotonic() + 10
+    while True:  # the closed connections free their threads
+        try:
+            assert _state(url)["session"] == "bench"
+            break
+        except urllib.error.HTTPError as err:
+            assert err.code == 503 and time.monotonic() < deadline
+            time.sleep(0.1)
+
+
+def test_a_flood_of_requests_and_half_open_connections_keeps_the_recording_lossless(
+    forceps, tmp_path
+):
+    """Recording at 1 kHz with the view served while 200 connections are held half open
+    and 8 clients ask as fast as they can: every sample is kept, every request gets an
+    answer (200, or 503 with a Retry-After), and the page answers 200 once it ends."""
+    sim = forceps("--seed", "7")
+    out = tmp_path / "g.h5"
+    proc = popen("record", "--port", str(sim.link), "--out", str(out), "--session", "s",
+                 "--duration", "5", "--live", "--quiet")  # fmt: skip
+    held: list[socket.socket] = []
+    codes: list[bytes] = []
+    stop = threading.Event()
+    try:
+        url = _url_of(proc)
+        host, port = parse_address(url.removeprefix("http://").rstrip("/"))
+        while not _state(url)["samples_seen"]:
+            time.sleep(0.05)
+        for _ in range(200):
+            try:
+                sock = socket.create_connection((host, port), timeout=2)
+                sock.sendall(b"GET /api/st")  # half a request, never finished
+                held.append(sock)
+            except OSError:
+                break
+
+        def ask() -> None:
+            while not stop.is_set():
+                try:
+                    answer = _raw(host, port, b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                except OSError:
+                    answer = b"no answer"
+                codes.append(answer[9:12] if answer.startswith(b"HTTP/1.1") else answer)
+                if answer.startswith(b"HTTP/1.1 503"):
+                    assert b"Retry-After:" in answer
+
+        askers = [threading.Thread(target=ask) for _ in range(8)]
+        for t in askers:
+            t.start()
+        time.sleep(2.0)
+        stop.set()
+        for t in askers:
+            t.join()
+        for sock in held:
+            sock.close()
+        held.clear()
+        deadline = time.monotonic() + 8
+        while True:
+            try:
+                doc = _state(url)
+                break
+            except urllib.error.HTTPError as err:
+                assert err.code == 503 and time.monotonic() < deadline
+                time.sleep(0.1)
+        assert doc["running"] and doc["status"]["lost_frames"] == 0
+        assert proc.wait(timeout=30) == 0
+    finally:
+        stop.set()
+        for sock in held:
+            sock.close()
+        proc.kill()
+        proc.wait()
+    assert len(codes) > 20 and set(codes) <= {b"200", b"503"}, set(codes)
+    row = formats.list_sessions(out)[0]
+    assert (row["samples"], row["frames_lost"], row["frames_bad"]) == (5000, 0, 0)

@@ -97,7 +97,7 @@ def test_report_names_the_best_model_and_its_formula(both: tuple[FitOutcome, str
 
 def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
-    section = text[text.index("id='parameters'") : text.index("id='comparison'")]
+    section = text[text.index("id='parameters'") : text.index("id='plots'")]
     for head in (
         "<th>mean</th>",
         "<th>SD</th>",
@@ -115,11 +115,11 @@ def test_report_has_the_parameter_table(both: tuple[FitOutcome, str]) -> None:
 
 def test_report_compares_all_four_forms(both: tuple[FitOutcome, str]) -> None:
     outcome, text = both
-    section = text[text.index("id='comparison'") : text.index("id='plots'")]
+    section = text[text.index("id='comparison'") : text.index("id='diagnostics'")]
     names = [m.name for m in paper_laws()]
     assert len(names) == 4
     for name in names:
-        assert f"<td><b>{html.escape(name)}</b></td>" in section
+        assert f"<td><b>{html.escape(name).replace('+', '+<wbr>')}</b></td>" in section
     for head in (
         "ln evidence (exact)",
         "posterior probability",
@@ -131,7 +131,7 @@ def test_report_compares_all_four_forms(both: tuple[FitOutcome, str]) -> None:
         assert f"<th>{head}</th>" in section
     for r in outcome.bayes.results_:
         assert html.escape(r.reason) in section
-    assert section.count('class="best"') == 1
+    assert section.count('class="best"') == 2  # in the best few and in the full table
 
 
 def test_both_includes_the_windows_chart_and_comparison(both: tuple[FitOutcome, str]) -> None:
@@ -251,3 +251,105 @@ def test_relaxation_law_report_shows_its_time_constant(tmp_path: Path) -> None:
     assert interval is not None
     lo, hi = float(interval.group(1)), float(interval.group(2))
     assert lo < 0.5 < hi
+
+
+# -- a report that reads in a minute ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def default_search(tmp_path_factory: pytest.TempPathFactory) -> tuple[FitOutcome, Path]:
+    """A report over the default structure search (some 30 laws)."""
+    outcome = fit_session(_session())
+    path = tmp_path_factory.mktemp("default") / "report.html"
+    write_report(path, outcome)
+    return outcome, path
+
+
+def test_the_law_its_parameters_and_the_plots_come_first(default_search) -> None:
+    text = default_search[1].read_text(encoding="utf-8")
+    order = [text.index(k) for k in ("Chosen law:", "id='parameters'", "id='plots'",
+                                     "id='comparison'", "id='diagnostics'")]  # fmt: skip
+    assert order == sorted(order)
+    # the session's table and the diagnostics are folded, the plots are not
+    plots = text[text.index("id='plots'") : text.index("id='comparison'")]
+    assert "<details" not in plots
+    rest = text[text.index("id='diagnostics'") :]
+    assert rest.count("<details>") == 2 and "Effective samples" in rest
+
+
+def test_the_comparison_shows_the_best_few_with_a_reason_and_folds_the_rest(
+    default_search,
+) -> None:
+    outcome, path = default_search
+    text = path.read_text(encoding="utf-8")
+    results = outcome.bayes.results_
+    assert len(results) > 20
+    section = text[text.index("id='comparison'") : text.index("id='diagnostics'")]
+    shown, folded = section.split("<details>", 1)
+    rows = re.findall(r"<tr( class=\"best\")?><td><b>(.*?)</b></td>(.*?)</tr>", shown, re.S)
+    assert 3 <= len(rows) <= 5
+    names = [html.unescape(name.replace("<wbr>", "")) for _, name, _ in rows]
+    assert names == [r.name for r in results[: len(rows)]]
+    assert rows[0][0]  # the best is marked
+    for _, _, cells in rows[1:]:
+        why = html.unescape(re.findall(r'<td class="why">(.*?)</td>', cells)[0])
+        assert "evidence against it: " in why and ("lacks" in why or "adds" in why), why
+    # the full table, folded, has every law
+    assert f"All {len(results)} laws" in folded
+    for r in results:
+        assert f"<b>{html.escape(r.name).replace('+', '+<wbr>')}</b>" in folded
+
+
+def test_a_short_reason_names_what_a_law_adds_or_lacks() -> None:
+    from tissuecli.identify.bayes import ModelResult
+    from tissuecli.report.sections import short_reason
+
+    best = ModelResult(Law.of(["x", "xdot", "xddot"]), residual_rms=1e-3)
+    more = ModelResult(Law.of(["x", "xdot", "xddot", "offset"]), residual_rms=1e-3)
+    less = ModelResult(Law.of(["x", "xdot"]), residual_rms=3e-3)
+    assert short_reason(best, best, 0.0).startswith("highest evidence")
+    assert short_reason(more, best, 2.0) == (
+        "adds offset: fits no better, so its extra freedom costs evidence; "
+        "evidence against it: substantial"
+    )
+    assert short_reason(less, best, 40.0) == (
+        "lacks xddot: fits worse (residual 3.00 mN against 1.00); evidence against it: decisive"
+    )
+
+
+#: the tallest a report over the default search may be at 1280 px, its details folded
+MAX_HEIGHT_PX = 4000
+
+
+@pytest.mark.slow
+def test_the_report_fits_4000_px_at_1280_and_never_scrolls_sideways(default_search, tmp_path):
+    """Measured in headless Chromium at 1280 and 1920 px: the page with its details
+    folded is at most 4,000 px tall, and no element scrolls sideways, folded or open.
+    ``TISSUECLI_SCREENSHOT=1`` writes the screenshots to docs/img/."""
+    import os
+
+    from ..browser import Browser, chromium
+
+    if chromium() is None:
+        pytest.skip("needs Chromium (apt-get install -y chromium)")
+    _, path = default_search
+    sideways = (
+        "Math.max(0, ...[...document.querySelectorAll('*')]"
+        ".map(e => e.scrollWidth - e.clientWidth))"
+    )
+    browser = Browser(tmp_path / "profile")
+    try:
+        for width in (1280, 1920):
+            browser.set_width(width)
+            browser.open(path.as_uri())
+            height = browser.evaluate("document.documentElement.scrollHeight")
+            assert browser.evaluate(sideways) == 0, width
+            if width == 1280:
+                assert height <= MAX_HEIGHT_PX, height
+            if os.environ.get("TISSUECLI_SCREENSHOT") == "1":
+                docs = Path(__file__).resolve().parents[2] / "docs" / "img"
+                browser.screenshot(docs / f"report-{width}.png")
+            browser.evaluate("document.querySelectorAll('details').forEach(d => d.open = true)")
+            assert browser.evaluate(sideways) == 0, f"{width} px, details open"
+    finally:
+        browser.close()

@@ -6,8 +6,11 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from ..formats.atomic import write_text_atomic
-from ..formats.outputs import Output, check_outputs
+from ..core.errors import InputError
+from ..core.progress import as_progress
+from ..formats.atomic import write_bytes_atomic, write_text_atomic
+from ..formats.draws import structures_path, write_draws
+from ..formats.outputs import Output, check_directory_outputs, check_outputs
 from ..formats.params import write_params
 from ..identify.outcome import FitOutcome, fit_session
 from .transfer import load_session
@@ -21,6 +24,9 @@ def fit_file(
     report: str | os.PathLike[str] | None = None,
     force: bool = False,
     reading: dict[str, Any] | None = None,
+    draws: str | os.PathLike[str] | None = None,
+    plots: str | os.PathLike[str] | None = None,
+    plot_format: str = "png",
     **options: Any,
 ) -> FitOutcome:
     """Fit a stored session, or another logger's recording read on the fly; write the
@@ -41,6 +47,13 @@ def fit_file(
     reading : dict, optional
         For a recording: ``columns``, ``units``, ``jaw_length_m``, ``rate_hz``, as
         :func:`tissuecli.app.transfer.import_recording` takes them.
+    draws : path, optional
+        CSV of the chosen law's posterior draws, and beside it the structure
+        probabilities (:mod:`tissuecli.formats.draws`).
+    plots : path, optional
+        Directory to write the report's plots into, as files (created if missing).
+    plot_format : {"png", "svg", "pdf"}
+        Format of those files.
     **options
         Passed to :func:`tissuecli.identify.fit_session` (method, forms, sampler, ...).
 
@@ -51,19 +64,80 @@ def fit_file(
         that say how it was read (columns, units, time base), as ``import`` prints.
     """
     check_outputs(
-        [Output(out, "--out") if out else None, Output(report, "--report") if report else None],
+        [
+            Output(out, "--out") if out else None,
+            Output(report, "--report") if report else None,
+            Output(draws, "--draws") if draws else None,
+            Output(structures_path(draws), "--draws") if draws else None,
+        ],
         [path],
         force=force,
     )
-    data, read = load_session(path, session, **(reading or {}))
-    if read is not None:
-        data.meta["import_report"] = read.lines()
-    outcome = fit_session(data, **options)
-    if out is not None:
-        write_params(out, outcome)
-    if report is not None:
-        write_report(report, outcome)
+    if draws and options.get("method", "bayes") == "pinv":
+        raise InputError(
+            "--draws needs the Bayesian fit (--method bayes or both): the windowed "
+            "pseudoinverse has no posterior"
+        )
+    if plots is not None:
+        check_plots(plots, plot_format, force=force)
+    progress = as_progress(options.get("progress"))
+    try:
+        progress.stage(f"reading {os.fspath(path)}")
+        data, read = load_session(path, session, **(reading or {}))
+        if read is not None:
+            data.meta["import_report"] = read.lines()
+        outcome = fit_session(data, **options)
+        if out is not None:
+            write_params(out, outcome)
+        if draws is not None:
+            write_draws(draws, outcome)
+        if report is not None:
+            progress.stage("writing the report")
+            write_report(report, outcome)
+        if plots is not None:
+            progress.stage("writing the plots")
+            write_plots(plots, outcome, plot_format)
+    finally:
+        progress.close()
     return outcome
+
+
+def check_plots(
+    directory: str | os.PathLike[str], plot_format: str, *, force: bool = False
+) -> None:
+    """Refuse, before the fit, a plot directory that cannot take the plots."""
+    from ..report import PLOT_FORMATS, PLOT_NAMES
+
+    if plot_format not in PLOT_FORMATS:
+        raise InputError(
+            f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}"
+        )
+    names = [f"{name}.{plot_format}" for name in PLOT_NAMES]
+    check_directory_outputs(directory, names, "--plots", force=force)
+
+
+def plots_beside(report: str | os.PathLike[str]) -> str:
+    """Where ``--plot-format`` alone puts the plots: beside the report, in a directory
+    named after it (``lab.html`` -> ``lab_plots``)."""
+    path = os.fspath(report)
+    stem, _ = os.path.splitext(path)
+    return f"{stem}_plots"
+
+
+def write_plots(
+    directory: str | os.PathLike[str], outcome: FitOutcome, plot_format: str = "png"
+) -> list[str]:
+    """Write the report's plots into ``directory`` (created if missing), each file
+    atomically; returns their paths."""
+    from ..report import plot_files  # matplotlib only when plots are asked for
+
+    os.makedirs(directory, exist_ok=True)
+    written = []
+    for name, data in plot_files(outcome, plot_format).items():
+        target = os.path.join(directory, name)
+        write_bytes_atomic(target, data)
+        written.append(target)
+    return written
 
 
 def write_report(path: str | os.PathLike[str], outcome: FitOutcome) -> None:

@@ -40,23 +40,36 @@ def sessions(file: str, as_json: bool) -> None:
         return
     click.echo(
         f"{'session':<20} {'samples':>9} {'duration s':>10} {'rate Hz':>8} "
-        f"{'lost':>5} {'bad':>5}  {'status':<10}  tissue"
+        f"{'lost':>5} {'bad':>5}  {'status':<10}  {'ended':<12}  tissue"
     )
     for r in rows:
         status, _, reason = r["status"].partition(": ")
         if reason:  # damaged: no figures, the reason where the tissue goes
             click.echo(
                 f"{printable(r['name']):<20} {'-':>9} {'-':>10} {'-':>8} {'-':>5} {'-':>5}  "
-                f"{status:<10}  {printable(reason, 120)}"
+                f"{status:<10}  {'-':<12}  {printable(reason, 120)}"
             )
             continue
         notes = [_fault(k, n) for k, n in (r.get("clock_faults") or {}).items()]
         notes += r.get("warnings") or []
+        # an imported session's losses are what the import counted: samples missing
+        # from its clock, lines that were not data
+        lost, bad = r["frames_lost"], r["frames_bad"]
+        if r.get("import_samples_lost") is not None:
+            lost += r["import_samples_lost"]
+            bad += r.get("import_lines_skipped") or 0
+            notes.append(
+                f"import: {r['import_samples_lost']} sample(s) missing from the clock, "
+                f"{r.get('import_lines_skipped') or 0} line(s) skipped"
+            )
+        if r.get("ended") not in ("", "duration", "signal", "imported"):
+            notes.append(f"stopped: {printable(r.get('stop_reason') or r['ended'], 80)}")
         note = f"  ({'; '.join(notes)})" if notes else ""
         click.echo(
             f"{printable(r['name']):<20} {r['samples']:>9d} {_num(r['duration_s'], 10, 3)} "
-            f"{_num(r['rate_hz'], 8, 1)} {r['frames_lost']:>5d} {r['frames_bad']:>5d}  "
-            f"{status:<10}  {printable(r.get('tissue', ''), 60)}{note}"
+            f"{_num(r['rate_hz'], 8, 1)} {lost:>5d} {bad:>5d}  "
+            f"{status:<10}  {printable(r.get('ended') or '-', 12):<12}  "
+            f"{printable(r.get('tissue', ''), 60)}{note}"
         )
 
 

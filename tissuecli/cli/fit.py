@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-from collections.abc import Callable
 from typing import Any
 
 import click
@@ -17,22 +15,6 @@ from .options import (
     seed_option,
     session_option,
 )
-
-
-def _sampling_progress() -> Callable[[str, int, float], None]:
-    """A progress line while emcee runs: form, steps, and steps needed (50 tau)."""
-
-    def show(form: str, steps: int, tau: float) -> None:
-        need = max(1000, int(50 * tau))
-        done = min(1.0, steps / need)
-        bar = "#" * int(20 * done) + "-" * (20 - int(20 * done))
-        click.echo(
-            f"\rsampling {form:<28} [{bar}] {steps:>6} steps (need ~{need})",
-            err=True,
-            nl=done >= 1.0,
-        )
-
-    return show
 
 
 def _grasps(text: str) -> str | list[int]:
@@ -62,6 +44,27 @@ def _grasps(text: str) -> str | list[int]:
     help="Write a self-contained HTML report with plots.",
 )
 @click.option(
+    "--draws",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the chosen law's posterior draws (CSV, one column per parameter with its "
+    "unit; pandas and ArviZ read it) and the structure probabilities beside it "
+    "(FILE's stem + .structures.csv).",
+)
+@click.option(
+    "--plots",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Write the report's plots as files into this directory (created if missing).",
+)
+@click.option(
+    "--plot-format",
+    type=click.Choice(["png", "svg", "pdf"]),
+    default=None,
+    help="Format of the plot files [default: png]; without --plots, they go beside "
+    "--report, in REPORT's stem + _plots.",
+)
+@click.option(
     "--method",
     type=click.Choice(["bayes", "pinv", "both"]),
     default="bayes",
@@ -73,8 +76,10 @@ def _grasps(text: str) -> str | list[int]:
     "--forms",
     default="all",
     show_default=True,
-    help="Candidate laws: 'all' (x or x^3 with xdot or xdot|xdot|, each with and without a "
-    "force offset), 'paper' (the paper's four), or one law: x,xdot or terms joined by +, "
+    help="Candidate laws: 'all' (the 24 linear laws: x, x^3 or both, with xdot or "
+    "xdot|xdot|, with or without dry friction and a force offset, all with xddot; then a "
+    "search adding contact and relaxation branches: about 30 laws), 'linear' (the 24), "
+    "'paper' (the paper's four), or one law: x,xdot or terms joined by +, "
     "e.g. x+x^3+xdot+sign(xdot)+offset.",
 )
 @click.option(
@@ -134,6 +139,9 @@ def fit(
     rate: float | None,
     out: str | None,
     report: str | None,
+    draws: str | None,
+    plots: str | None,
+    plot_format: str | None,
     method: str,
     forms: str,
     sampler: str,
@@ -173,6 +181,7 @@ def fit(
         tissuecli fit grasp.h5 --forms x,xdot         # one law, no model choice
         tissuecli fit grasp.h5 --grasps 2,3 --hold-out 0.3
         tissuecli fit grasp.h5 --start 12.5 --end 40
+        tissuecli fit grasp.h5 --draws draws.csv --report r.html --plot-format svg
         tissuecli fit data/phantom_EF30_0T_A1.csv --forms "x+x^3+offset" \\
             --columns "time=Time (s),force=Load (N),position=Compression (mm)"
         tissuecli fit study.h5 'more/*.h5' --catalogue tissues.db --jobs 2
@@ -194,10 +203,10 @@ def fit(
     )
     items = expand_inputs(files, session)
     if len(items) > 1 or catalogue or manifest or jobs or scheduler:
-        if out or report:
+        if out or report or draws or plots:
             raise click.UsageError(
-                "--out and --report write one fit: give one input without --catalogue, "
-                "or keep many fits in a --catalogue"
+                "--out, --report, --draws and --plots write one fit: give one input "
+                "without --catalogue, or keep many fits in a --catalogue"
             )
         run_batch(
             items,
@@ -211,20 +220,33 @@ def fit(
             settings=settings,
         )
         return
-    from ..app.fit import fit_file, summary_lines
+    from ..app.fit import fit_file, plots_beside, summary_lines
+    from .progress import TerminalProgress
 
+    if plot_format is not None and plots is None:
+        if report is None:
+            raise click.UsageError("--plot-format needs --plots DIR or --report FILE")
+        plots = plots_beside(report)
     outcome = fit_file(
         items[0].file,
         items[0].session,
         out=out,
         report=report,
+        draws=draws,
+        plots=plots,
+        plot_format=plot_format or "png",
         force=force,
         reading=reading(columns, units, jaw_length, rate),
         **settings,
-        progress=_sampling_progress() if sys.stderr.isatty() else None,
+        progress=TerminalProgress.for_terminal(),
     )
     for line in summary_lines(outcome):
         click.echo(line)
-    for path, what in ((out, "parameters"), (report, "report")):
+    if draws:
+        from ..formats.draws import structures_path
+
+        click.echo(f"posterior draws written to {draws}, structure probabilities to "
+                   f"{structures_path(draws)}")  # fmt: skip
+    for path, what in ((out, "parameters"), (report, "report"), (plots, "plots")):
         if path:
             click.echo(f"{what} written to {path}")

@@ -64,7 +64,12 @@ def _summary(result: Any) -> str:
 
 
 def _show_url(url: str) -> None:
+    from ..live.server import exposure_warning
+
     click.echo(f"live view: {url}")
+    warning = exposure_warning(url)
+    if warning:
+        click.echo(warning, err=True)
 
 
 @cli.command()

@@ -133,10 +133,12 @@ def read_recording(
             f"position: {table.names[picked['position'][0]]!r} grows as the jaws open; "
             "closure is its negative"
         )
+    lost = 0
     if "time" in picked:
         stamps = data[:, picked["time"][0]] * ColumnUnits(time=picked["time"][1]).factor("time")
         time, base = regularise(stamps, table.lines)
         report.notes.append("time: " + base.describe())
+        lost = base.lost
     else:
         if not (rate_hz and rate_hz > 0 and math.isfinite(rate_hz)):
             raise InputError("--rate must be a positive number of Hz")
@@ -152,6 +154,9 @@ def read_recording(
             "import_columns": report.columns,
             "import_units": report.units,
             "import_notes": report.notes,
+            # what the import counted, for `sessions` (docs/formats.md)
+            "import_samples_lost": int(lost),
+            "import_lines_skipped": len(getattr(table, "junk", []) or []),
         },
     )
     session.validate()

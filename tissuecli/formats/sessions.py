@@ -124,6 +124,8 @@ ATTR_KINDS = {
     "created_utc": "text",
     "software_version": "text",
     "stop_reason": "text",
+    "import_samples_lost": "count",
+    "import_lines_skipped": "count",
     "clock_map": "mapping",
     "device": "mapping",
 }
@@ -634,8 +636,11 @@ def list_sessions(path: StrPath) -> list[dict[str, Any]]:
         ``tissue``, ``samples``, ``duration_s`` (s), ``rate_hz`` (Hz, from the median
         sample interval), ``frames_lost``, ``frames_bad``, ``complete``, ``start_utc``
         (ISO 8601), ``source``, ``clock_faults`` (the non-zero counts of
-        :data:`CLOCK_FAULTS`: clock jumps and steps, sequence restarts, frames rejected)
-        and ``warnings`` (attributes of the wrong type that were ignored). Numbers a
+        :data:`CLOCK_FAULTS`: clock jumps and steps, sequence restarts, frames rejected),
+        ``warnings`` (attributes of the wrong type that were ignored), ``stop_reason``,
+        ``ended`` (why it ended in a word or two, see :func:`ended`), and for an imported
+        session ``import_samples_lost`` and ``import_lines_skipped`` (what the import
+        counted; None otherwise). Numbers a
         damaged session cannot give are None.
 
     Raises
@@ -692,11 +697,49 @@ def _summary(f: h5py.File, g: h5py.Group, file: str, key: str) -> dict[str, Any]
         "source": attrs.get("source", ""),
         "clock_faults": {k: attrs[k] for k in CLOCK_FAULTS if attrs.get(k)},
         "warnings": checked.warnings,
+        "stop_reason": attrs.get("stop_reason", ""),
+        "ended": ended(attrs, checked.complete),
+        "import_samples_lost": attrs.get("import_samples_lost"),
+        "import_lines_skipped": attrs.get("import_lines_skipped"),
     }
+
+
+#: how a stop reason begins -> why the session ended, in a word or two
+ENDINGS = (
+    ("duration reached", "duration"),
+    ("interrupted by signal", "signal"),
+    ("interrupted", "signal"),
+    ("device lost", "device lost"),
+    ("storage fault: disk full", "disk full"),
+    ("storage fault: disk quota", "disk quota"),
+    ("storage fault: file size limit", "file size limit"),
+    ("storage fault", "storage fault"),
+    ("error", "error"),
+)
+
+
+def ended(attrs: Mapping[str, Any], complete: bool) -> str:
+    """Why a session ended, in a word or two: ``duration``, ``signal``, ``device lost``,
+    ``disk full`` (and other storage faults), ``error``, ``imported`` (read from another
+    logger's file), ``crashed`` (never closed, no reason: the recorder was killed or
+    is still running), or the stop reason itself when it is none of these."""
+    reason = str(attrs.get("stop_reason") or "")
+    for start, word in ENDINGS:
+        if reason.startswith(start):
+            return word
+    if reason:
+        return reason[:40]
+    if "import_samples_lost" in attrs or "import_units" in attrs:
+        return "imported"
+    return "" if complete else "crashed"
 
 
 def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> dict[str, Any]:
     return {
+        "stop_reason": "",
+        "ended": "",
+        "import_samples_lost": None,
+        "import_lines_skipped": None,
         "name": key,
         "status": f"{status}: {reason}",
         "tissue": "",

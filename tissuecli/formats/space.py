@@ -161,7 +161,9 @@ def check_free_space(path: str | os.PathLike[str], need: int, *, what: str) -> N
     if free is not None and free < need:
         raise StorageError(
             f"not enough free space for {what} in {directory}: {megabytes(free)} free, "
-            f"{megabytes(need)} needed; free some space or write to another drive"
+            f"{megabytes(need)} needed (its first data plus {megabytes(HEADROOM_BYTES)} kept "
+            "in reserve so that the file closes intact); free some space or write to "
+            "another drive"
         )
     limit = file_size_limit()
     try:
@@ -262,11 +264,24 @@ def make_room(fd: int | None, path: str, end: int, need: int) -> str | None:
             if reserve(fd, end, need):
                 return None
         except OSError as exc:
-            return fault_cause(exc)
+            if fault_errno(exc) not in (errno.ENOSPC, errno.EDQUOT):
+                return fault_cause(exc)
+            return short_of_room(fault_cause(exc), free_bytes(where), need)
     free = free_bytes(where)
     if free is not None and free < need:
-        return "disk full"
+        return short_of_room("disk full", free, need)
     return None
+
+
+def short_of_room(cause: str, free: int | None, need: int) -> str:
+    """'disk full' with the figures behind it: the free space, what the next write
+    needed, and the rule (its data plus :data:`HEADROOM_BYTES` kept in reserve, so
+    that the file can always be closed intact)."""
+    have = "free space unknown" if free is None else f"{megabytes(free)} free"
+    return (
+        f"{cause} ({have}; the next write needs {megabytes(need)}: its data plus "
+        f"{megabytes(HEADROOM_BYTES)} kept in reserve so that the file closes intact)"
+    )
 
 
 def release(path: str) -> None:

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import FitError
+from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
 from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law, shape_kind
 from .derivatives import Differentiator, Kinematics
@@ -163,8 +164,9 @@ class BayesianFit(Estimator):
     grasps : {"all", "none"} or list of int
         Where the session alternates grasps with free motion: fit every grasp, every
         sample, or the grasps numbered (from 1).
-    progress : callable, optional
-        ``progress(form, steps, tau)`` while sampling.
+    progress : Progress or callable, optional
+        Told the stages (filtering, the structure search law by law, sampling); a bare
+        callable is called ``progress(form, steps, tau)`` while sampling.
 
     Attributes
     ----------
@@ -202,7 +204,7 @@ class BayesianFit(Estimator):
         force_scale: float | None = None,
         seed: int = 0,
         grasps: str | Sequence[int] = "all",
-        progress: Callable[[str, int, float], None] | None = None,
+        progress: Progress | Callable[[str, int, float], None] | None = None,
     ) -> None:
         self.forms = forms
         self.grasps = grasps
@@ -227,6 +229,8 @@ class BayesianFit(Estimator):
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         models = parse_forms(self.forms)
+        self._progress = as_progress(self.progress)
+        self._progress.stage("filtering and finding grasps")
         ready = self.prepare(session)
         session, kin, warnings, contact = (
             ready.session,
@@ -279,6 +283,9 @@ class BayesianFit(Estimator):
         del A
 
         fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
+        self._scored = 0
+        self._known = len(linear) + len(shaped)
+        self._progress.stage("structure search", self._known)
         results, found = self._candidates(linear, shaped, firsts, fit)
         # The weight came from the best linear law's residuals. Where a law with shape
         # parameters fits markedly better (by BIC), a linear law's misfit is what made
@@ -296,9 +303,12 @@ class BayesianFit(Estimator):
             if weight_ref > 1.5 * weight:
                 tau, weight = tau_ref, weight_ref
                 fit = replace(fit, weight=weight)
+                self._progress.stage("structure search, scored again", self._known)
+                self._scored = 0
                 results, found = self._candidates(linear, shaped, firsts, fit)
         warnings.extend(found)
         del columns
+        self._progress.stage("sampling")
         self._sample_shapes(results)
         self._sample(results, rng)
         ln_z = np.array([r.ln_evidence for r in results])
@@ -382,7 +392,15 @@ class BayesianFit(Estimator):
                     f"position-noise correction (noise {fit.sigma_x * 1e6:.3g} um); its "
                     "interval does not include that correction's own uncertainty"
                 )
+        self._tick(model.name)
         return _result(model, post, fp, fit, st, prior, corr, flags)
+
+    def _tick(self, name: str) -> None:
+        """One more law scored: the progress counts it against the laws known so far
+        (the search beyond the linear laws learns its length as it goes)."""
+        self._scored = getattr(self, "_scored", 0) + 1
+        self._known = max(getattr(self, "_known", 0), self._scored)
+        getattr(self, "_progress", SILENT).advance(self._scored, self._known, name)
 
     def _exact_shaped(self, law: Law, fit: _Context) -> ModelResult:
         """A law with shape parameters: its exact evidence at every node of the shape's
@@ -544,6 +562,7 @@ class BayesianFit(Estimator):
                     )
 
             res.sample_shape = sample
+        self._tick(law.name)
         return res
 
     def _shaped_result(
@@ -751,7 +770,7 @@ class BayesianFit(Estimator):
     def _progress_for(self, res: ModelResult) -> Callable[[int, float], None] | None:
         if self.progress is None:
             return None
-        progress, name = self.progress, res.name
+        progress, name = as_progress(self.progress), res.name
         return lambda steps, tau: progress(name, steps, tau)
 
     def _coefficients(self) -> tuple[Law, Array]:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import FitError
+from ..core.progress import Progress, as_progress
 from ..core.session import Session
 from .bayes import BayesianFit
 from .contact import Contact
@@ -98,6 +99,62 @@ class FitOutcome:
     pinv: WindowedPinv | None
     grasps: str | Sequence[int] = "all"
     validation: HeldOut | None = None
+
+    def _repr_html_(self) -> str:
+        """A notebook's view: the chosen law with its coefficients (mean, SD, 95 %
+        interval, unit), the best few laws with their probabilities, the held-out
+        score and the warnings. Plain HTML, no figure (``tissuecli fit --report`` and
+        :func:`tissuecli.report.render_report` draw those)."""
+        from html import escape
+
+        s = self.session
+        parts = [
+            f"<b>tissuecli fit</b> of session {escape(repr(s.name))}: {len(s):,} samples, "
+            f"{s.duration_s:.3g} s at {s.rate_hz:.4g} Hz"
+        ]
+        cell = "style='text-align:right;padding:0 .6em'"
+        if self.bayes is not None:
+            best = self.bayes.best_
+            post = best.posterior
+            assert post is not None
+            parts.append(
+                f"<p>Chosen law <b>{escape(best.name)}</b>, posterior probability "
+                f"{best.probability:.3g} among {len(self.bayes.results_)} laws</p>"
+            )
+            rows = "".join(
+                f"<tr><td>{escape(t.symbol)}</td><td {cell}>{post.mean[j]:.6g}</td>"
+                f"<td {cell}>{post.sd[j]:.2g}</td><td {cell}>[{post.ci95[j][0]:.6g}, "
+                f"{post.ci95[j][1]:.6g}]</td><td>{escape(t.unit)}</td>"
+                f"<td>{escape(t.name)}</td></tr>"
+                for j, t in enumerate(best.model.terms)
+            )
+            parts.append(
+                "<table><tr><th>parameter</th><th>mean</th><th>SD</th><th>95 % interval</th>"
+                f"<th>unit</th><th>term</th></tr>{rows}</table>"
+            )
+            top = "".join(
+                f"<tr><td>{escape(r.name)}</td><td {cell}>{r.probability:.3g}</td>"
+                f"<td {cell}>{r.ln_evidence:.2f}</td></tr>"
+                for r in self.bayes.results_[:5]
+            )
+            parts.append(
+                "<details><summary>best laws</summary><table><tr><th>law</th>"
+                f"<th>probability</th><th>ln evidence</th></tr>{top}</table></details>"
+            )
+        if self.pinv is not None:
+            p = self.pinv
+            values = ", ".join(
+                f"{escape(t.symbol)} = {v:.6g} {escape(t.unit)}"
+                for t, v in zip(p.model_.terms, p.params_, strict=True)
+            )
+            parts.append(f"<p>Windowed pseudoinverse ({escape(p.model_.name)}): {values}</p>")
+        if self.validation is not None:
+            parts.append(f"<p>{escape(self.validation.describe())}</p>")
+        warnings = self.warnings
+        if warnings:
+            items = "".join(f"<li>{escape(w)}</li>" for w in warnings)
+            parts.append(f"<p>Warnings:</p><ul>{items}</ul>")
+        return "<div>" + "".join(parts) + "</div>"
 
     @property
     def warnings(self) -> list[str]:
@@ -191,7 +248,7 @@ def fit_session(
     start_s: float | None = None,
     end_s: float | None = None,
     hold_out: float = 0.0,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Progress | Callable[[str, int, float], None] | None = None,
 ) -> FitOutcome:
     """Identify the tissue in a session.
 
@@ -221,8 +278,9 @@ def fit_session(
     hold_out : float
         Fraction of the (windowed) session, at its end, kept out of the fit and
         predicted to score it (:class:`HeldOut`); 0 holds nothing out.
-    progress : callable, optional
-        ``progress(form, steps, tau)`` while sampling.
+    progress : Progress or callable, optional
+        Told each stage (see :class:`~tissuecli.core.progress.Progress`); a bare
+        callable is called ``progress(form, steps, tau)`` while sampling.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose bayes, pinv or both")
@@ -249,6 +307,7 @@ def fit_session(
             progress=progress,
         ).fit(part)
     if method in ("pinv", "both"):
+        as_progress(progress).stage("windowed pseudoinverse")
         pinv_forms = (
             forms if forms != "all" else (est.best_.model.name if est is not None else "x,xdot")
         )
@@ -257,5 +316,7 @@ def fit_session(
         ).fit(part)
     fitted = est if est is not None else pinv
     assert fitted is not None
+    if rest is not None:
+        as_progress(progress).stage("scoring the held-out part")
     validation = held_out(fitted, rest, float(rest.time[0])) if rest is not None else None
     return FitOutcome(session, est, pinv, grasps, validation)

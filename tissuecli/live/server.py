@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Collection
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
@@ -41,6 +42,14 @@ PARENT_CHECK_S = 0.5
 #: the server's process runs this much nicer than the recorder: where the two want
 #: one core, the recorder has it
 SERVER_NICE = 10
+#: open connections served at once; one more is answered 503 with a Retry-After and
+#: closed (a page holds one or two; a flood of slow connections holds no more threads)
+MAX_CONNECTIONS = 32
+#: what a refused connection is told to wait before asking again, s
+RETRY_AFTER_S = 2
+#: names a page may reach this server by besides the address it listens on: anything
+#: else (a DNS name that an attacker's page rebinds to this machine) gets 403
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 
 #: name in the URL -> (file in tissuecli/live/assets, content type)
 ASSETS = {
@@ -67,6 +76,70 @@ def parse_address(text: str) -> tuple[str, int]:
         raise InputError(f"--live expects HOST:PORT ({example}); got {text!r}")
     host = host.strip("[]") or DEFAULT_HOST
     return host, int(port)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether an address to listen on reaches this machine alone."""
+    import ipaddress
+
+    if host.lower().rstrip(".") in ("localhost", "localhost.localdomain"):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        try:
+            return all(
+                ipaddress.ip_address(info[4][0]).is_loopback
+                for info in socket.getaddrinfo(host, None)
+            )
+        except (OSError, ValueError):
+            return False
+
+
+def exposure_warning(url: str) -> str | None:
+    """One line for a server that listens beyond this machine (the page has no
+    authentication: anyone who can reach the address sees the recording); None on
+    loopback."""
+    from urllib.parse import urlsplit
+
+    host = urlsplit(url).hostname or ""
+    if is_loopback(host):
+        return None
+    return (
+        f"warning: the live view listens on {host}, beyond this machine, without "
+        "authentication: anyone who can reach it sees the recording; use --live alone "
+        "(127.0.0.1) unless that is meant"
+    )
+
+
+def allowed_host(header: str | None, bound: Collection[str]) -> bool:
+    """Whether a request's ``Host`` header names this server.
+
+    Allowed: the address it listens on, ``localhost``, the loopback addresses and,
+    when it listens on every interface, any IP literal or this machine's own name. A
+    DNS name of someone else's (a page that rebinds its name to this machine to read
+    the recording) is not. No header (HTTP/1.0) is allowed: browsers always send one.
+    """
+    import ipaddress
+
+    if header is None:
+        return True
+    name = header.strip().lower()
+    if name.startswith("["):  # [::1]:8050
+        name = name[1 : name.find("]")] if "]" in name else name
+    elif name.count(":") == 1:
+        name = name.rsplit(":", 1)[0]
+    name = name.rstrip(".")
+    names = {b.strip("[]").lower() for b in bound}
+    if name in LOOPBACK_NAMES or name in names:
+        return True
+    if names & {"0.0.0.0", "::", ""}:
+        try:
+            ipaddress.ip_address(name)
+            return True  # an IP literal cannot be rebound
+        except ValueError:
+            return name in {socket.gethostname().lower(), socket.getfqdn().lower()}
+    return False
 
 
 def load_asset(name: str) -> bytes:
@@ -203,6 +276,7 @@ def main(argv: list[str]) -> None:
         os.write(reply, f"error {_bind_problem(host, port, exc)}\n".encode())
         return
     bound = httpd.server_address
+    handler.hosts = (host, str(bound[0]))
     os.write(reply, f"listening {bound[0]} {bound[1]}\n".encode())
     os.close(reply)
     thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.1})
@@ -232,15 +306,73 @@ def _bind_problem(host: str, port: int, exc: OSError) -> str:
 class _Server(ThreadingHTTPServer):
     daemon_threads = True  # a stalled page never keeps the recorder from exiting
     allow_reuse_address = False  # a port in use is refused, not shared
+    request_queue_size = 64
+    _open = 0
+    _lock = threading.Lock()
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """A thread per connection up to :data:`MAX_CONNECTIONS`; beyond, 503 at once."""
+        with self._lock:
+            full = self._open >= MAX_CONNECTIONS
+            if not full:
+                self._open += 1
+        if full:
+            _refuse_busy(request)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            with self._lock:
+                self._open -= 1
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self._lock:
+                self._open -= 1
+
+
+def _refuse_busy(request: socket.socket) -> None:
+    """503 with a Retry-After, written without waiting for the request: a busy server
+    reads nothing from a connection it will not serve."""
+    body = b"too many connections to the live view; retry shortly\n"
+    head = (
+        "HTTP/1.1 503 Service Unavailable\r\n"
+        f"Retry-After: {RETRY_AFTER_S}\r\n"
+        "Content-Type: text/plain; charset=utf-8\r\n"
+        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+    )
+    try:
+        request.settimeout(0.2)  # a client that does not read is not waited for
+        request.sendall(head.encode() + body)
+        # read what the client already sent, so that closing sends no reset that
+        # would discard the answer before it is read
+        request.setblocking(False)
+        for _ in range(16):
+            if not request.recv(65536):
+                break
+    except OSError:
+        pass
 
 
 class _Handler(BaseHTTPRequestHandler):
     state: LiveState
     assets: dict[str, tuple[bytes, str]]
+    hosts: tuple[str, ...] = ()  # the address as given and as bound
     protocol_version = "HTTP/1.1"  # keep-alive: one connection per page
     timeout = SOCKET_TIMEOUT_S
 
     def do_GET(self) -> None:
+        if not allowed_host(self.headers.get("Host"), self.hosts):
+            self.close_connection = True
+            self._send(
+                b"forbidden: this page answers only to the address it listens on\n",
+                "text/plain; charset=utf-8", code=403, cache=False,
+            )  # fmt: skip
+            return
         path = self.path.split("?", 1)[0]
         if path == "/api/state":
             self._send(self.state.document(), "application/json", cache=False)

@@ -35,6 +35,7 @@ from .sections import (
     CSS,
     comparison,
     diagnostics,
+    folded,
     header,
     how_to_read,
     matching,
@@ -43,10 +44,19 @@ from .sections import (
     pinv_info,
     pinv_table,
     provenance,
+    session_table,
     warnings_box,
 )
 
-__all__ = ["render_report"]
+__all__ = ["PLOT_FORMATS", "PLOT_NAMES", "plot_files", "render_report"]
+
+#: formats the plots are exported in (``fit --plot-format``)
+PLOT_FORMATS = ("png", "svg", "pdf")
+#: every plot a report may have, by file name (without extension), in report order
+PLOT_NAMES = (
+    "plot-time", "plot-loop", "plot-residuals", "plot-residual-map", "plot-elastic",
+    "plot-relaxation", "plot-corner", "plot-windows",
+)  # fmt: skip
 
 
 def render_report(outcome: FitOutcome) -> str:
@@ -74,12 +84,23 @@ def render_report(outcome: FitOutcome) -> str:
             f"<p>Only the form {esc(pinv.model_.name)} was fitted, by the windowed "
             "pseudoinverse, so there is no comparison between forms.</p>" + pinv_info(pinv)
         )
+    # what a reader needs first (the law, its parameters, the plots) is open; the
+    # rest is one click away, folded, so that the page reads in a minute
     sections = [
         ("parameters", "Parameters", params + warnings_box(outcome)),
+        ("plots", "Plots", '<div class="plots">' + "".join(_plots(outcome, s)) + "</div>"),
         ("comparison", "Model comparison", compare),
-        ("plots", "Plots", "".join(_plots(outcome, s))),
-        ("diagnostics", "Diagnostics", diagnostics(outcome)),
-        ("reading", "How to read this report", how_to_read(outcome)),
+        (
+            "diagnostics",
+            "Session and diagnostics",
+            folded("The session, the filter, the grasps and the sampler",
+                   session_table(outcome, s) + diagnostics(outcome)),
+        ),  # fmt: skip
+        (
+            "reading",
+            "How to read this report",
+            folded("What each part means", how_to_read(outcome)),
+        ),
     ]
     nav = " · ".join(f'<a href="#{a}">{esc(t)}</a>' for a, t, _ in sections)
     parts = [header(outcome, s), f'<p class="small">Contents: {nav}</p>']
@@ -96,11 +117,41 @@ def render_report(outcome: FitOutcome) -> str:
     )
 
 
+def plot_files(outcome: FitOutcome, fmt: str = "png") -> dict[str, bytes]:
+    """The report's plots as files: name (``plot-time.png``, ...) -> bytes, in ``fmt``
+    (one of :data:`PLOT_FORMATS`), at the report's resolution for PNG."""
+    import io
+
+    from .figures import DPI
+
+    if fmt not in PLOT_FORMATS:
+        raise ValueError(f"plot format {fmt!r}: choose one of {', '.join(PLOT_FORMATS)}")
+    files = {}
+    for fig, anchor, *_ in _figures(outcome, series(outcome), [])[0]:
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=DPI)
+        files[f"{anchor}.{fmt}"] = buf.getvalue()
+    return files
+
+
 def _plots(outcome: FitOutcome, s: Series) -> list[str]:
     """The figures, lettered in order, each with what to look for; the pseudoinverse's
     table follows its figure."""
+    figs, parts = _figures(outcome, s, [])
     est, pinv = outcome.bayes, outcome.pinv
-    parts: list[str] = []
+    for k, (fig, anchor, title, alt, caption) in enumerate(figs):
+        parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
+        if anchor == "plot-windows" and est is not None:
+            parts.append(f'<div class="span">{pinv_table(pinv, est)}</div>')  # type: ignore[arg-type]
+    return parts
+
+
+def _figures(
+    outcome: FitOutcome, s: Series, parts: list[str]
+) -> tuple[list[tuple[Figure, str, str, str, str]], list[str]]:
+    """The figures (figure, anchor, title, alt text, caption), in order; ``parts`` gains
+    a note where a figure cannot be drawn."""
+    est, pinv = outcome.bayes, outcome.pinv
     figs = [
         (
             time_figure(s),
@@ -193,11 +244,7 @@ def _plots(outcome: FitOutcome, s: Series) -> list[str]:
                 ),
             )
         )
-    for k, (fig, anchor, title, alt, caption) in enumerate(figs):
-        parts.append(figure_html(fig, anchor, f"{chr(ord('a') + k)}. {title}", alt, caption))
-        if anchor == "plot-windows" and est is not None:
-            parts.append(pinv_table(pinv, est))  # type: ignore[arg-type]
-    return parts
+    return figs, parts
 
 
 def _residual_caption(s: Series) -> str:

@@ -26,7 +26,6 @@ from .numbers import (
     fixed,
     jeffreys,
     place,
-    power_of_ten,
     probability,
     sig,
     unit_html,
@@ -48,7 +47,7 @@ ROLE = {
 
 CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;color:#1d1d1d;
- max-width:1040px;margin:1.5em auto;padding:0 1em;line-height:1.45}
+ max-width:1200px;margin:1.5em auto;padding:0 1em;line-height:1.45}
 h1{font-size:1.55em;margin-bottom:.2em}h2{font-size:1.25em;border-bottom:1px solid #ccc;
  padding-bottom:.2em;margin-top:1.8em}h3{font-size:1.05em;margin-top:1.4em}
 table{border-collapse:collapse;margin:.6em 0;font-size:.92em}
@@ -63,11 +62,18 @@ th{background:#f2f2f2;text-align:left}td.n{text-align:right;font-variant-numeric
 .warn{background:#fff6df;border-color:#e0b243}.ok{background:#eef6ee;border-color:#8dbf8d}
 .info{background:#eef3fa;border-color:#9fb8dc}
 .box ul{margin:.3em 0;padding-left:1.3em}
-figure{margin:1.2em 0}figure img{max-width:100%;height:auto;border:1px solid #e4e4e4}
+figure{margin:1.2em 0;min-width:0}figure img{max-width:100%;height:auto;border:1px solid #e4e4e4;
+ box-sizing:border-box}
 figcaption{font-size:.92em;color:#333;margin-top:.3em}
 .small{font-size:.85em;color:#444}.small ul{margin:.2em 0;padding-left:1.1em}
 footer{margin-top:2.5em;border-top:1px solid #ccc;padding-top:.6em;font-size:.85em;color:#444}
 code{font-family:Consolas,Menlo,monospace;font-size:.95em}
+.plots{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(100%,440px),1fr));
+ gap:0 1.4em;align-items:start}.plots figure{margin:.6em 0}.plots h3{margin:.2em 0}
+.plots .span{grid-column:1/-1}
+details{margin:.6em 0}summary{cursor:pointer;color:#1f5fa8}
+table.full{width:100%}td.note{min-width:16em;max-width:30em}
+td.why{min-width:18em}.lead{font-size:1.1em;margin:.4em 0}
 """
 
 
@@ -76,18 +82,25 @@ def table(
     rows: Sequence[Sequence[str]],
     numeric: Sequence[bool],
     classes: Sequence[str] | None = None,
+    *,
+    cell_classes: Sequence[str] | None = None,
+    full: bool = False,
 ) -> str:
-    """A table; ``head`` is text (escaped), cells are markup already."""
+    """A table; ``head`` is text (escaped), cells are markup already; ``cell_classes``
+    per column (e.g. ``note`` for a wide text column), ``full`` spans the page."""
     th = "".join(f"<th>{esc(h)}</th>" for h in head)
+    extra = list(cell_classes) if cell_classes else [""] * len(head)
     body = []
     for k, row in enumerate(rows):
         cls = f' class="{classes[k]}"' if classes and classes[k] else ""
         tds = "".join(
-            f'<td class="n">{c}</td>' if num else f"<td>{c}</td>"
-            for c, num in zip(row, numeric, strict=True)
-        )
+            f'<td class="{" ".join(filter(None, ("n" if num else "", more)))}">{c}</td>'
+            if num or more else f"<td>{c}</td>"
+            for c, num, more in zip(row, numeric, extra, strict=True)
+        )  # fmt: skip
         body.append(f"<tr{cls}>{tds}</tr>")
-    return f'<div class="wide"><table><tr>{th}</tr>{"".join(body)}</table></div>'
+    wide = ' class="full"' if full else ""
+    return f'<div class="wide"><table{wide}><tr>{th}</tr>{"".join(body)}</table></div>'
 
 
 def meta_table(items: Sequence[tuple[str, str]]) -> str:
@@ -122,7 +135,8 @@ def formula(model: Law, values: Sequence[str]) -> str:
     )
 
 
-def header(outcome: FitOutcome, s: Series) -> str:
+def session_table(outcome: FitOutcome, s: Series) -> str:
+    """What was fitted and how: the session's figures and the method."""
     session = outcome.session
     if outcome.bayes is not None and outcome.pinv is not None:
         how = (
@@ -149,27 +163,53 @@ def header(outcome: FitOutcome, s: Series) -> str:
         ("Identification", esc(how)),
         ("Software", esc(SOFTWARE)),
     ]
+    return meta_table(items)
+
+
+def header(outcome: FitOutcome, s: Series) -> str:
+    """The title, the chosen law and its formula: what the reader came for."""
+    session = outcome.session
     model = s.model
+    facts = (
+        f"{len(session):,} samples, {sig(session.duration_s, 4)} s at "
+        f"{sig(session.rate_hz, 4)} Hz"
+    )
+    if session.meta.get("tissue"):
+        facts = f"{esc(session.meta['tissue'])}; {facts}"
     if outcome.bayes is not None:
         best = outcome.bayes.best_
         post = best.posterior
         assert post is not None
         values = [with_sd(post.mean[j], post.sd[j]) for j in range(len(best.model.terms))]
         chosen = (
-            f"<p>Chosen law: <b>{esc(best.name)}</b> "
-            f"(posterior probability {probability(ln_probabilities(outcome.bayes)[0])}), "
-            "posterior means:</p>"
+            f"<p class='lead'>Chosen law: <b>{esc(best.name)}</b> "
+            f"(posterior probability {probability(ln_probabilities(outcome.bayes)[0])} among "
+            f"{len(outcome.bayes.results_)} laws), posterior means:</p>"
         )
     else:
         pinv = outcome.pinv
         assert pinv is not None
         values = [sig(v, 4) for v in pinv.params_]
         chosen = (
-            f"<p>Form: <b>{esc(pinv.model_.name)}</b> (given, not chosen), "
+            f"<p class='lead'>Form: <b>{esc(pinv.model_.name)}</b> (given, not chosen), "
             "estimate of the best window:</p>"
         )
     title = f"Tissue identification: {session.name or 'session'}"
-    return f"<h1>{esc(title)}</h1>{meta_table(items)}{chosen}{formula(model, values)}"
+    return (
+        f"<h1>{esc(title)}</h1><p class='small'>{facts}</p>{chosen}{formula(model, values)}"
+    )
+
+
+def folded(summary: str, body: str, *, open_: bool = False) -> str:
+    """``body`` folded under a one-line ``summary`` (HTML ``<details>``, no script)."""
+    return (
+        f"<details{' open' if open_ else ''}><summary>{esc(summary)}</summary>{body}</details>"
+    )
+
+
+def law_name(name: str) -> str:
+    """A law's name, escaped, that may wrap after each ``+``."""
+    return "+<wbr>".join(esc(part) for part in name.split("+"))
 
 
 def ln_probabilities(est: BayesianFit) -> Array:
@@ -324,30 +364,100 @@ def parameters_pinv(pinv: WindowedPinv) -> str:
     )
 
 
+#: laws the comparison shows open: the best, then the next while they hold probability
+SHOWN_LAWS = (3, 5)
+#: a law with less posterior probability than this is not shown open beyond the first 3
+SHOWN_PROBABILITY = 1e-3
+
+
 def comparison(est: BayesianFit) -> str:
+    """The best few laws with their probabilities and one short reason each, then the
+    full table folded."""
+    results = est.results_
+    ln_p = ln_probabilities(est)
+    least, most = SHOWN_LAWS
+    shown = [
+        k for k in range(len(results))
+        if k < least or (k < most and math.exp(ln_p[k]) >= SHOWN_PROBABILITY)
+    ]  # fmt: skip
+    top = results[0].ln_evidence
+    rows = [
+        [
+            f"<b>{law_name(results[k].name)}</b>",
+            probability(float(ln_p[k])),
+            fixed(top - results[k].ln_evidence),
+            esc(short_reason(results[k], est.best_, top - results[k].ln_evidence)),
+        ]
+        for k in shown
+    ]
+    classes = ["best" if results[k] is est.best_ else "" for k in shown]
+    best_few = table(
+        ["law", "posterior probability", "ln BF vs best", "why"],
+        rows,
+        [False, True, True, False],
+        classes,
+        cell_classes=["", "", "", "why"],
+    )
+    rest = len(results) - len(shown)
+    intro = (
+        f"<p>{len(results)} laws were scored by their exact evidence; "
+        + (f"the best {len(shown)} are shown, the other {rest} are below." if rest else
+           "all are shown.")
+        + "</p>"
+    )  # fmt: skip
+    return intro + best_few + folded(
+        f"All {len(results)} laws: evidence, Bayes factors, method, conditioning, notes",
+        full_comparison(est),
+    )
+
+
+def short_reason(r: ModelResult, best: ModelResult, ln_bf: float) -> str:
+    """Why a law ranks where it does, in a few words: what it adds to or lacks from the
+    best law, whether it fits better, and Jeffreys' word for the evidence against it."""
+    if r is best:
+        why = "highest evidence: fits as well as any law with no term the data do not need"
+        return f"{why}; {r.flags[0]}" if r.flags else why
+    mine, theirs = set(r.name.split("+")), set(best.name.split("+"))
+    added, lacks = sorted(mine - theirs), sorted(theirs - mine)
+    fits_worse = r.residual_rms > best.residual_rms * 1.001
+    parts = []
+    if lacks:
+        parts.append("lacks " + ", ".join(lacks))
+    if added:
+        parts.append("adds " + ", ".join(added))
+    what = " and ".join(parts) or "another form of the same terms"
+    if fits_worse:
+        verdict = (
+            f"fits worse (residual {sig(r.residual_rms * 1e3, 3)} mN against "
+            f"{sig(best.residual_rms * 1e3, 3)})"
+        )
+    else:
+        verdict = "fits no better, so its extra freedom costs evidence"
+    return f"{what}: {verdict}; evidence against it: {jeffreys(ln_bf)}"
+
+
+def full_comparison(est: BayesianFit) -> str:
+    """Every law scored, with its evidence, method, conditioning and the fit's notes."""
     results = est.results_
     top = results[0].ln_evidence
     ln_p = ln_probabilities(est)
     sampler = any(r.ln_evidence_sampler is not None for r in results)
-    head = ["law", "in symbols", "ln evidence (exact)"]
+    head = ["law", "ln evidence (exact)"]
     if sampler:
         head += ["ln evidence (stepping-stone)", "sampler − exact"]
     head += [
         "posterior probability",
         "ln BF vs best",
-        "BF vs best",
         "evidence against (Jeffreys)",
         "method",
-        "note",
-        "cond",
         "cond (scaled)",
         "residual RMS (mN)",
+        "note",
     ]
     rows, classes = [], []
     for r, lp in zip(results, ln_p, strict=True):
         lbf = top - r.ln_evidence
-        law = esc(law_text(r.model))
-        row = [f"<b>{esc(r.name)}</b>", law, fixed(r.ln_evidence)]
+        row = [f"<b>{law_name(r.name)}</b>", fixed(r.ln_evidence)]
         if sampler:
             if r.ln_evidence_sampler is None:
                 row += ["—", "—"]
@@ -368,20 +478,18 @@ def comparison(est: BayesianFit) -> str:
         row += [
             probability(float(lp)),
             fixed(lbf),
-            power_of_ten(lbf),
             esc(jeffreys(lbf)),
             esc(r.status),
-            f"<span class='small'>{esc(r.reason)}</span>{flags}",
-            sig(r.cond, 3),
             sig(r.cond_scaled, 3),
             sig(r.residual_rms * 1e3, 3),
+            f"<span class='small'>{esc(r.reason)}</span>{flags}",
         ]
         rows.append(row)
         classes.append("best" if r is est.best_ else "")
     numeric = (
-        [False, False, True]
+        [False, True]
         + ([True, True] if sampler else [])
-        + [True, True, True, False, False, False, True, True, True]
+        + [True, True, False, False, True, True, False]
     )
     explain = (
         "<p class='small'>Forms are ranked by their evidence (marginal likelihood), with "
@@ -390,15 +498,16 @@ def comparison(est: BayesianFit) -> str:
         f"{DECISIVE:.1f} (100 : 1) is decisive. <i>exact</i>: closed-form posterior; "
         "<i>emcee</i>: sampled because the positivity bound cuts the closed form, or on "
         "request; <i>skipped</i>: decisively behind, so not sampled (its evidence is still "
-        "exact). cond: condition number of the design matrix, raw (depends on units) and "
-        "with unit-norm columns (collinearity of the terms alone).</p>"
+        "exact). cond (scaled): condition number of the design matrix with unit-norm "
+        "columns (collinearity of the terms alone).</p>"
     )
     if sampler:
         explain += (
             "<p class='small'>Stepping-stone is an independent, sampler-based estimate of "
             "the same evidence; differences well below 1 confirm the exact value.</p>"
         )
-    return table(head, rows, numeric, classes) + explain
+    cells = [""] * (len(head) - 1) + ["note"]
+    return table(head, rows, numeric, classes, cell_classes=cells, full=True) + explain
 
 
 def pinv_table(pinv: WindowedPinv, est: BayesianFit | None) -> str:
