@@ -54,7 +54,7 @@ def test_repeat_refits_nothing_and_failures_set_the_exit_code(
 def test_one_fit_options_refused_for_many(fitted: tuple[Path, Path], tmp_path: Path) -> None:
     study, _ = fitted
     r = tissuecli("fit", str(study), "--out", str(tmp_path / "p.json"))
-    assert_clean_error(r, "--out and --report write one fit")
+    assert_clean_error(r, "--plots write one fit")
 
 
 def test_catalogue_lists_and_exports(fitted: tuple[Path, Path], tmp_path: Path) -> None:
