@@ -93,9 +93,8 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
     where = lines if lines is not None else np.arange(1, t.size + 1)
     numbers, clock, base = sample_clock(t, where)
     if numbers is not None:
-        steps = np.diff(t)
         # stamps already on the clock (to a millionth of a period) are kept exactly
-        exact = base.residual_max_s <= 1e-6 / base.rate_hz and bool(np.all(steps > 0))
+        exact = base.residual_max_s <= 1e-6 / base.rate_hz and base.repaired == 0
         return (t if exact else clock), base
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
@@ -131,14 +130,22 @@ def sample_clock(
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         raise InputError(f"time is not a finite number at line {where[bad[0]]}")
-    steps = np.diff(t)
-    positive = steps[steps > 0]
-    if positive.size == 0:
+    # every step, or an even sample of a million of them on a long recording
+    stride = max(1, (n - 1) // BLOCK)
+    sampled = t[stride::stride] - t[: n - stride : stride] if stride > 1 else np.diff(t)
+    positive = sampled[sampled > 0]
+    if positive.size == 0 and not np.any(t[1:] > t[:-1]):
         raise InputError("time never increases; check the time column and its unit")
-    typical = float(np.median(positive))
+    typical = float(np.median(positive)) if positive.size else float(t[-1] - t[0]) / (n - 1)
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
-    ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
-    dt = float(np.mean(ordinary)) if ordinary.size and np.mean(ordinary) > 0 else typical
+    count = total = 0.0
+    backward = 0
+    for i in range(0, n - 1, BLOCK):
+        steps = np.diff(t[i : i + BLOCK + 1])
+        ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
+        count, total = count + ordinary.size, total + float(np.sum(ordinary))
+        backward += int(np.count_nonzero(steps <= 0))
+    dt = total / count if count and total > 0 else typical
     q = resolution(t)
     resid = np.zeros(n)
     for counting in (_step_counts, _locked_counts):  # the fast way, then the careful one
@@ -151,16 +158,19 @@ def sample_clock(
             period = slope
         worst = float(np.max(np.abs(resid)))
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
+            clock = k.astype(np.float64)
+            clock *= slope
+            clock += offset
             return (
                 k,
-                offset + slope * k,
+                clock,
                 TimeBase(
                     regular=True,
                     rate_hz=1.0 / slope,
                     residual_rms_s=float(np.sqrt(np.mean(resid**2))),
                     residual_max_s=worst,
                     lost=int(k[-1] + 1 - n),
-                    repaired=int(np.count_nonzero(steps <= 0)),
+                    repaired=backward,
                 ),
             )
     return (
@@ -177,35 +187,83 @@ def sample_clock(
     )
 
 
+#: stamps judged at once; longer arrays are worked through in blocks of this many, so
+#: that a long recording needs a few arrays of its own length, no more
+BLOCK = 1 << 20
+
+
 def resolution(t: Array) -> float:
     """The coarsest decimal step (1, 2 or 5 times a power of ten, from 1 ns to 1 s) that
     every stamp is a whole multiple of: the logger clock's resolution (0 for stamps that
     are not quantised)."""
+    head = t[:4096]
     for exponent in range(0, -10, -1):
         for mantissa in (5, 2, 1):
             q = mantissa * 10.0**exponent
-            units = t / q
-            if np.all(
-                np.abs(units - np.rint(units))
-                <= 1e-6 * np.maximum(1.0, np.abs(units)) * 1e-3 + 1e-9
+            # the first stamps rule most steps out cheaply; the winner is checked on all
+            if _multiples(head, q) and all(
+                _multiples(t[i : i + BLOCK], q) for i in range(head.size, t.size, BLOCK)
             ):
                 return q
     return 0.0
 
 
+def _multiples(t: Array, q: float) -> bool:
+    units = t / q
+    tolerance = 1e-6 * np.maximum(1.0, np.abs(units)) * 1e-3 + 1e-9
+    return bool(np.all(np.abs(units - np.rint(units)) <= tolerance))
+
+
 def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, Array]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
     slope (s per sample), the offset (s) and every stamp's residual (s)."""
-    keep = np.ones(t.size, bool)
+    keep: NDArray[np.bool_] | None = None
     for _ in range(3):
-        slope, offset = np.polyfit(k[keep], t[keep], 1)
+        slope, offset = _line(k, t, keep)
         resid = t - (offset + slope * k)
-        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+        # the spread from every stamp, or from an even sample of a million of them
+        sample = resid[:: max(1, resid.size // (1 << 20))]
+        mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
         inside = np.abs(resid) <= max(4 * mad, 1e-9 * abs(slope))
         if np.count_nonzero(inside) < max(2, t.size // 2):
             break  # no clear majority on one line: keep the fit of all stamps
         keep = inside
     return float(slope), float(offset), resid
+
+
+def _centred_line(
+    k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None
+) -> tuple[float, float]:
+    """Slope and offset of the least-squares line of ``t`` on ``k`` from centred sums."""
+    sums = np.zeros(3)  # count, sum k, sum t
+    for i in range(0, t.size, BLOCK):
+        kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
+        if keep is not None:
+            kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+        sums += (kk.size, float(np.sum(kk, dtype=np.float64)), float(np.sum(tt)))
+    kbar, tbar = sums[1] / sums[0], sums[2] / sums[0]
+    skk = skt = 0.0
+    for i in range(0, t.size, BLOCK):
+        kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
+        if keep is not None:
+            kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+        dk = kk - kbar
+        skk += float(dk @ dk)
+        skt += float(dk @ (tt - tbar))
+    slope = skt / skk if skk > 0 else 0.0
+    return slope, tbar - slope * kbar
+
+
+def _line(k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None) -> tuple[float, float]:
+    """Slope and offset of the least-squares line of ``t`` on ``k`` over the stamps
+    `keep` marks (all if None): centred sums taken block by block, then refined once on
+    the residuals (which the sums of large products would otherwise round)."""
+    slope, offset = _centred_line(k, t, keep)
+    resid = np.empty_like(t)
+    for i in range(0, t.size, BLOCK):
+        resid[i : i + BLOCK] = t[i : i + BLOCK] - (offset + slope * k[i : i + BLOCK])
+    ds, do = _centred_line(k, resid, keep)
+    return slope + ds, offset + do
 
 
 def _limit(dt: float, q: float) -> float:
@@ -216,9 +274,15 @@ def _limit(dt: float, q: float) -> float:
 
 def _step_counts(t: Array, dt: float, q: float) -> NDArray[np.int64]:
     """Sample numbers from each step alone: enough for quantised stamps."""
-    steps = np.diff(t)
-    counts = np.where(steps < _limit(dt, q), 1, np.maximum(1, np.rint(steps / dt)))
-    return np.concatenate([[0], np.cumsum(counts.astype(np.int64))])
+    k = np.empty(t.size, dtype=np.int64)
+    k[0] = 0
+    limit = _limit(dt, q)
+    for i in range(0, t.size - 1, BLOCK):
+        steps = np.diff(t[i : i + BLOCK + 1])
+        counts = np.where(steps < limit, 1, np.maximum(1, np.rint(steps / dt))).astype(np.int64)
+        np.cumsum(counts, out=k[i + 1 : i + 1 + counts.size])
+        k[i + 1 : i + 1 + counts.size] += k[i]
+    return k
 
 
 def _locked_counts(t: Array, dt: float, q: float) -> NDArray[np.int64]:
