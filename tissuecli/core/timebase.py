@@ -13,6 +13,7 @@ whole periods. Otherwise the stamps are irregular and are kept as they are.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,17 +148,19 @@ def sample_clock(
         backward += int(np.count_nonzero(steps <= 0))
     dt = total / count if count and total > 0 else typical
     q = resolution(t)
-    resid = np.zeros(n)
+    worst = rms = 0.0
     for counting in (_step_counts, _locked_counts):  # the fast way, then the careful one
         period = dt
         for _ in range(3):  # count with the period, refit the period, count again
+            k = resid = None  # the last try's arrays go before the next are made
             k = counting(t, period, q)
             slope, offset, resid = _fit_clock(k, t)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
             period = slope
-        worst = float(np.max(np.abs(resid)))
+        worst, rms = _spread(resid)
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
+            del resid
             clock = k.astype(np.float64)
             clock *= slope
             clock += offset
@@ -167,7 +170,7 @@ def sample_clock(
                 TimeBase(
                     regular=True,
                     rate_hz=1.0 / slope,
-                    residual_rms_s=float(np.sqrt(np.mean(resid**2))),
+                    residual_rms_s=rms,
                     residual_max_s=worst,
                     lost=int(k[-1] + 1 - n),
                     repaired=backward,
@@ -179,12 +182,22 @@ def sample_clock(
         TimeBase(
             regular=False,
             rate_hz=1.0 / typical,
-            residual_rms_s=float(np.sqrt(np.mean(resid**2))),
-            residual_max_s=float(np.max(np.abs(resid))),
+            residual_rms_s=rms,
+            residual_max_s=worst,
             lost=0,
             repaired=0,
         ),
     )
+
+
+def _spread(resid: Array) -> tuple[float, float]:
+    """Largest absolute value and RMS of `resid`, block by block."""
+    worst = total = 0.0
+    for i in range(0, resid.size, BLOCK):
+        r = resid[i : i + BLOCK]
+        worst = max(worst, float(np.max(np.abs(r))) if r.size else 0.0)
+        total += float(r @ r)
+    return worst, float(np.sqrt(total / resid.size)) if resid.size else 0.0
 
 
 #: stamps judged at once; longer arrays are worked through in blocks of this many, so
@@ -218,35 +231,57 @@ def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, Array]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
     slope (s per sample), the offset (s) and every stamp's residual (s)."""
     keep: NDArray[np.bool_] | None = None
+    resid = np.empty_like(t)
     for _ in range(3):
         slope, offset = _line(k, t, keep)
-        resid = t - (offset + slope * k)
+        _residuals(k, t, slope, offset, resid)
         # the spread from every stamp, or from an even sample of a million of them
         sample = resid[:: max(1, resid.size // (1 << 20))]
         mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
-        inside = np.abs(resid) <= max(4 * mad, 1e-9 * abs(slope))
-        if np.count_nonzero(inside) < max(2, t.size // 2):
+        bound = max(4 * mad, 1e-9 * abs(slope))
+        inside = np.empty(t.size, dtype=bool)
+        for i in range(0, t.size, BLOCK):
+            np.less_equal(np.abs(resid[i : i + BLOCK]), bound, out=inside[i : i + BLOCK])
+        kept = np.count_nonzero(inside)
+        if kept < max(2, t.size // 2):
             break  # no clear majority on one line: keep the fit of all stamps
+        if keep is None and kept == t.size or keep is not None and np.array_equal(inside, keep):
+            break  # the same stamps again: the same line
         keep = inside
     return float(slope), float(offset), resid
 
 
-def _centred_line(
-    k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None
-) -> tuple[float, float]:
-    """Slope and offset of the least-squares line of ``t`` on ``k`` from centred sums."""
-    sums = np.zeros(3)  # count, sum k, sum t
+def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float, out: Array) -> Array:
+    """``t - (offset + slope k)`` into `out`, block by block."""
     for i in range(0, t.size, BLOCK):
-        kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
-        if keep is not None:
-            kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+        line = k[i : i + BLOCK] * slope
+        line += offset
+        np.subtract(t[i : i + BLOCK], line, out=out[i : i + BLOCK])
+    return out
+
+
+def _centred_line(
+    k: NDArray[np.int64],
+    t: Array,
+    keep: NDArray[np.bool_] | None,
+    line: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, float]:
+    """Slope and offset of the least-squares line of ``t - (line[1] + line[0] k)`` on
+    ``k`` from centred sums, block by block."""
+
+    def blocks() -> Iterator[tuple[NDArray[np.int64], Array]]:
+        for i in range(0, t.size, BLOCK):
+            kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
+            if keep is not None:
+                kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+            yield kk, (tt - (line[1] + line[0] * kk) if line != (0.0, 0.0) else tt)
+
+    sums = np.zeros(3)  # count, sum k, sum t
+    for kk, tt in blocks():
         sums += (kk.size, float(np.sum(kk, dtype=np.float64)), float(np.sum(tt)))
     kbar, tbar = sums[1] / sums[0], sums[2] / sums[0]
     skk = skt = 0.0
-    for i in range(0, t.size, BLOCK):
-        kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
-        if keep is not None:
-            kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+    for kk, tt in blocks():
         dk = kk - kbar
         skk += float(dk @ dk)
         skt += float(dk @ (tt - tbar))
@@ -259,10 +294,7 @@ def _line(k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None) -> tup
     `keep` marks (all if None): centred sums taken block by block, then refined once on
     the residuals (which the sums of large products would otherwise round)."""
     slope, offset = _centred_line(k, t, keep)
-    resid = np.empty_like(t)
-    for i in range(0, t.size, BLOCK):
-        resid[i : i + BLOCK] = t[i : i + BLOCK] - (offset + slope * k[i : i + BLOCK])
-    ds, do = _centred_line(k, resid, keep)
+    ds, do = _centred_line(k, t, keep, (slope, offset))
     return slope + ds, offset + do
 
 

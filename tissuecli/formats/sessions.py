@@ -721,3 +721,24 @@ def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> 
         "clock_faults": {},
         "warnings": [],
     }
+
+
+def discard_session(path: StrPath, name: str, created: bool) -> None:
+    """Remove session `name` that an import left unfinished (its source turned out bad
+    part way): the file too if the import created it, else only the group."""
+    file = os.fspath(path)
+    if not os.path.exists(file):
+        return
+    if created:
+        try:
+            os.remove(file)
+        except OSError:
+            pass
+        return
+    try:
+        with h5py.File(file, "a") as f:
+            group = session_group(name)
+            if group in f:
+                del f[group]
+    except H5_ERRORS:
+        pass  # left marked incomplete, as any interrupted write
