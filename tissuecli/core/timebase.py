@@ -152,15 +152,13 @@ def sample_clock(
     for counting in (_step_counts, _locked_counts):  # the fast way, then the careful one
         period = dt
         for _ in range(3):  # count with the period, refit the period, count again
-            k = resid = None  # the last try's arrays go before the next are made
+            k = None  # the last try's numbers go before the next are made
             k = counting(t, period, q)
-            slope, offset, resid = _fit_clock(k, t)
+            slope, offset, worst, rms = _fit_clock(k, t)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
             period = slope
-        worst, rms = _spread(resid)
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
-            del resid
             clock = k.astype(np.float64)
             clock *= slope
             clock += offset
@@ -190,16 +188,6 @@ def sample_clock(
     )
 
 
-def _spread(resid: Array) -> tuple[float, float]:
-    """Largest absolute value and RMS of `resid`, block by block."""
-    worst = total = 0.0
-    for i in range(0, resid.size, BLOCK):
-        r = resid[i : i + BLOCK]
-        worst = max(worst, float(np.max(np.abs(r))) if r.size else 0.0)
-        total += float(r @ r)
-    return worst, float(np.sqrt(total / resid.size)) if resid.size else 0.0
-
-
 #: stamps judged at once; longer arrays are worked through in blocks of this many, so
 #: that a long recording needs a few arrays of its own length, no more
 BLOCK = 1 << 20
@@ -227,37 +215,41 @@ def _multiples(t: Array, q: float) -> bool:
     return bool(np.all(np.abs(units - np.rint(units)) <= tolerance))
 
 
-def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, Array]:
+def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, float, float]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
-    slope (s per sample), the offset (s) and every stamp's residual (s)."""
+    slope (s per sample), the offset (s), and the largest and RMS residual (s). The
+    residuals are worked out block by block, never held whole."""
     keep: NDArray[np.bool_] | None = None
-    resid = np.empty_like(t)
+    stride = max(1, t.size // (1 << 20))
     for _ in range(3):
         slope, offset = _line(k, t, keep)
-        _residuals(k, t, slope, offset, resid)
         # the spread from every stamp, or from an even sample of a million of them
-        sample = resid[:: max(1, resid.size // (1 << 20))]
+        sample = _residuals(k[::stride], t[::stride], slope, offset)
         mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
         bound = max(4 * mad, 1e-9 * abs(slope))
         inside = np.empty(t.size, dtype=bool)
         for i in range(0, t.size, BLOCK):
-            np.less_equal(np.abs(resid[i : i + BLOCK]), bound, out=inside[i : i + BLOCK])
+            resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
+            np.less_equal(np.abs(resid), bound, out=inside[i : i + BLOCK])
         kept = np.count_nonzero(inside)
         if kept < max(2, t.size // 2):
             break  # no clear majority on one line: keep the fit of all stamps
         if keep is None and kept == t.size or keep is not None and np.array_equal(inside, keep):
             break  # the same stamps again: the same line
         keep = inside
-    return float(slope), float(offset), resid
-
-
-def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float, out: Array) -> Array:
-    """``t - (offset + slope k)`` into `out`, block by block."""
+    worst = total = 0.0
     for i in range(0, t.size, BLOCK):
-        line = k[i : i + BLOCK] * slope
-        line += offset
-        np.subtract(t[i : i + BLOCK], line, out=out[i : i + BLOCK])
-    return out
+        resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
+        worst = max(worst, float(np.max(np.abs(resid))))
+        total += float(resid @ resid)
+    return float(slope), float(offset), worst, float(np.sqrt(total / t.size))
+
+
+def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> Array:
+    """``t - (offset + slope k)``."""
+    line = k * slope
+    line += offset
+    return np.subtract(t, line, out=line)
 
 
 def _centred_line(

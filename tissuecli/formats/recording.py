@@ -182,7 +182,8 @@ class Reading:
             return stamps - stamps[0]
         time, base = regularise(stamps, lines)
         self.report.notes.append("time: " + base.describe())
-        return time - time[0]
+        time -= time[0]  # in place: the stamps are this reading's own
+        return time
 
     def meta(self) -> dict[str, Any]:
         """What a session stores of how it was read."""
@@ -518,8 +519,13 @@ def store_recording(
         reading.finish()
         if lines.rows < 3:
             raise InputError(f"{reading.path}: {lines.rows} sample(s) are too few to fit")
-        every = np.concatenate(stamps)
-        del stamps
+        every = np.empty(lines.rows)
+        row = 0
+        while stamps:  # each block freed as it is copied: never two copies of the stamps
+            block = stamps.pop(0)
+            every[row : row + block.size] = block
+            row += block.size
+        del block
         time = reading.time_base(every, lines)
         del every
         writer.rewrite("time", time)

@@ -374,6 +374,8 @@ class Layout:
             )
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
             return None
+        finally:
+            pa.default_memory_pool().release_unused()  # the pool keeps what it freed
         m = table.num_rows
         # a blank line is skipped by the parser without a word: every line must be a row
         if invalid or m != body.count(b"\n") + (not body.endswith(b"\n")):
