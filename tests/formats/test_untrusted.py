@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from tissuecli.app.fit import fit_file
-from tissuecli.app.transfer import export_csv
+from tissuecli.app.transfer import export_csv, import_recording
 from tissuecli.core.errors import TissueError
 from tissuecli.formats.hdf5 import read_group
+from tissuecli.formats.recording import read_recording
 from tissuecli.formats.sessions import list_sessions, read_session, write_session
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -94,6 +95,39 @@ def test_pointer_datasets_are_refused_and_never_followed(
     assert row["status"].startswith("damaged") and needle in row["status"], row
     assert row["samples"] is None
     assert not (tmp_path / "out.csv").exists()
+    assert (touched.opens, touched.reads) == (0, 0)
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_other_programs_files_with_pointers_are_refused(tmp_path: Path, kind: str) -> None:
+    path, secret = _pointer_file(tmp_path, kind, "force", foreign=True)
+    try:
+        with watch(secret) as touched:
+            with pytest.raises(TissueError, match=f"/rec/force.*{KINDS[kind][1]}"):
+                import_recording(path, tmp_path / "o.h5")
+            result = tissuecli("fit", str(path), "--columns", "force=/rec/force")
+    except OSError as exc:
+        pytest.skip(f"inotify unavailable: {exc}")
+    assert_clean_error(result, "/rec/force", KINDS[kind][1])
+    assert (touched.opens, touched.reads) == (0, 0)
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_external_links_in_other_programs_files_are_never_followed(tmp_path: Path) -> None:
+    secret = tmp_path / "other.h5"
+    with h5py.File(secret, "w") as f:
+        f["force"] = np.arange(N, dtype=float)
+    path = tmp_path / "linked.h5"
+    with h5py.File(path, "w") as f:
+        f["rec/time"] = np.arange(N) * 1e-3
+        f["rec/position"] = np.zeros(N)
+        f["rec/force"] = h5py.ExternalLink(str(secret), "/force")
+    try:
+        with watch(secret) as touched:
+            with pytest.raises(TissueError, match="no column for force"):
+                read_recording(path)
+    except OSError as exc:
+        pytest.skip(f"inotify unavailable: {exc}")
     assert (touched.opens, touched.reads) == (0, 0)
 
 

@@ -40,12 +40,14 @@ from ..core.units import (
     unit_in_header,
 )
 from .arrays import read_arrays
+from .foreign import Columns, read_hdf5, read_tdms
 from .tables import Clock, Layout, Table, clock_seconds, sniff_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
 SYNONYMS = {
     "time": (
-        "time", "t", "timestamp", "times", "sec", "seconds", "elapsed", "ts", "timesec",
+        "time", "t", "timestamp", "timestamps", "times", "sec", "seconds", "elapsed", "ts",
+        "timesec",
         "zeit", "temps", "tiempo", "tempo", "时间", "時間", "时刻", "時刻",
     ),
     "force": (
@@ -62,6 +64,7 @@ SYNONYMS = {
 #: position headers that name the opening between the jaws: closure is their negative
 OPENINGS = ("gap", "opening", "jawgap", "jawopening")
 ARRAY_SUFFIXES = (".mat", ".npz")
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 @dataclass
@@ -84,17 +87,29 @@ class ImportReport:
         return out
 
 
-#: a source of rows: a table in memory, or a text table read block by block
-Source = Table | Layout
+#: a source of rows: a table in memory, a text table or another program's binary file
+#: read block by block
+Source = Table | Layout | Columns
 #: stamps (s), force (N), closure (m) and line numbers of a block of rows
 SIBlock = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
 
 
 def open_source(path: str | os.PathLike[str]) -> Source:
-    """The reader for a recording, chosen by its suffix and its first bytes."""
+    """The reader for a recording, chosen by its suffix and its first bytes: .mat and
+    .npz arrays, HDF5 (and NWB), LabVIEW TDMS, else a text table."""
     path = Path(path)
-    if path.suffix.lower() in ARRAY_SUFFIXES:
+    suffix = path.suffix.lower()
+    if suffix in ARRAY_SUFFIXES:
         return read_arrays(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        head = b""
+    if head.startswith(b"TDSm") or suffix == ".tdms":
+        return read_tdms(path)
+    if head == HDF5_SIGNATURE:
+        return read_hdf5(path)
     return sniff_table(path)
 
 
@@ -239,7 +254,8 @@ def open_recording(
         report.columns[quantity] = source.names[index]
         report.units[quantity] = unit + origin
     report.ignored = [n for i, n in enumerate(source.names) if i not in chosen.values()]
-    opening = _normal(source.names[picked["position"][0]]) in OPENINGS
+    keys = getattr(source, "keys", source.names)
+    opening = _normal(keys[picked["position"][0]]) in OPENINGS
     if opening:
         report.notes.append(
             f"position: {source.names[picked['position'][0]]!r} grows as the jaws open; "
@@ -342,6 +358,7 @@ def _choose_columns(
 ) -> dict[str, int]:
     """Column index of each quantity: as named, else by header word, else by position."""
     names = table.names
+    keys = getattr(table, "keys", names)  # the word a binary file's column is matched by
     chosen: dict[str, int] = {}
     for quantity, column in spec.items():
         if column.isdigit():
@@ -349,9 +366,11 @@ def _choose_columns(
             if not 0 <= index < len(names):
                 raise InputError(f"--columns {quantity}={column}: {path} has {len(names)} columns")
         else:
-            matches = [i for i, n in enumerate(names) if n == column] or [
-                i for i, n in enumerate(names) if n.lower() == column.lower()
-            ]
+            matches = (
+                [i for i, n in enumerate(names) if n == column]
+                or [i for i, n in enumerate(names) if n.lower() == column.lower()]
+                or [i for i, n in enumerate(names) if n.strip("/") == column.strip("/")]
+            )
             if not matches:
                 raise InputError(
                     f"--columns {quantity}={column[:40]!r}: no such column in {path}; it has "
@@ -367,7 +386,7 @@ def _choose_columns(
             i
             for i, n in enumerate(names)
             if i not in chosen.values()
-            and _normal(n) in SYNONYMS[quantity]
+            and _normal(keys[i]) in SYNONYMS[quantity]
             and (quantity == "time" or table.numeric[i])
         ]
         if len(hits) > 1:
