@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..core.errors import InputError
@@ -10,12 +12,11 @@ from ..core.session import Session
 from ..core.units import parse_units
 from ..formats.csvfile import write_csv
 from ..formats.outputs import Output, check_outputs
-from ..formats.recording import ImportReport, read_recording
+from ..formats.recording import ImportReport, open_recording, read_recording, store_recording
 from ..formats.sessions import (
     check_new_session,
     is_session_file,
     read_session,
-    write_session,
 )
 
 
@@ -30,16 +31,25 @@ def import_recording(
     rate_hz: float | None = None,
     tissue: str = "",
     note: str = "",
-) -> tuple[Session, ImportReport]:
+    progress: Callable[[float], None] | None = None,
+) -> tuple[Imported, ImportReport]:
     """Read a recording (text table, .mat or .npz; see
     :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
     file ``out`` (created if missing; other sessions are never touched), named
     ``session`` or else after the source file (its name without the extension).
 
+    The recording is read and written block by block, so its length is bounded by the
+    disk, not the memory (:func:`tissuecli.formats.recording.store_recording`).
+
+    Parameters
+    ----------
+    progress : callable, optional
+        Called after each block with the fraction of the source read (0 to 1).
+
     Returns
     -------
-    session : Session
-        What was stored, in SI.
+    imported : Imported
+        Name, samples, duration (s) and rate (Hz) of what was stored, in SI.
     report : ImportReport
         Columns and units used, what was repaired or skipped, and unit warnings.
     """
@@ -47,15 +57,26 @@ def import_recording(
     if session is None:
         session = Path(source).stem
     check_new_session(out, session)
-    s, report = read_recording(
-        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
-        name=session,
-    )  # fmt: skip
-    s.meta.update(tissue=tissue, note=note)
-    if report.warnings:
-        s.meta["import_warnings"] = report.warnings
-    write_session(out, s)
-    return s, report
+    reading = open_recording(
+        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
+    )
+    n, duration, rate = store_recording(
+        reading, out, session, {"tissue": tissue, "note": note}, progress
+    )
+    return Imported(session, n, duration, rate), reading.report
+
+
+@dataclass(frozen=True)
+class Imported:
+    """What an import stored: the session's name, samples, duration (s) and rate (Hz)."""
+
+    name: str
+    samples: int
+    duration_s: float
+    rate_hz: float
+
+    def __len__(self) -> int:
+        return self.samples
 
 
 def export_csv(

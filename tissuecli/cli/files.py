@@ -13,6 +13,7 @@ from .options import (
     h5_out_option,
     label_options,
     reading,
+    reading_progress,
     recording_options,
     session_option,
     units_option,
@@ -132,6 +133,7 @@ def import_(
         **reading(columns, units, jaw_length, rate),
         tissue=tissue,
         note=note,
+        progress=reading_progress(source),
     )
     for line in report.lines():
         click.echo(line)

@@ -128,6 +128,29 @@ def reading(
     }
 
 
+def reading_progress(source: str, after_s: float = 2.0) -> Callable[[float], None]:
+    """A progress line on stderr while a recording is read, once reading has taken more
+    than `after_s` seconds (short files print nothing); cleared at the end."""
+    import time
+
+    start = time.monotonic()
+    shown = [0.0]
+
+    def report(fraction: float) -> None:
+        now = time.monotonic()
+        if now - start < after_s or (now - shown[0] < 0.5 and fraction < 1.0):
+            return
+        shown[0] = now
+        end = "\n" if fraction >= 1.0 else ""
+        click.echo(
+            f"\rreading {source}: {100 * fraction:3.0f} % ({now - start:.0f} s)" + end,
+            err=True,
+            nl=False,
+        )
+
+    return report
+
+
 def profile_option(help: str) -> Decorator:
     return click.option(
         "--profile", "profile_file", type=click.Path(dir_okay=False), default=None, help=help

@@ -13,6 +13,7 @@ whole periods. Otherwise the stamps are irregular and are kept as they are.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,9 +94,8 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
     where = lines if lines is not None else np.arange(1, t.size + 1)
     numbers, clock, base = sample_clock(t, where)
     if numbers is not None:
-        steps = np.diff(t)
         # stamps already on the clock (to a millionth of a period) are kept exactly
-        exact = base.residual_max_s <= 1e-6 / base.rate_hz and bool(np.all(steps > 0))
+        exact = base.residual_max_s <= 1e-6 / base.rate_hz and base.repaired == 0
         return (t if exact else clock), base
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
@@ -131,36 +131,47 @@ def sample_clock(
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         raise InputError(f"time is not a finite number at line {where[bad[0]]}")
-    steps = np.diff(t)
-    positive = steps[steps > 0]
-    if positive.size == 0:
+    # every step, or an even sample of a million of them on a long recording
+    stride = max(1, (n - 1) // BLOCK)
+    sampled = t[stride::stride] - t[: n - stride : stride] if stride > 1 else np.diff(t)
+    positive = sampled[sampled > 0]
+    if positive.size == 0 and not np.any(t[1:] > t[:-1]):
         raise InputError("time never increases; check the time column and its unit")
-    typical = float(np.median(positive))
+    typical = float(np.median(positive)) if positive.size else float(t[-1] - t[0]) / (n - 1)
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
-    ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
-    dt = float(np.mean(ordinary)) if ordinary.size and np.mean(ordinary) > 0 else typical
+    count = total = 0.0
+    backward = 0
+    for i in range(0, n - 1, BLOCK):
+        steps = np.diff(t[i : i + BLOCK + 1])
+        ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
+        count, total = count + ordinary.size, total + float(np.sum(ordinary))
+        backward += int(np.count_nonzero(steps <= 0))
+    dt = total / count if count and total > 0 else typical
     q = resolution(t)
-    resid = np.zeros(n)
+    worst = rms = 0.0
     for counting in (_step_counts, _locked_counts):  # the fast way, then the careful one
         period = dt
         for _ in range(3):  # count with the period, refit the period, count again
+            k = None  # the last try's numbers go before the next are made
             k = counting(t, period, q)
-            slope, offset, resid = _fit_clock(k, t)
+            slope, offset, worst, rms = _fit_clock(k, t)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
             period = slope
-        worst = float(np.max(np.abs(resid)))
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
+            clock = k.astype(np.float64)
+            clock *= slope
+            clock += offset
             return (
                 k,
-                offset + slope * k,
+                clock,
                 TimeBase(
                     regular=True,
                     rate_hz=1.0 / slope,
-                    residual_rms_s=float(np.sqrt(np.mean(resid**2))),
+                    residual_rms_s=rms,
                     residual_max_s=worst,
                     lost=int(k[-1] + 1 - n),
-                    repaired=int(np.count_nonzero(steps <= 0)),
+                    repaired=backward,
                 ),
             )
     return (
@@ -169,43 +180,114 @@ def sample_clock(
         TimeBase(
             regular=False,
             rate_hz=1.0 / typical,
-            residual_rms_s=float(np.sqrt(np.mean(resid**2))),
-            residual_max_s=float(np.max(np.abs(resid))),
+            residual_rms_s=rms,
+            residual_max_s=worst,
             lost=0,
             repaired=0,
         ),
     )
 
 
+#: stamps judged at once; longer arrays are worked through in blocks of this many, so
+#: that a long recording needs a few arrays of its own length, no more
+BLOCK = 1 << 20
+
+
 def resolution(t: Array) -> float:
     """The coarsest decimal step (1, 2 or 5 times a power of ten, from 1 ns to 1 s) that
     every stamp is a whole multiple of: the logger clock's resolution (0 for stamps that
     are not quantised)."""
+    head = t[:4096]
     for exponent in range(0, -10, -1):
         for mantissa in (5, 2, 1):
             q = mantissa * 10.0**exponent
-            units = t / q
-            if np.all(
-                np.abs(units - np.rint(units))
-                <= 1e-6 * np.maximum(1.0, np.abs(units)) * 1e-3 + 1e-9
+            # the first stamps rule most steps out cheaply; the winner is checked on all
+            if _multiples(head, q) and all(
+                _multiples(t[i : i + BLOCK], q) for i in range(head.size, t.size, BLOCK)
             ):
                 return q
     return 0.0
 
 
-def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, Array]:
+def _multiples(t: Array, q: float) -> bool:
+    units = t / q
+    tolerance = 1e-6 * np.maximum(1.0, np.abs(units)) * 1e-3 + 1e-9
+    return bool(np.all(np.abs(units - np.rint(units)) <= tolerance))
+
+
+def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, float, float]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
-    slope (s per sample), the offset (s) and every stamp's residual (s)."""
-    keep = np.ones(t.size, bool)
+    slope (s per sample), the offset (s), and the largest and RMS residual (s). The
+    residuals are worked out block by block, never held whole."""
+    keep: NDArray[np.bool_] | None = None
+    stride = max(1, t.size // (1 << 20))
     for _ in range(3):
-        slope, offset = np.polyfit(k[keep], t[keep], 1)
-        resid = t - (offset + slope * k)
-        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-        inside = np.abs(resid) <= max(4 * mad, 1e-9 * abs(slope))
-        if np.count_nonzero(inside) < max(2, t.size // 2):
+        slope, offset = _line(k, t, keep)
+        # the spread from every stamp, or from an even sample of a million of them
+        sample = _residuals(k[::stride], t[::stride], slope, offset)
+        mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+        bound = max(4 * mad, 1e-9 * abs(slope))
+        inside = np.empty(t.size, dtype=bool)
+        for i in range(0, t.size, BLOCK):
+            resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
+            np.less_equal(np.abs(resid), bound, out=inside[i : i + BLOCK])
+        kept = np.count_nonzero(inside)
+        if kept < max(2, t.size // 2):
             break  # no clear majority on one line: keep the fit of all stamps
+        if keep is None and kept == t.size or keep is not None and np.array_equal(inside, keep):
+            break  # the same stamps again: the same line
         keep = inside
-    return float(slope), float(offset), resid
+    worst = total = 0.0
+    for i in range(0, t.size, BLOCK):
+        resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
+        worst = max(worst, float(np.max(np.abs(resid))))
+        total += float(resid @ resid)
+    return float(slope), float(offset), worst, float(np.sqrt(total / t.size))
+
+
+def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> Array:
+    """``t - (offset + slope k)``."""
+    line = k * slope
+    line += offset
+    return np.subtract(t, line, out=line)
+
+
+def _centred_line(
+    k: NDArray[np.int64],
+    t: Array,
+    keep: NDArray[np.bool_] | None,
+    line: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, float]:
+    """Slope and offset of the least-squares line of ``t - (line[1] + line[0] k)`` on
+    ``k`` from centred sums, block by block."""
+
+    def blocks() -> Iterator[tuple[NDArray[np.int64], Array]]:
+        for i in range(0, t.size, BLOCK):
+            kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
+            if keep is not None:
+                kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+            yield kk, (tt - (line[1] + line[0] * kk) if line != (0.0, 0.0) else tt)
+
+    sums = np.zeros(3)  # count, sum k, sum t
+    for kk, tt in blocks():
+        sums += (kk.size, float(np.sum(kk, dtype=np.float64)), float(np.sum(tt)))
+    kbar, tbar = sums[1] / sums[0], sums[2] / sums[0]
+    skk = skt = 0.0
+    for kk, tt in blocks():
+        dk = kk - kbar
+        skk += float(dk @ dk)
+        skt += float(dk @ (tt - tbar))
+    slope = skt / skk if skk > 0 else 0.0
+    return slope, tbar - slope * kbar
+
+
+def _line(k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None) -> tuple[float, float]:
+    """Slope and offset of the least-squares line of ``t`` on ``k`` over the stamps
+    `keep` marks (all if None): centred sums taken block by block, then refined once on
+    the residuals (which the sums of large products would otherwise round)."""
+    slope, offset = _centred_line(k, t, keep)
+    ds, do = _centred_line(k, t, keep, (slope, offset))
+    return slope + ds, offset + do
 
 
 def _limit(dt: float, q: float) -> float:
@@ -216,9 +298,15 @@ def _limit(dt: float, q: float) -> float:
 
 def _step_counts(t: Array, dt: float, q: float) -> NDArray[np.int64]:
     """Sample numbers from each step alone: enough for quantised stamps."""
-    steps = np.diff(t)
-    counts = np.where(steps < _limit(dt, q), 1, np.maximum(1, np.rint(steps / dt)))
-    return np.concatenate([[0], np.cumsum(counts.astype(np.int64))])
+    k = np.empty(t.size, dtype=np.int64)
+    k[0] = 0
+    limit = _limit(dt, q)
+    for i in range(0, t.size - 1, BLOCK):
+        steps = np.diff(t[i : i + BLOCK + 1])
+        counts = np.where(steps < limit, 1, np.maximum(1, np.rint(steps / dt))).astype(np.int64)
+        np.cumsum(counts, out=k[i + 1 : i + 1 + counts.size])
+        k[i + 1 : i + 1 + counts.size] += k[i]
+    return k
 
 
 def _locked_counts(t: Array, dt: float, q: float) -> NDArray[np.int64]:

@@ -13,6 +13,9 @@ import math
 import re
 from dataclasses import dataclass, field
 
+import numpy as np
+from numpy.typing import NDArray
+
 from .errors import InputError
 from .session import QUANTITIES
 
@@ -173,9 +176,14 @@ def unit_in_header(header: str, column: str) -> str | None:
     ``deg`` for position; ``force`` alone gives None.
     """
     match = _UNIT_IN_HEADER.search(header.strip())
-    if match is None:
-        return None
-    unit = match.group(1)
+    return unit_for(match.group(1), column) if match else None
+
+
+def unit_for(unit: str, column: str) -> str | None:
+    """`unit` (``ms``, ``[N]``, ``(mm)``, ``n``) as a unit `column` may have, or None.
+
+    Used for a header's unit and for a units row under the names."""
+    unit = unit.strip().strip("[]()").strip()
     for candidate in (unit, unit.lower(), "N" if unit.lower() == "n" else unit):
         dim = dimension_of(candidate)
         if dim is not None and (
@@ -183,6 +191,18 @@ def unit_in_header(header: str, column: str) -> str | None:
         ):
             return candidate
     return None
+
+
+#: magnitudes, in SI, beyond any grasp, squeeze or test machine (a giganewton, a
+#: thousand kilometres): a value beyond them is a wrong column, a wrong unit or damage,
+#: and would overflow the fit's sums of squares
+PHYSICAL_LIMITS = {"force": 1e9, "position": 1e6}
+
+
+def beyond_physical(quantity: str, values: NDArray[np.float64]) -> int | None:
+    """Index of the first of `values` (SI) beyond :data:`PHYSICAL_LIMITS`, or None."""
+    bad = np.flatnonzero(np.abs(values) > PHYSICAL_LIMITS[quantity])
+    return int(bad[0]) if bad.size else None
 
 
 def parse_quantity(text: str, dimension: str, option: str) -> float:

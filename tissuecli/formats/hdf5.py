@@ -429,6 +429,9 @@ def dataset_problem(obj: Any, kinds: str = NUMBERS, trailing: tuple[int, ...] = 
         return "is missing"
     if not isinstance(obj, h5py.Dataset):
         return "is not a dataset"
+    pointer = elsewhere(obj)
+    if pointer:
+        return pointer
     dtype = obj.dtype
     wanted = "integers" if kinds == INTEGERS else "numbers"
     if dtype.fields is not None or dtype.subdtype is not None or dtype.kind not in kinds:
@@ -440,6 +443,31 @@ def dataset_problem(obj: Any, kinds: str = NUMBERS, trailing: tuple[int, ...] = 
         return f"is a single value; expected shape {shape_text(trailing)}, one row per sample"
     if tuple(shape[1:]) != tuple(trailing):
         return f"has shape {tuple(shape)}; expected {shape_text(trailing)}"
+    return None
+
+
+def elsewhere(ds: h5py.Dataset) -> str | None:
+    """Why `ds` would read bytes from outside its own file, or None.
+
+    An input file is data, never a pointer: a dataset with external raw storage (its
+    bytes in another file, any file the user can read) or a virtual dataset (mapped
+    from other datasets, in other files or this one) is refused before a byte of it
+    is read. Only the dataset's creation properties are looked at.
+    """
+    try:
+        plist = ds.id.get_create_plist()
+        if plist.get_layout() == h5py.h5d.VIRTUAL:
+            return (
+                "is a virtual dataset (its values are mapped from other datasets or files); "
+                "tissuecli reads only data stored in the file given"
+            )
+        if plist.get_external_count() > 0:
+            return (
+                "keeps its values in another file (HDF5 external storage); tissuecli reads "
+                "only data stored in the file given"
+            )
+    except H5_ERRORS as exc:
+        return f"has creation properties that cannot be read ({first_line(exc)})"
     return None
 
 

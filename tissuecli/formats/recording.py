@@ -14,35 +14,57 @@ are put back on the regular clock they came from, when they did
 
 from __future__ import annotations
 
+import bisect
 import math
 import os
 import re
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..core.errors import InputError
 from ..core.plausible import unit_warnings
 from ..core.session import COLUMNS, Session
 from ..core.timebase import regularise
-from ..core.units import ColumnUnits, dimension_of, parse_units, unit_in_header
+from ..core.units import (
+    PHYSICAL_LIMITS,
+    ColumnUnits,
+    beyond_physical,
+    dimension_of,
+    parse_units,
+    unit_for,
+    unit_in_header,
+)
 from .arrays import read_arrays
-from .tables import Table, clock_seconds, read_table
+from .foreign import Columns, read_hdf5, read_tdms
+from .tables import Clock, Layout, Table, clock_seconds, sniff_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
 SYNONYMS = {
-    "time": ("time", "t", "timestamp", "times", "sec", "seconds", "elapsed", "ts", "timesec"),
-    "force": ("force", "f", "load", "graspforce", "grip", "gripforce", "fz", "forcesensor"),
+    "time": (
+        "time", "t", "timestamp", "timestamps", "times", "sec", "seconds", "elapsed", "ts",
+        "timesec",
+        "zeit", "temps", "tiempo", "tempo", "时间", "時間", "时刻", "時刻",
+    ),
+    "force": (
+        "force", "f", "load", "graspforce", "grip", "gripforce", "fz", "forcesensor",
+        "kraft", "fuerza", "forza", "力", "荷重", "压力", "力量", "载荷",
+    ),
     "position": (
         "position", "pos", "closure", "x", "displacement", "disp", "jaw", "gap", "depth",
         "indentation", "stroke", "opening", "angle", "jawangle", "theta", "jawposition",
-        "jawgap", "jawopening",
+        "jawgap", "jawopening", "weg", "déplacement", "deplacement", "desplazamiento",
+        "spostamento", "位移", "変位", "位置", "变位", "ストローク",
     ),
 }  # fmt: skip
 #: position headers that name the opening between the jaws: closure is their negative
 OPENINGS = ("gap", "opening", "jawgap", "jawopening")
 ARRAY_SUFFIXES = (".mat", ".npz")
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 @dataclass
@@ -63,6 +85,200 @@ class ImportReport:
         out += self.notes
         out += [f"warning: {w}" for w in self.warnings]
         return out
+
+
+#: a source of rows: a table in memory, a text table or another program's binary file
+#: read block by block
+Source = Table | Layout | Columns
+#: stamps (s), force (N), closure (m) and line numbers of a block of rows
+SIBlock = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
+
+
+def open_source(path: str | os.PathLike[str]) -> Source:
+    """The reader for a recording, chosen by its suffix and its first bytes: .mat and
+    .npz arrays, HDF5 (and NWB), LabVIEW TDMS, else a text table."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in ARRAY_SUFFIXES:
+        return read_arrays(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        head = b""
+    if head.startswith(b"TDSm") or suffix == ".tdms":
+        return read_tdms(path)
+    if head == HDF5_SIGNATURE:
+        return read_hdf5(path)
+    return sniff_table(path)
+
+
+@dataclass
+class Reading:
+    """A recording being read: the columns and units chosen, and its rows in SI, block
+    by block (:meth:`blocks`), so that a recording of any length can be stored as it is
+    read. :meth:`finish` afterwards gives the reader's notes."""
+
+    path: Path
+    source: Source
+    report: ImportReport
+    picked: dict[str, tuple[int, str]]
+    opening: bool
+    jaw_length_m: float | None
+    rate_hz: float | None
+    clock: Clock | None = None
+    rows: int = 0
+    lost: int = 0  # samples missing from the recording's own clock (set by time_base)
+
+    @property
+    def stamped(self) -> bool:
+        """Whether the recording has a time column (else the time is the sample index
+        at ``rate_hz``)."""
+        return "time" in self.picked
+
+    def blocks(self) -> Iterator[SIBlock]:
+        """``(stamps, force, position, lines)`` of each block: stamps in s (the file's,
+        not yet put on a clock; sample index / rate without a time column), force in N,
+        closure in m, line numbers for messages.
+
+        Raises
+        ------
+        InputError
+            A value beyond any physical range, or a clock time that is not one.
+        """
+        order = [q for q in COLUMNS if q in self.picked]
+        columns = [self.picked[q][0] for q in order]
+        for block in self.source.blocks(columns):
+            values = {q: block.values[:, j] for j, q in enumerate(order)}
+            lines = block.lines
+            if "time" in self.picked:
+                index, unit = self.picked["time"]
+                if self.clock is not None:
+                    stamps = self.clock.seconds(block.text.get(index, []))
+                    if stamps is None:
+                        raise InputError(
+                            f"{self.path}: a time between lines {lines[0]} and {lines[-1]} "
+                            "is not a clock time like the others; repair the time column"
+                        )
+                else:
+                    stamps = values["time"] * ColumnUnits(time=unit).factor("time")
+            else:
+                stamps = (self.rows + np.arange(lines.size)) / float(self.rate_hz or 1.0)
+            force = _force(values["force"], self.picked["force"][1], self.jaw_length_m, self.path)
+            position = _closure(
+                values["position"], self.picked["position"][1], self.jaw_length_m, self.path
+            )
+            if self.opening:
+                position = -position
+            for quantity, si in (("force", force), ("position", position)):
+                bad = beyond_physical(quantity, si)
+                if bad is not None:
+                    raise InputError(
+                        f"{self.path}: {quantity} reads {si[bad]:.3g} "
+                        f"{'N' if quantity == 'force' else 'm'} at line {lines[bad]}, beyond "
+                        f"any {'grasp' if quantity == 'force' else 'jaw'} (|{quantity}| <= "
+                        f"{PHYSICAL_LIMITS[quantity]:.0e}); check the column and --units"
+                    )
+            self.rows += lines.size
+            yield stamps, force, position, lines
+
+    def fraction(self) -> float:
+        """How much of the file has been read, 0 to 1."""
+        return self.source.fraction()
+
+    def finish(self) -> None:
+        """After :meth:`blocks`: the reader's notes into the report (first), and a
+        refusal if the table was more junk than data."""
+        self.report.notes[:0] = self.source.finish()
+
+    def time_base(self, stamps: NDArray[np.float64], lines: Any) -> NDArray[np.float64]:
+        """The stamps put back on their clock (s from the first), noted in the report."""
+        if not self.stamped:
+            self.report.notes.append(f"time: from the sample index at {self.rate_hz:g} Hz (--rate)")
+            return stamps - stamps[0]
+        time, base = regularise(stamps, lines)
+        self.report.notes.append("time: " + base.describe())
+        self.lost = int(base.lost)
+        time -= time[0]  # in place: the stamps are this reading's own
+        return time
+
+    def meta(self) -> dict[str, Any]:
+        """What a session stores of how it was read."""
+        return {
+            "source": f"{self.source.source}:{self.path.name}",
+            "import_columns": self.report.columns,
+            "import_units": self.report.units,
+            "import_notes": self.report.notes,
+            # what the import counted, for `sessions` (docs/formats.md)
+            "import_samples_lost": self.lost,
+            "import_lines_skipped": int(getattr(self.source, "junk_count", 0)),
+        }
+
+
+def open_recording(
+    path: str | os.PathLike[str],
+    *,
+    columns: str | None = None,
+    units: str | None = None,
+    jaw_length_m: float | None = None,
+    rate_hz: float | None = None,
+) -> Reading:
+    """Open a foreign recording: its layout sniffed, its columns and units chosen, nothing
+    of its body read yet (see :func:`read_recording` for the parameters).
+
+    Raises
+    ------
+    InputError
+        With one line that names the file, the column or the line at fault.
+    """
+    path = Path(path)
+    source = open_source(path)
+    report = ImportReport()
+    chosen = _choose_columns(source, _parse_columns(columns), rate_hz is not None, path)
+    units_given = parse_units(units)
+    picked: dict[str, tuple[int, str]] = {}
+    clock: Clock | None = None
+    for quantity in COLUMNS:
+        index = chosen.get(quantity)
+        if index is None:
+            continue
+        numeric = source.numeric[index]
+        head = source.head_text(index) if not numeric else []
+        if quantity == "time" and head and clock_seconds(head) is not None:
+            clock = Clock()  # clock times are read in s, whatever --units says
+            unit, origin = "s", " (clock times)"
+        elif not numeric:
+            raise InputError(
+                f"{path}: column {source.names[index]!r} holds text, not numbers; choose "
+                f"another with --columns {quantity}=NAME"
+            )
+        else:
+            row = source.units[index] if source.units else ""
+            unit, origin = _unit(quantity, source.names[index], row, units_given, source.header)
+        picked[quantity] = (index, unit)
+        report.columns[quantity] = source.names[index]
+        report.units[quantity] = unit + origin
+    report.ignored = [n for i, n in enumerate(source.names) if i not in chosen.values()]
+    keys = getattr(source, "keys", source.names)
+    opening = _normal(keys[picked["position"][0]]) in OPENINGS
+    if opening:
+        report.notes.append(
+            f"position: {source.names[picked['position'][0]]!r} grows as the jaws open; "
+            "closure is its negative"
+        )
+    if "time" not in picked and not (rate_hz and rate_hz > 0 and math.isfinite(rate_hz)):
+        raise InputError("--rate must be a positive number of Hz")
+    for quantity in ("force", "position"):  # fail before reading the body
+        unit = picked[quantity][1]
+        if dimension_of(unit) in ("angle", "torque") and not (
+            jaw_length_m and jaw_length_m > 0 and math.isfinite(jaw_length_m)
+        ):
+            what = "an angle" if quantity == "position" else "a torque"
+            raise InputError(
+                f"{quantity} in {path} is {what} ({unit}); give the jaws' hinge-to-tip "
+                "length with --jaw-length, e.g. --jaw-length 20mm"
+            )
+    return Reading(path, source, report, picked, opening, jaw_length_m, rate_hz, clock)
 
 
 def read_recording(
@@ -97,73 +313,21 @@ def read_recording(
     InputError
         With one line that names the file, the column or the line at fault.
     """
-    path = Path(path)
-    table = read_arrays(path) if path.suffix.lower() in ARRAY_SUFFIXES else read_table(path)
-    report = ImportReport(notes=list(table.notes))
-    chosen = _choose_columns(table, _parse_columns(columns), rate_hz is not None, path)
-    units_given = parse_units(units)
-    picked = {}
-    for quantity in COLUMNS:
-        index = chosen.get(quantity)
-        if index is None:
-            continue
-        clock = (
-            clock_seconds(table.text[index]) if quantity == "time" and index in table.text else None
-        )
-        if clock is not None:
-            table.data[:, index] = clock  # clock times are read in s, whatever --units says
-            unit, origin = "s", " (clock times)"
-        elif np.all(np.isnan(table.data[:, index])):
-            raise InputError(
-                f"{path}: column {table.names[index]!r} holds text, not numbers; choose "
-                f"another with --columns {quantity}=NAME"
-            )
-        else:
-            unit, origin = _unit(quantity, table.names[index], units_given, table.header)
-        picked[quantity] = (index, unit)
-        report.columns[quantity] = table.names[index]
-        report.units[quantity] = unit + origin
-    report.ignored = [n for i, n in enumerate(table.names) if i not in chosen.values()]
-    data = table.data
-    force = _force(data[:, picked["force"][0]], picked["force"][1], jaw_length_m, path)
-    position = _closure(data[:, picked["position"][0]], picked["position"][1], jaw_length_m, path)
-    if _normal(table.names[picked["position"][0]]) in OPENINGS:
-        position = -position
-        report.notes.append(
-            f"position: {table.names[picked['position'][0]]!r} grows as the jaws open; "
-            "closure is its negative"
-        )
-    lost = 0
-    if "time" in picked:
-        stamps = data[:, picked["time"][0]] * ColumnUnits(time=picked["time"][1]).factor("time")
-        time, base = regularise(stamps, table.lines)
-        report.notes.append("time: " + base.describe())
-        lost = base.lost
-    else:
-        if not (rate_hz and rate_hz > 0 and math.isfinite(rate_hz)):
-            raise InputError("--rate must be a positive number of Hz")
-        time = np.arange(data.shape[0]) / rate_hz
-        report.notes.append(f"time: from the sample index at {rate_hz:g} Hz (--rate)")
-    session = Session(
-        time - time[0],
-        force,
-        position,
-        name=name,
-        meta={
-            "source": f"{table.source}:{path.name}",
-            "import_columns": report.columns,
-            "import_units": report.units,
-            "import_notes": report.notes,
-            # what the import counted, for `sessions` (docs/formats.md)
-            "import_samples_lost": int(lost),
-            "import_lines_skipped": len(getattr(table, "junk", []) or []),
-        },
+    reading = open_recording(
+        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
     )
+    parts = list(reading.blocks())
+    reading.finish()
+    stamps, force, position = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    lines = np.concatenate([p[3] for p in parts])
+    del parts
+    time = reading.time_base(stamps, lines)
+    session = Session(time, force, position, name=name, meta=reading.meta())
     session.validate()
-    report.warnings = unit_warnings(
-        session, position_given=dimension_of(picked["position"][1]) != "angle"
+    reading.report.warnings = unit_warnings(
+        session, position_given=dimension_of(reading.picked["position"][1]) != "angle"
     )
-    return session, report
+    return session, reading.report
 
 
 def _parse_columns(spec: str | None) -> dict[str, str]:
@@ -184,20 +348,22 @@ def _parse_columns(spec: str | None) -> dict[str, str]:
 
 
 def _normal(name: str) -> str:
-    """A header reduced to its word: lower case, no unit, letters and digits only."""
+    """A header reduced to its word: lower case, no unit, letters (of any script) and
+    digits only."""
     bare = re.sub(r"[\(\[].*?[\)\]]", "", name)
     for quantity in COLUMNS:
         unit = unit_in_header(bare, quantity)
         if unit and bare.lower().endswith(unit.lower()) and len(bare) > len(unit) + 1:
             bare = bare[: -len(unit)]
-    return re.sub(r"[^a-z0-9]", "", bare.lower())
+    return re.sub(r"[\W_]", "", bare.lower())
 
 
 def _choose_columns(
-    table: Table, spec: dict[str, str], rate_given: bool, path: Path
+    table: Source, spec: dict[str, str], rate_given: bool, path: Path
 ) -> dict[str, int]:
     """Column index of each quantity: as named, else by header word, else by position."""
     names = table.names
+    keys = getattr(table, "keys", names)  # the word a binary file's column is matched by
     chosen: dict[str, int] = {}
     for quantity, column in spec.items():
         if column.isdigit():
@@ -205,9 +371,11 @@ def _choose_columns(
             if not 0 <= index < len(names):
                 raise InputError(f"--columns {quantity}={column}: {path} has {len(names)} columns")
         else:
-            matches = [i for i, n in enumerate(names) if n == column] or [
-                i for i, n in enumerate(names) if n.lower() == column.lower()
-            ]
+            matches = (
+                [i for i, n in enumerate(names) if n == column]
+                or [i for i, n in enumerate(names) if n.lower() == column.lower()]
+                or [i for i, n in enumerate(names) if n.strip("/") == column.strip("/")]
+            )
             if not matches:
                 raise InputError(
                     f"--columns {quantity}={column[:40]!r}: no such column in {path}; it has "
@@ -223,8 +391,8 @@ def _choose_columns(
             i
             for i, n in enumerate(names)
             if i not in chosen.values()
-            and _normal(n) in SYNONYMS[quantity]
-            and (quantity == "time" or not np.all(np.isnan(table.data[:, i])))
+            and _normal(keys[i]) in SYNONYMS[quantity]
+            and (quantity == "time" or table.numeric[i])
         ]
         if len(hits) > 1:
             raise InputError(
@@ -247,10 +415,16 @@ def _choose_columns(
     return chosen
 
 
-def _unit(quantity: str, header: str, given: ColumnUnits, has_header: bool) -> tuple[str, str]:
-    """The unit of a column and where it came from."""
+def _unit(
+    quantity: str, header: str, row: str, given: ColumnUnits, has_header: bool
+) -> tuple[str, str]:
+    """The unit of a column and where it came from: ``--units``, the units row under the
+    names, the header, else SI."""
     if quantity in given.given:
         return getattr(given, quantity), " (--units)"
+    found = unit_for(row, quantity) if row else None
+    if found:
+        return found, f" (from the units row: {row!r})"
     found = unit_in_header(header, quantity) if has_header else None
     if found:
         return found, f" (from the header {header!r})"
@@ -287,3 +461,115 @@ def _closure(values: np.ndarray, unit: str, jaw_length_m: float | None, path: Pa
         )
     theta = values * ColumnUnits(position=unit).factor("position")
     return -2.0 * jaw_length_m * np.sin(theta / 2.0)
+
+
+class LineNumbers:
+    """Line numbers of the rows read, kept as runs (a block of consecutive lines is one
+    pair of numbers), so that a long table's line numbers take almost no memory."""
+
+    def __init__(self) -> None:
+        self._starts: list[int] = [0]  # first row of each run
+        self._runs: list[NDArray[np.int64] | int] = []
+        self.rows = 0
+
+    def add(self, lines: NDArray[np.int64]) -> None:
+        if lines.size and lines[-1] - lines[0] == lines.size - 1:
+            self._runs.append(int(lines[0]))
+        else:
+            self._runs.append(lines.copy())
+        self.rows += lines.size
+        self._starts.append(self.rows)
+
+    def __getitem__(self, row: int) -> int:
+        i = bisect.bisect_right(self._starts, int(row)) - 1
+        run = self._runs[i]
+        offset = int(row) - self._starts[i]
+        return run + offset if isinstance(run, int) else int(run[offset])
+
+
+def store_recording(
+    reading: Reading,
+    out: str | os.PathLike[str],
+    name: str,
+    meta: dict[str, Any],
+    progress: Callable[[float], None] | None = None,
+) -> tuple[int, float, float]:
+    """Read a recording block by block into a new session ``name`` of ``out``, each block
+    written as it is read; the time base is put back on its clock at the end.
+
+    Memory: a few blocks, plus the time stamps (8 bytes a row) for the time base.
+    If reading fails anywhere, the session is removed again (and the file, if this
+    created it).
+
+    Returns
+    -------
+    samples : int
+    duration_s, rate_hz : float
+
+    Raises
+    ------
+    InputError, StorageError
+    """
+    from .sessions import discard_session, session_writer
+
+    out = os.fspath(out)
+    created = not os.path.exists(out)
+    stamps: list[NDArray[np.float64]] = []
+    lines = LineNumbers()
+    peak = 0.0
+    low, high = math.inf, -math.inf
+    writer = session_writer(
+        out, name, meta={**meta, **reading.meta()}, calibration=None, raw=False,
+        flush_interval_s=math.inf, fsync=False,
+    )  # fmt: skip
+    try:
+        for t, force, position, numbers in reading.blocks():
+            for label, values in (("force", force), ("position", position)):
+                bad = np.flatnonzero(~np.isfinite(values))
+                if bad.size:
+                    raise InputError(
+                        f"{reading.path}: {label} is not a finite number at line "
+                        f"{numbers[bad[0]]}; remove or repair that row"
+                    )
+            writer.append({"time": t, "force": force, "position": position})
+            writer.flush()
+            stamps.append(t)
+            lines.add(numbers)
+            if force.size:
+                peak = max(peak, float(np.max(np.abs(force))))
+                low, high = min(low, float(position.min())), max(high, float(position.max()))
+            if progress is not None:
+                progress(reading.fraction())
+        reading.finish()
+        if lines.rows < 3:
+            raise InputError(f"{reading.path}: {lines.rows} sample(s) are too few to fit")
+        every = np.empty(lines.rows)
+        row = 0
+        while stamps:  # each block freed as it is copied: never two copies of the stamps
+            block = stamps.pop(0)
+            every[row : row + block.size] = block
+            row += block.size
+        del block
+        time = reading.time_base(every, lines)
+        del every
+        writer.rewrite("time", time)
+        n, duration = time.size, float(time[-1])
+        rate = (n - 1) / duration if duration > 0 else 0.0
+        del time
+        summary = Session(  # the extremes and the rate, for the unit warnings
+            np.arange(3) / (rate or 1.0), np.array([0.0, peak, 0.0]),
+            np.array([low, high, low]),
+        )  # fmt: skip
+        reading.report.warnings = unit_warnings(
+            summary, position_given=dimension_of(reading.picked["position"][1]) != "angle"
+        )
+        writer.set_attrs(
+            import_notes=reading.report.notes,
+            **({"import_warnings": reading.report.warnings} if reading.report.warnings else {}),
+        )
+        writer.close()
+    except BaseException:
+        writer.close(complete=False)
+        discard_session(out, name, created)
+        raise
+    return n, duration, rate

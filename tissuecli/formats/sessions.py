@@ -672,7 +672,7 @@ def _summary(f: h5py.File, g: h5py.Group, file: str, key: str) -> dict[str, Any]
     """One row of :func:`list_sessions`."""
     try:
         checked = _check_session(f, g, f'session "{clip(key)}" in {file}')
-        t = np.asarray(checked.datasets["time"][: checked.rows], dtype=np.float64)
+        duration, step = _time_span(checked.datasets["time"], checked.rows)
     except _Damage as exc:
         return _damaged_row(key, start_key(g), exc.reason)
     except StorageError as exc:  # a newer schema
@@ -680,9 +680,6 @@ def _summary(f: h5py.File, g: h5py.Group, file: str, key: str) -> dict[str, Any]
     except H5_ERRORS as exc:
         return _damaged_row(key, start_key(g), f"cannot be read ({first_line(exc)})")
     attrs, n = checked.attrs, checked.rows
-    steps = np.diff(t)
-    step = float(np.median(steps)) if n > 1 else float("nan")
-    duration = float(t[-1] - t[0]) if n > 1 else 0.0
     return {
         "name": key,
         "status": "complete" if checked.complete else "incomplete",
@@ -734,6 +731,21 @@ def ended(attrs: Mapping[str, Any], complete: bool) -> str:
     return "" if complete else "crashed"
 
 
+#: rows of the time column a summary reads: blocks spread over the session
+SUMMARY_BLOCKS, SUMMARY_ROWS = 16, 1 << 15
+
+
+def _time_span(ds: h5py.Dataset, n: int) -> tuple[float, float]:
+    """Duration (s) and median sample interval (s) of a session's first `n` times, read
+    in at most :data:`SUMMARY_BLOCKS` blocks of :data:`SUMMARY_ROWS` rows spread over the
+    session, so that listing any file takes a few megabytes whatever its length."""
+    if n < 2:
+        return 0.0, float("nan")
+    starts = np.unique(np.linspace(0, max(0, n - SUMMARY_ROWS), SUMMARY_BLOCKS).astype(np.int64))
+    steps = [np.diff(np.asarray(ds[i : min(n, i + SUMMARY_ROWS)], np.float64)) for i in starts]
+    return float(ds[n - 1]) - float(ds[0]), float(np.median(np.concatenate(steps)))
+
+
 def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> dict[str, Any]:
     return {
         "stop_reason": "",
@@ -754,3 +766,24 @@ def _damaged_row(key: str, start: str, reason: str, status: str = "damaged") -> 
         "clock_faults": {},
         "warnings": [],
     }
+
+
+def discard_session(path: StrPath, name: str, created: bool) -> None:
+    """Remove session `name` that an import left unfinished (its source turned out bad
+    part way): the file too if the import created it, else only the group."""
+    file = os.fspath(path)
+    if not os.path.exists(file):
+        return
+    if created:
+        try:
+            os.remove(file)
+        except OSError:
+            pass
+        return
+    try:
+        with h5py.File(file, "a") as f:
+            group = session_group(name)
+            if group in f:
+                del f[group]
+    except H5_ERRORS:
+        pass  # left marked incomplete, as any interrupted write

@@ -1,14 +1,24 @@
 """Delimited text tables as loggers write them: comma, tab, semicolon, bar or whitespace
-separated (sniffed), with or without a byte-order mark, CRLF or LF, comment and
-preamble lines, a header or none, decimal commas, and junk lines (a truncated last
-line, a repeated header), which are counted and reported, never silently dropped."""
+separated (sniffed), in UTF-8, UTF-16 with a byte-order mark, cp1252, GBK or Shift-JIS,
+CRLF or LF, comment and preamble lines, a header or none, a units row under the names,
+decimal commas, and junk lines (a truncated last line, a repeated header), which are
+counted and reported, never silently dropped.
+
+The layout is sniffed from the first megabyte (:func:`sniff_table`); the body is then read
+block by block by pyarrow's C parser (:meth:`Layout.blocks`), so a table of any length is
+read in the memory of a few blocks. A block the parser cannot take whole (junk, comments,
+blank lines, non-finite values) is read line by line as before, so every junk line is
+still counted with its number.
+"""
 
 from __future__ import annotations
 
 import codecs
+import io
 import os
 import re
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,12 +26,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import InputError
+from ..core.units import unit_factor
 
 #: lines starting with these are comments
 COMMENTS = ("#", "%", "//", "!")
 #: candidate separators, in the order that wins a tie
 DELIMITERS = ("\t", ";", ",", "|", " ")
 _WHITESPACE = re.compile(r"\s+")
+#: bytes sniffed for the layout
+HEAD_BYTES = 1 << 20
+#: bytes of the body parsed at a time
+BLOCK_BYTES = 1 << 22
+#: a longer line is not a row of samples
+MAX_LINE_BYTES = 1 << 20
+#: encodings tried, in this order on a tie, when a file is not UTF-8
+LEGACY_ENCODINGS = ("cp1252", "gbk", "shift_jis")
 
 
 @dataclass
@@ -47,6 +66,8 @@ class Table:
     text : dict of int to list of str
         The fields of each text column (NaN in ``data``), one per row: a clock time
         (``12:03:04.125``) may be a time column.
+    units : list of str, optional
+        A units row under the names, one field per column (``""`` where none).
     """
 
     names: list[str]
@@ -57,59 +78,402 @@ class Table:
     junk: list[int] = field(default_factory=list)
     header: bool = True
     text: dict[int, list[str]] = field(default_factory=dict)
+    units: list[str] | None = None
+
+    @property
+    def numeric(self) -> list[bool]:
+        return [i not in self.text for i in range(len(self.names))]
+
+    def head_text(self, index: int) -> list[str]:
+        return self.text.get(index, [])[:400]
+
+    def blocks(self, columns: list[int]) -> Iterator[Block]:
+        """The chosen columns, :data:`~.limits.BLOCK_ROWS` rows at a time."""
+        from .limits import BLOCK_ROWS
+
+        for i in range(0, max(1, len(self.lines)), BLOCK_ROWS):
+            yield Block(
+                self.data[i : i + BLOCK_ROWS, columns],
+                self.lines[i : i + BLOCK_ROWS],
+                {c: self.text[c][i : i + BLOCK_ROWS] for c in columns if c in self.text},
+            )
+
+    def finish(self) -> list[str]:
+        return list(self.notes)
+
+    def fraction(self) -> float:
+        return 1.0
 
 
-def decode(raw: bytes, path: Path) -> tuple[str, str]:
-    """Text and the encoding it was read with: a byte-order mark wins, then UTF-8, then
-    Latin-1 (which decodes anything, so it is said in the notes)."""
+@dataclass
+class Block:
+    """Rows of the chosen columns: values (NaN in text columns), line numbers, and the
+    fields of the chosen text columns."""
+
+    values: NDArray[np.float64]
+    lines: NDArray[np.int64]
+    text: dict[int, list[str]] = field(default_factory=dict)
+
+
+def decode(raw: bytes, path: Path) -> tuple[str, str, str]:
+    """Text, the codec and the encoding in words: a byte-order mark wins, then UTF-8, then
+    whichever of cp1252, GBK and Shift-JIS reads the non-ASCII text most plausibly
+    (:func:`_plausible`), then Latin-1 (which decodes anything, so it is said in the
+    notes)."""
     if raw.startswith(codecs.BOM_UTF8):
-        return raw[len(codecs.BOM_UTF8) :].decode("utf-8", "replace"), "UTF-8 with BOM"
+        return raw[len(codecs.BOM_UTF8) :].decode("utf-8", "replace"), "utf-8", "UTF-8 with BOM"
     for bom, name in ((codecs.BOM_UTF16_LE, "utf-16-le"), (codecs.BOM_UTF16_BE, "utf-16-be")):
         if raw.startswith(bom):
-            return raw[len(bom) :].decode(name, "replace"), name.upper() + " with BOM"
+            return raw[len(bom) :].decode(name, "replace"), name, name.upper() + " with BOM"
     if b"\x00" in raw[:65536]:
         raise InputError(
-            f"{path} is a binary file, not a text table; give a CSV/TSV export, a MATLAB "
-            ".mat or a NumPy .npz file"
+            f"{path} is a binary file, not a text table; give a CSV/TSV export, a "
+            "spreadsheet, a MATLAB .mat, a NumPy .npz, an HDF5 or a TDMS file"
         )
     try:
-        return raw.decode("utf-8"), "UTF-8"
-    except UnicodeDecodeError:
-        return raw.decode("latin-1"), "Latin-1 (not valid UTF-8)"
+        return raw.decode("utf-8"), "utf-8", "UTF-8"
+    except UnicodeDecodeError as exc:
+        if exc.start >= len(raw) - 3 and exc.reason == "unexpected end of data":
+            return raw[: exc.start].decode("utf-8"), "utf-8", "UTF-8"  # a cut character
+    best: tuple[int, str, str] | None = None
+    for rank, codec in enumerate(LEGACY_ENCODINGS):
+        try:
+            text = raw.decode(codec)
+        except UnicodeDecodeError as exc:
+            if not (exc.start >= len(raw) - 1 and exc.reason.startswith("incomplete")):
+                continue
+            text = raw[: exc.start].decode(codec)
+        score = _plausible(text, codec)
+        if best is None or score > best[0]:
+            best = (score, codec, text)
+        del rank
+    if best is not None and best[0] > 0:
+        label = {"cp1252": "cp1252 (Windows Western)", "gbk": "GBK", "shift_jis": "Shift-JIS"}
+        return best[2], best[1], label[best[1]] + " (not valid UTF-8)"
+    return raw.decode("latin-1"), "latin-1", "Latin-1 (not valid UTF-8)"
 
 
-def read_table(path: str | os.PathLike[str]) -> Table:
-    """Read a delimited text table, sniffing its layout.
+#: non-ASCII characters a Western header may hold beside letters
+_SYMBOLS = "µ°²³±·€"
 
-    Raises
-    ------
-    InputError
-        The file is missing, binary, has no numeric rows, or more junk than data.
-    """
-    path = Path(path)
+
+def _plausible(text: str, codec: str) -> int:
+    """How plausibly `text` is what `codec` would make of a header: one point for each
+    non-ASCII character that reads as a word of that script, minus one for each that does
+    not. In cp1252 an accented letter sits in a Latin word (``Déplacement``, ``Kraft
+    (µN)``), while CJK text read as cp1252 is runs of accented letters and symbols
+    (``Ê±¼ä``); in GBK a character is a common one (in GB 2312) standing apart from Latin
+    letters; in Shift-JIS it is a kanji, kana or full-width form, never half-width kana
+    (which is what Chinese bytes read as Shift-JIS become)."""
+    score = 0
+    runs = re.finditer(r"[^\x00-\x7f]+", text)
+    for run in runs:
+        chunk = run.group()
+        before = text[run.start() - 1] if run.start() else " "
+        after = text[run.end()] if run.end() < len(text) else " "
+        glued = before.isascii() and before.isalpha() or after.isascii() and after.isalpha()
+        for c in chunk:
+            if codec == "cp1252":
+                good = (
+                    (c.isalpha() or c in _SYMBOLS) and len(chunk) <= 2 and (glued or c in _SYMBOLS)
+                )
+            elif codec == "gbk":
+                good = not glued and _encodes(c, "gb2312")
+            else:
+                good = not glued and (
+                    "\u3040" <= c <= "\u30ff"
+                    or "\u4e00" <= c <= "\u9fff"
+                    or "\uff01" <= c <= "\uff5e"
+                )
+            score += 1 if good else -1
+    return score
+
+
+def _encodes(c: str, codec: str) -> bool:
     try:
-        raw = path.read_bytes()
+        c.encode(codec)
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _read_head(path: Path) -> tuple[bytes, int]:
+    """The first :data:`HEAD_BYTES` of `path` and the file's size."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            return fh.read(HEAD_BYTES), size
     except FileNotFoundError:
         raise InputError(f"{path} does not exist; check the path") from None
     except IsADirectoryError:
         raise InputError(f"{path} is a directory; give a file") from None
     except OSError as exc:
         raise InputError(f"cannot read {path}: {exc.strerror}") from None
-    text, encoding = decode(raw, path)
+
+
+@dataclass
+class Layout:
+    """How a text table is laid out, sniffed from its head; reads its body in blocks.
+
+    Attributes
+    ----------
+    path : Path
+    names : list of str
+        Column names (the header's, or ``"1"``, ``"2"``, ...).
+    header : bool
+        Whether the names came from the file.
+    units : list of str or None
+        The units row under the names, if any.
+    numeric : list of bool
+        Which columns hold numbers (the others: text, e.g. clock times).
+    notes : list of str
+        What sniffing found.
+    """
+
+    path: Path
+    names: list[str]
+    header: bool
+    units: list[str] | None
+    numeric: list[bool]
+    notes: list[str]
+    codec: str
+    delimiter: str
+    decimal_comma: bool
+    offset: int  # byte offset of the first data row
+    first_line: int  # its line number
+    head_rows: list[list[str]]
+    lone_cr: bool = False
+    source: str = "text table"
+    format: str = ""
+    junk: list[int] = field(default_factory=list)
+    junk_count: int = 0
+    comments: int = 0
+    marks: int = 0
+    rows: int = 0
+    read_bytes: int = 0
+    size: int = 0
+
+    def fraction(self) -> float:
+        """How much of the file has been read, 0 to 1."""
+        return min(1.0, self.read_bytes / self.size) if self.size else 1.0
+
+    def head_text(self, index: int) -> list[str]:
+        """The fields of column `index` in the sniffed rows (to tell clock times)."""
+        return [row[index].strip().strip('"') for row in self.head_rows]
+
+    def blocks(self, columns: list[int]) -> Iterator[Block]:
+        """The chosen columns of every data row, block by block (see the module)."""
+        for first_line, body in self._bodies():
+            block = self._parse(body, first_line, columns)
+            self.rows += block.values.shape[0]
+            yield block
+
+    def finish(self) -> list[str]:
+        """After :meth:`blocks`: notes on comments and junk; refuses a table that is more
+        junk than data."""
+        if not self.rows:
+            raise InputError(
+                f"{self.path} holds no rows of numbers ({len(self.names)} fields); check "
+                "that it is a table"
+            )
+        junk = self.junk_count
+        if junk > max(10, self.rows // 10):
+            raise InputError(
+                f"{self.path}: {junk} of {junk + self.rows} lines do not parse as "
+                f"{len(self.names)} numbers (first at line {self.junk[0]}); check the "
+                "delimiter and the columns"
+            )
+        notes = [
+            self.format
+            + (f", {self.comments} comment line(s)" if self.comments else "")
+            + (f", {self.marks} line(s) of punctuation alone" if self.marks else ""),
+            *self.notes,
+        ]
+        if junk:
+            where = ", ".join(str(j) for j in self.junk[:5]) + (" ..." if junk > 5 else "")
+            notes.append(f"{junk} junk line(s) skipped (line {where})")
+        return notes
+
+    # -- the body
+
+    def _bodies(self) -> Iterator[tuple[int, bytes]]:
+        """Blocks of whole lines from the first data row on, as UTF-8 bytes with LF or
+        CRLF line ends, each with the line number of its first line."""
+        utf8 = self.codec == "utf-8"
+        decoder = None if utf8 else codecs.getincrementaldecoder(self.codec)("replace")
+        line = self.first_line
+        carry = b""
+        with open(self.path, "rb") as fh:
+            fh.seek(self.offset)
+            while True:
+                chunk = fh.read(BLOCK_BYTES)
+                self.read_bytes = fh.tell()
+                eof = not chunk
+                if decoder is not None:
+                    chunk = decoder.decode(chunk, final=eof).encode("utf-8")
+                if self.lone_cr:
+                    chunk = chunk.replace(b"\r", b"\n")
+                data = carry + chunk
+                if eof:
+                    body, carry = data, b""
+                else:
+                    cut = data.rfind(b"\n")
+                    if cut < 0:
+                        if len(data) > MAX_LINE_BYTES:
+                            raise InputError(
+                                f"{self.path}: line {line} is longer than "
+                                f"{MAX_LINE_BYTES >> 20} MB; not a table of samples"
+                            )
+                        carry = data
+                        continue
+                    body, carry = data[: cut + 1], data[cut + 1 :]
+                    if cut > MAX_LINE_BYTES and body.find(b"\n") > MAX_LINE_BYTES:
+                        raise InputError(
+                            f"{self.path}: line {line} is longer than "
+                            f"{MAX_LINE_BYTES >> 20} MB; not a table of samples"
+                        )
+                if body:
+                    yield line, body
+                    line += body.count(b"\n")
+                if eof:
+                    return
+
+    def _parse(self, body: bytes, first_line: int, columns: list[int]) -> Block:
+        if self.delimiter == " ":
+            body = re.sub(rb"[ \t]+", b" ", body)
+            body = re.sub(rb"(?m)^ | (?=\r?$)", b"", body)
+        fast = self._fast(body, first_line, columns)
+        return fast if fast is not None else self._slow(body, first_line, columns)
+
+    def _fast(self, body: bytes, first_line: int, columns: list[int]) -> Block | None:
+        """The block parsed whole by pyarrow, or None if it holds anything but rows."""
+        import pyarrow as pa
+        from pyarrow import csv
+
+        invalid: list[int] = []
+
+        def handler(row: object) -> str:
+            invalid.append(1)
+            return "skip"
+
+        names = [f"c{i}" for i in range(len(self.names))]
+        types = {names[c]: pa.float64() if self.numeric[c] else pa.string() for c in columns}
+        try:
+            table = csv.read_csv(
+                io.BytesIO(body),
+                read_options=csv.ReadOptions(column_names=names, block_size=1 << 24),
+                parse_options=csv.ParseOptions(
+                    delimiter=self.delimiter, invalid_row_handler=handler
+                ),
+                convert_options=csv.ConvertOptions(
+                    column_types=types,
+                    include_columns=[names[c] for c in columns],
+                    decimal_point="," if self.decimal_comma else ".",
+                    quoted_strings_can_be_null=False,
+                ),
+            )
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+            return None
+        finally:
+            pa.default_memory_pool().release_unused()  # the pool keeps what it freed
+        m = table.num_rows
+        # a blank line is skipped by the parser without a word: every line must be a row
+        if invalid or m != body.count(b"\n") + (not body.endswith(b"\n")):
+            return None
+        values = np.full((m, len(columns)), np.nan)
+        text: dict[int, list[str]] = {}
+        for j, c in enumerate(columns):
+            column = table.column(names[c])
+            if not self.numeric[c]:
+                text[c] = [str(v).strip() for v in column.to_pylist()]
+                continue
+            if column.null_count:
+                return None  # empty fields: junk lines, counted one by one
+            row = 0
+            for chunk in column.chunks:  # the values' own buffer (to_numpy loads pandas)
+                values[row : row + len(chunk), j] = np.frombuffer(
+                    chunk.buffers()[1], np.float64, len(chunk), chunk.offset * 8
+                )
+                row += len(chunk)
+        if not np.isfinite(values[:, [self.numeric[c] for c in columns]]).all():
+            return None  # NaN or Inf: junk lines, counted one by one
+        return Block(values, np.arange(first_line, first_line + m, dtype=np.int64), text)
+
+    def _slow(self, body: bytes, first_line: int, columns: list[int]) -> Block:
+        """The block line by line: rows, comments, blank lines and junk told apart."""
+        width = len(self.names)
+        wanted = [self.numeric[i] and i in columns for i in range(width)]
+        rows: list[list[float]] = []
+        lines: list[int] = []
+        text: dict[int, list[str]] = {c: [] for c in columns if not self.numeric[c]}
+        for i, raw_line in enumerate(body.decode("utf-8", "replace").split("\n")):
+            line = raw_line.strip()
+            if not line:
+                continue
+            if line.startswith(COMMENTS):
+                self.comments += 1
+                continue
+            if not any(c.isalnum() for c in line):
+                self.marks += 1
+                continue
+            fields = _split(line, self.delimiter)
+            values = _numbers(fields, self.decimal_comma, wanted) if len(fields) == width else None
+            if values is None:
+                self.junk_count += 1
+                if len(self.junk) < 5:
+                    self.junk.append(first_line + i)
+                continue
+            rows.append([values[c] for c in columns])
+            lines.append(first_line + i)
+            for c, column in text.items():
+                column.append(fields[c].strip().strip('"'))
+        return Block(
+            np.array(rows, dtype=float).reshape(len(rows), len(columns)),
+            np.array(lines, dtype=np.int64),
+            text,
+        )
+
+
+def sniff_table(path: str | os.PathLike[str]) -> Layout:
+    """The layout of a delimited text table, from its first megabyte.
+
+    Raises
+    ------
+    InputError
+        The file is missing, binary, or its head holds no rows of numbers.
+    """
+    path = Path(path)
+    raw, size = _read_head(path)
+    text, codec, encoding = decode(raw, path)
+    bom = 0
+    for mark in (codecs.BOM_UTF8, codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        if raw.startswith(mark):
+            bom = len(mark)
+            break
+    lone_cr = "\r" in text and "\n" not in text
+    if lone_cr:
+        text = text.replace("\r", "\n")
+    if size > len(raw):  # only whole lines of the head
+        cut = text.rfind("\n")
+        if cut < 0:
+            raise InputError(
+                f"{path}: line 1 is longer than {HEAD_BYTES >> 20} MB; not a table of samples"
+            )
+        text = text[: cut + 1]
     numbered: list[tuple[int, str]] = []
     comment_lines: list[tuple[int, str]] = []
-    marks = 0  # lines of punctuation alone: a rich-text export's "\\", a closing "}"
-    for i, raw_line in enumerate(text.splitlines()):
+    marks: list[int] = []  # lines of punctuation alone: a rich-text export's "\\", a "}"
+    all_lines = text.split("\n")
+    for i, raw_line in enumerate(all_lines):
         line = raw_line.strip()
         if not line:
             continue
         if line.startswith(COMMENTS):
             comment_lines.append((i + 1, line))
         elif not any(c.isalnum() for c in line):
-            marks += 1
+            marks.append(i + 1)
         else:
             numbered.append((i + 1, line))
-    comments = len(comment_lines)
     if not numbered:
         raise InputError(f"{path} holds no data lines")
     sniffed = _sniff([line for _, line in numbered[:400]])
@@ -119,69 +483,119 @@ def read_table(path: str | os.PathLike[str]) -> Table:
             "separated by commas, tabs, semicolons, bars or spaces)"
         )
     delimiter, width, decimal_comma, numeric = sniffed
-    rows: list[list[float]] = []
-    lines: list[int] = []
-    header: list[str] | None = None
     before: list[tuple[int, list[str]]] = []  # lines before the first data row
-    junk: list[int] = []
-    text: dict[int, list[str]] = {i: [] for i in range(width) if not numeric[i]}
-    for number, line in numbered:
+    head_rows: list[list[str]] = []
+    first: int | None = None
+    for k, (number, line) in enumerate(numbered):
         fields = _split(line, delimiter)
-        values = _numbers(fields, decimal_comma, numeric) if len(fields) == width else None
-        if values is not None:
-            rows.append(values)
-            lines.append(number)
-            for i, column in text.items():
-                column.append(fields[i].strip().strip('"'))
-        elif rows:
-            junk.append(number)
-        else:
-            before.append((number, fields))
-    if not rows:
+        if len(fields) == width and _numbers(fields, decimal_comma, numeric) is not None:
+            first = number
+            later = (_split(ln, delimiter) for _, ln in numbered[k : k + 400])
+            head_rows = [f for f in later if len(f) == width]
+            break
+        before.append((number, fields))
+    if first is None:
         raise InputError(
             f"{path} holds no rows of numbers ({width} fields); check that it is a table"
         )
+    header: list[str] | None = None
+    units: list[str] | None = None
+    # a units row (s, N, mm) under the names
+    if len(before) >= 2 and len(before[-1][1]) == width and _units_row(before[-1][1]):
+        if len(before[-2][1]) == width:
+            units = [_bare_unit(f) for f in before.pop()[1]]
     # the header is the line right before the data, if it has a name for every column;
     # anything earlier is a preamble (a logger's title, date, settings)
     if before and len(before[-1][1]) == width:
         header = [f.strip().strip('"').strip("'") for f in before.pop()[1]]
     elif not before:
         # some loggers write the header as the last comment line before the data
-        lead = [c for c in comment_lines if c[0] < lines[0]]
+        lead = [c for c in comment_lines if c[0] < first]
         if lead:
             fields = _split(lead[-1][1].lstrip("#%/! "), delimiter)
             if len(fields) == width and _numbers(fields, decimal_comma) is None:
                 header = [f.strip().strip('"').strip("'") for f in fields]
-    preamble = [number for number, _ in before]
-    if len(junk) > max(10, len(rows) // 10):
-        raise InputError(
-            f"{path}: {len(junk)} of {len(junk) + len(rows)} lines do not parse as {width} "
-            f"numbers (first at line {junk[0]}); check the delimiter and the columns"
-        )
+    preamble = len(before)
+    comments = sum(1 for c in comment_lines if c[0] < first)
     names = header if header is not None else [str(i + 1) for i in range(width)]
     text_columns = [names[i] for i in range(width) if not numeric[i]]
     shown = {"\t": "tab", " ": "whitespace", ";": "semicolon", ",": "comma", "|": "bar"}
-    notes = [
+    fmt = (
         f"{shown[delimiter]}-separated, {encoding}"
         + (", decimal commas" if decimal_comma else "")
-        + (f", {comments} comment line(s)" if comments else "")
-        + (f", {len(preamble)} preamble line(s)" if preamble else "")
-        + (f", {marks} line(s) of punctuation alone" if marks else "")
-    ]
+        + (f", {preamble} preamble line(s)" if preamble else "")
+        + (", a units row" if units else "")
+    )
+    notes = []
     if text_columns:
         notes.append("text column(s), not numbers: " + ", ".join(repr(n) for n in text_columns))
-    if junk:
-        where = ", ".join(str(j) for j in junk[:5]) + (" ..." if len(junk) > 5 else "")
-        notes.append(f"{len(junk)} junk line(s) skipped (line {where})")
-    return Table(
+    prefix = "\n".join(all_lines[: first - 1]) + ("\n" if first > 1 else "")
+    offset = bom + len(prefix.encode(codec, "replace"))
+    return Layout(
+        format=fmt,
+        comments=comments,
+        marks=sum(1 for m in marks if m < first),
+        path=path,
         names=names,
-        data=np.array(rows, dtype=float),
-        lines=np.array(lines, dtype=np.int64),
-        source="text table",
-        notes=notes,
-        junk=junk,
         header=header is not None,
+        units=units,
+        numeric=list(numeric),
+        notes=notes,
+        codec=codec,
+        delimiter=delimiter,
+        decimal_comma=decimal_comma,
+        offset=offset,
+        first_line=first,
+        head_rows=head_rows,
+        lone_cr=lone_cr,
+        size=size,
+    )
+
+
+def _units_row(fields: list[str]) -> bool:
+    """Whether a row's fields are units (``s``, ``[N]``, ``(mm)``, ``-``): at least one
+    known unit, and nothing but short unit-like words."""
+    known = 0
+    for f in fields:
+        bare = _bare_unit(f)
+        if not bare or bare in ("-", "1", "%"):
+            continue
+        if unit_factor(bare) is not None or unit_factor(bare.lower()) is not None:
+            known += 1
+        elif len(bare) > 8 or not re.fullmatch(r"[A-Za-zµ°/*^0-9.]+", bare):
+            return False
+    return known >= 1
+
+
+def _bare_unit(field: str) -> str:
+    return field.strip().strip('"').strip("'").strip("[]()").strip()
+
+
+def read_table(path: str | os.PathLike[str]) -> Table:
+    """Read a whole delimited text table into memory, sniffing its layout.
+
+    Raises
+    ------
+    InputError
+        The file is missing, binary, has no numeric rows, or more junk than data.
+    """
+    layout = sniff_table(path)
+    columns = list(range(len(layout.names)))
+    blocks = list(layout.blocks(columns))
+    notes = layout.finish()
+    text = {
+        c: [f for b in blocks for f in b.text.get(c, [])] for c in columns if not layout.numeric[c]
+    }
+    return Table(
+        names=layout.names,
+        data=np.concatenate([b.values for b in blocks]),
+        lines=np.concatenate([b.lines for b in blocks]),
+        source=layout.source,
+        notes=notes,
+        junk=layout.junk,
+        header=layout.header,
         text=text,
+        units=layout.units,
     )
 
 
@@ -263,31 +677,46 @@ def clock_seconds(fields: list[str]) -> NDArray[np.float64] | None:
     minutes and seconds, ``2021-04-14 18:24:01.123``, ``2021-04-14T18:24:01Z``); a
     time of day that goes back by more than 12 hours has passed midnight. None if a
     field is not a clock time."""
-    import datetime as dt
+    out = Clock().seconds(fields)
+    return out - out[0] if out is not None and out.size else out
 
-    out = np.empty(len(fields))
-    day = 0.0
-    first_day: int | None = None
-    for i, f in enumerate(fields):
-        m = _CLOCK.fullmatch(f.strip().removesuffix("Z"))
-        if m is None:
-            return None
-        year, month, mday, a, b, c = m.groups()
-        if c is None:  # mm:ss.s
-            seconds = int(a) * 60.0 + float(b.replace(",", "."))
-        elif "." in b or "," in b:
-            return None
-        else:
-            seconds = int(a) * 3600.0 + int(b) * 60.0 + float(c.replace(",", "."))
-        if year:
-            try:
-                ordinal = dt.date(int(year), int(month), int(mday)).toordinal()
-            except ValueError:
+
+class Clock:
+    """Clock times read block by block: the date of the first and the midnights passed
+    are remembered from one block to the next (see :func:`clock_seconds`)."""
+
+    def __init__(self) -> None:
+        self.day = 0.0
+        self.first_day: int | None = None
+        self.last: float | None = None
+
+    def seconds(self, fields: list[str]) -> NDArray[np.float64] | None:
+        """Seconds of each field since the first day's midnight; None if a field is not
+        a clock time."""
+        import datetime as dt
+
+        out = np.empty(len(fields))
+        for i, f in enumerate(fields):
+            m = _CLOCK.fullmatch(f.strip().removesuffix("Z"))
+            if m is None:
                 return None
-            first_day = ordinal if first_day is None else first_day
-            # days counted from the first, so that milliseconds keep their precision
-            seconds += (ordinal - first_day) * 86400.0
-        elif i and seconds + day < out[i - 1] - 43200.0:
-            day += 86400.0
-        out[i] = seconds + day
-    return out - out[0] if out.size else out
+            year, month, mday, a, b, c = m.groups()
+            if c is None:  # mm:ss.s
+                seconds = int(a) * 60.0 + float(b.replace(",", "."))
+            elif "." in b or "," in b:
+                return None
+            else:
+                seconds = int(a) * 3600.0 + int(b) * 60.0 + float(c.replace(",", "."))
+            if year:
+                try:
+                    ordinal = dt.date(int(year), int(month), int(mday)).toordinal()
+                except ValueError:
+                    return None
+                self.first_day = ordinal if self.first_day is None else self.first_day
+                # days counted from the first, so that milliseconds keep their precision
+                seconds += (ordinal - self.first_day) * 86400.0
+            elif self.last is not None and seconds + self.day < self.last - 43200.0:
+                self.day += 86400.0
+            out[i] = seconds + self.day if not year else seconds
+            self.last = float(out[i])
+        return out

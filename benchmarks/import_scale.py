@@ -1,0 +1,106 @@
+"""Importing long text tables: time and peak memory of ``import`` beside ``pandas.read_csv``
+on the same file, and of ``sessions`` on the file written, side by side in one run.
+
+Usage::
+
+    python benchmarks/import_scale.py [--rows 1e6,1e7] [--slow] [--dir /tmp]
+
+For each row count a CSV of a 1 kHz session (time, force, position, 27-30 bytes a
+row) is written once, then three child processes run one after the other on it:
+``pandas.read_csv(path)`` (the reference a user would write), the library call behind
+``tissuecli import`` (into a new HDF5 file) and the one behind ``tissuecli sessions`` (on
+that file). Each child loads its libraries (pandas; or tissuecli, which loads h5py and, for a
+text table, pyarrow), then times its one call and reports its peak resident memory
+(``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB). ``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+CHILD = r"""
+import json, resource, sys, time
+what, path, out = sys.argv[1:4]
+if what == "pandas":
+    import pandas
+else:
+    from tissuecli.app.transfer import import_recording
+    from tissuecli.formats.sessions import list_sessions
+start = time.perf_counter()
+if what == "pandas":
+    rows = len(pandas.read_csv(path))
+elif what == "import":
+    rows = import_recording(path, out, "s")[0].samples
+else:
+    rows = list_sessions(out)[0]["samples"]
+wall = time.perf_counter() - start
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps({"rows": rows, "wall_s": wall, "peak_bytes": peak}))
+"""
+
+
+def write_csv(path: Path, rows: int) -> None:
+    """A 1 kHz session: a slow squeeze, written in blocks so any length fits in memory."""
+    block = 1_000_000
+    with open(path, "w") as fh:
+        fh.write("time,force,position\n")
+        for start in range(0, rows, block):
+            i = np.arange(start, min(rows, start + block))
+            t = i * 1e-3
+            x = 2e-3 * (1 - np.cos(2 * np.pi * 0.5 * t))
+            f = 350 * x + 0.01 * np.sin(7 * t)
+            np.savetxt(fh, np.c_[t, f, x], delimiter=",", fmt=["%.3f", "%.6g", "%.6g"])
+
+
+def child(what: str, path: Path, out: Path) -> dict[str, float]:
+    result = subprocess.run(
+        [sys.executable, "-c", CHILD, what, str(path), str(out)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", default="1e6,1e7")
+    parser.add_argument("--slow", action="store_true", help="add 1e8 rows")
+    parser.add_argument("--dir", default=None, help="where to write the files")
+    args = parser.parse_args()
+    counts = [int(float(r)) for r in args.rows.split(",")] + ([10**8] if args.slow else [])
+    print(f"load average before: {os.getloadavg()[0]:.2f} (2 cores)")
+    print(
+        f"{'rows':>10} {'CSV MB':>7} | {'pandas s':>8} {'MB':>6} | {'import s':>8} {'MB':>6} "
+        f"{'ratio':>6} | {'sessions s':>10} {'MB':>6}"
+    )
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        for rows in counts:
+            path, out = Path(tmp) / f"r{rows}.csv", Path(tmp) / f"r{rows}.h5"
+            write_csv(path, rows)
+            ref = child("pandas", path, out)
+            imp = child("import", path, out)
+            lst = child("sessions", path, out)
+            assert imp["rows"] == ref["rows"] == lst["rows"] == rows, (imp, ref, lst)
+            print(
+                f"{rows:>10.0e} {path.stat().st_size / 1e6:>7.0f} | {ref['wall_s']:>8.2f} "
+                f"{ref['peak_bytes'] / 1e6:>6.0f} | {imp['wall_s']:>8.2f} "
+                f"{imp['peak_bytes'] / 1e6:>6.0f} {imp['wall_s'] / ref['wall_s']:>6.2f} | "
+                f"{lst['wall_s']:>10.2f} {lst['peak_bytes'] / 1e6:>6.0f}",
+                flush=True,
+            )
+            path.unlink()
+            out.unlink()
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
