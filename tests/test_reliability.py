@@ -69,7 +69,7 @@ run()
 
 def test_the_console_script_turns_a_ctrl_c_while_loading_into_one_line() -> None:
     """`tissuecli` (the installed command) runs the guarded entry point, and a Ctrl-C
-    while the command line loads ends in 'aborted', exit 1, without a traceback."""
+    while the command line loads ends in 'aborted', exit 130, without a traceback."""
     assert reliability.console_script()[-1].endswith(
         "from tissuecli.__main__ import run; sys.exit(run())"
     )
@@ -79,4 +79,7 @@ def test_the_console_script_turns_a_ctrl_c_while_loading_into_one_line() -> None
         [sys.executable, "-c", _CTRL_C_WHILE_LOADING, "record", "--port", "x", "--out", "r.h5"],
         capture_output=True, text=True, timeout=60, env=env,
     )  # fmt: skip
-    assert (done.returncode, done.stderr) == (1, "aborted\n")
+    assert (done.returncode, done.stderr) == (
+        130,
+        "aborted: interrupted by SIGINT (Ctrl-C)\n",
+    )

@@ -8,7 +8,7 @@ def run() -> None:
     """Console entry point: load the command line, then run it.
 
     A Ctrl-C while the command line loads (click and the command modules: tens of
-    ms) ends in one line and exit status 1; nothing has started yet. It is caught
+    ms) ends in one line and exit status 130 (128 + SIGINT); nothing has started yet. It is caught
     by a handler that only notes it, because a KeyboardInterrupt raised inside
     Python's import machinery can be swallowed ("Exception ignored in ...
     _get_module_lock"), and the command would then run on as if never stopped.
@@ -20,8 +20,8 @@ def run() -> None:
     finally:
         signal.signal(signal.SIGINT, previous)
     if interrupted:
-        sys.stderr.write("aborted\n")
-        sys.exit(1)
+        sys.stderr.write("aborted: interrupted by SIGINT (Ctrl-C)\n")
+        sys.exit(130)
     main()
 
 

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
+from ..core.errors import EXIT_LOST_DATA, RunFault, worst_fault
 from ..core.tissue import DEFAULT_TISSUE
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_tissue
@@ -16,7 +17,7 @@ from ..render.check import check
 from ..render.profile import PAPER_DISPLAY
 from ..sim.process import SimulatorProcess
 from .fit import fit_file
-from .play import play, summary_lines
+from .play import classify_faults, play, summary_lines
 from .record import record
 from .transfer import export_csv
 
@@ -41,6 +42,14 @@ def run_demo(
     force : bool
         Replace the CSV, parameter file and report in ``workdir`` if they exist (the
         HDF5 files only ever gain a session or a play log).
+
+    Raises
+    ------
+    RunFault
+        After every step is narrated, when the recording lost frames or the play was
+        faulty; its ``exit_code`` is the class of the worst fault (docs/usage.md).
+    DeviceLost
+        When a simulated device went (exit 7).
     """
     with ExitStack() as stack:
         if workdir is None:
@@ -73,6 +82,10 @@ def run_demo(
             f"2. recorded {res.samples} samples ({res.duration_s:.2f} s at {res.rate_hz:.1f} Hz), "
             f"{res.lost_frames} lost, {res.bad_frames} bad frames -> {h5} session {name!r}"
         )
+        faults: list[tuple[int, str]] = []
+        lost = res.lost_frames + res.bad_frames + res.faults.frames_rejected
+        if lost:
+            faults.append((EXIT_LOST_DATA, f"the recording lost {lost} frame(s)"))
         for row in list_sessions(h5):
             say(
                 f"3. {row['name']}: {row['samples']} samples, {row['duration_s']:.3f} s, "
@@ -101,12 +114,22 @@ def run_demo(
         verdict = check(tissue, PAPER_DISPLAY, 1000.0)
         say(f"6. display check: {verdict.verdict}")
         with SimulatorProcess("display", root / "display") as disp:
-            summary = play(tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log)
+            # a loop process of its own: this one has run the fit, and its threads would
+            # share an interpreter lock with the haptic loop
+            summary = play(
+                tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log, loop="process"
+            )
         say("7. played the fitted tissue on the simulated display:")
         for line in summary_lines(summary):
             say(f"   {line}")
+        faults.extend(classify_faults(summary, 1000.0))
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")
+        if faults:
+            raise RunFault(
+                "the demo ran with faults: " + "; ".join(text for _, text in faults),
+                worst_fault({code for code, _ in faults}),
+            )
         return {
             "h5": str(h5),
             "csv": str(csv),

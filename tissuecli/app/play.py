@@ -21,7 +21,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..core.errors import DeviceError, DeviceLost, InputError, RenderError
+from ..core.errors import (
+    EXIT_LOST_DATA,
+    EXIT_NOT_RENDERED,
+    EXIT_OFF_RATE,
+    EXIT_WATCHDOG,
+    DeviceError,
+    DeviceLost,
+    InputError,
+    RenderError,
+    worst_fault,
+)
 from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG, NONFINITE, SATURATED, UNRENDERABLE
 from ..core.session import check_name
 from ..core.tissue import Tissue
@@ -88,13 +98,24 @@ MAX_UNRENDERABLE_FRACTION = 0.3
 LOOPS = ("thread", "process", "plain")
 
 
+#: The display silent this long ends a play whose loop has elevated scheduling, s ...
+DISPLAY_SILENCE_S = 0.1
+#: ... and one whose loop runs as an ordinary thread (the system refused SCHED_FIFO, or
+#: ``--no-realtime``): on a busy machine such a loop, and a simulated display beside it,
+#: are descheduled for tens of ms at a time, which is not a display gone.
+DISPLAY_SILENCE_UNELEVATED_S = 0.5
+
+
 class PlayFaults(RenderError):
     """The play ran, but not as the check promised (see :func:`play_faults`); raised by
-    :func:`play_file` after the summary and the log are written. ``summary`` holds them."""
+    :func:`play_file` after the summary and the log are written. ``summary`` holds them;
+    :attr:`exit_code` is the class of the worst (``summary["exit_code"]``)."""
 
     def __init__(self, message: str, summary: dict[str, Any]) -> None:
         super().__init__(message)
         self.summary = summary
+        code = summary.get("exit_code")
+        self.exit_code = code if isinstance(code, int) and code > 1 else EXIT_NOT_RENDERED
 
     def __reduce__(self) -> tuple[Any, ...]:  # from a loop process, summary and all
         return type(self), (str(self), self.summary)
@@ -114,60 +135,98 @@ class PlayLost(DeviceLost):
 
 
 def play_faults(summary: Mapping[str, Any], rate_hz: float) -> list[str]:
-    """What went wrong in a play, one short sentence each (empty if nothing did).
+    """What went wrong in a play, one short sentence each (empty if nothing did); see
+    :func:`classify_faults` for the rules."""
+    return [text for _, text in classify_faults(summary, rate_hz)]
+
+
+def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[int, str]]:
+    """What went wrong in a play: ``(exit status of its class, sentence)`` each.
 
     A play is faulty when the display's watchdog cut the solenoid (watchdog frames
-    > 0), the loop ran more than :data:`MAX_RATE_ERROR` off ``rate_hz``, more than
-    :data:`MAX_MISSED_FRACTION` of the periods went without a frame or frames were lost
-    or corrupt on the line, the controller met a non-finite value, the tracking error
-    exceeded its bound (plus the check's ``soft_gap_m``) by more than
+    > 0; :data:`~tissuecli.core.errors.EXIT_WATCHDOG`), the loop ran more than
+    :data:`MAX_RATE_ERROR` off ``rate_hz`` or more than :data:`MAX_MISSED_FRACTION` of
+    the periods went without a frame (``EXIT_OFF_RATE``), frames were lost or corrupt on
+    the line beyond that fraction (``EXIT_LOST_DATA``), or the rendering left what the
+    check promised (``EXIT_NOT_RENDERED``): the controller met a non-finite value, the
+    tracking error exceeded its bound (plus the check's ``soft_gap_m``) by more than
     :data:`TRACKING_ALLOWANCE_M`, or the solenoid was saturated or unable to follow on
     more frames than :data:`MAX_SATURATED_FRACTION` and :data:`MAX_UNRENDERABLE_FRACTION`.
+    A watchdog cut or a slow loop names what the loop's scheduling could guarantee.
     """
 
     def num(key: str) -> float:
         value = summary.get(key)
         return float(value) if isinstance(value, (int, float)) and value == value else 0.0
 
-    faults = []
+    faults: list[tuple[int, str]] = []
     frames = max(num("frames"), 1.0)
+    sched = summary.get("realtime")
+    scheduler = sched.get("scheduler") if isinstance(sched, Mapping) else None
+    guarantee = (
+        f"; the loop's longest period was {num('period_max_ms'):.3g} ms under {scheduler}"
+        + ("" if scheduler == "SCHED_FIFO" else ", real-time scheduling not granted")
+        if scheduler
+        else ""
+    )
     if num("watchdog_frames") > 0:
         faults.append(
-            f"the display's watchdog cut the solenoid on {num('watchdog_frames'):.0f} frame(s): "
-            "the host stopped answering for 5 periods"
+            (
+                EXIT_WATCHDOG,
+                f"the display's watchdog cut the solenoid on {num('watchdog_frames'):.0f} "
+                f"frame(s): the host stopped answering for 5 periods ({5e3 / rate_hz:g} ms)"
+                + guarantee,
+            )
         )
     rate = num("loop_rate_hz")
     if num("frames") > 1 and abs(rate - rate_hz) > MAX_RATE_ERROR * rate_hz:
         faults.append(
-            f"the loop ran at {rate:.1f} Hz, {100 * abs(rate / rate_hz - 1):.1f} % off "
-            f"{rate_hz:g} Hz (p99 period {num('period_p99_ms'):.2f} ms)"
+            (
+                EXIT_OFF_RATE,
+                f"the loop ran at {rate:.1f} Hz, {100 * abs(rate / rate_hz - 1):.1f} % off "
+                f"{rate_hz:g} Hz (p99 period {num('period_p99_ms'):.2f} ms)",
+            )
         )
     if num("missed_periods") > MAX_MISSED_FRACTION * frames:
         faults.append(
-            f"{num('missed_periods'):.0f} periods passed without a frame "
-            f"({100 * num('missed_periods') / frames:.1f} % of {frames:.0f})"
+            (
+                EXIT_OFF_RATE,
+                f"{num('missed_periods'):.0f} periods passed without a frame "
+                f"({100 * num('missed_periods') / frames:.1f} % of {frames:.0f})",
+            )
         )
     lost = num("frames_lost") + num("frames_bad")
     if lost > MAX_MISSED_FRACTION * frames:
-        faults.append(f"{lost:.0f} frame(s) lost or corrupt on the line")
+        faults.append((EXIT_LOST_DATA, f"{lost:.0f} frame(s) lost or corrupt on the line"))
     if num("nonfinite_frames") > 0:
-        faults.append(f"{num('nonfinite_frames'):.0f} frame(s) with non-finite values")
+        faults.append(
+            (EXIT_NOT_RENDERED, f"{num('nonfinite_frames'):.0f} frame(s) with non-finite values")
+        )
     err, bound = num("tracking_max_m"), summary.get("tracking_bound_m")
     check = summary.get("check")
     gap = check.get("soft_gap_m") if isinstance(check, Mapping) else None
     gap = float(gap) if isinstance(gap, (int, float)) else 0.0
     if isinstance(bound, (int, float)) and err > bound + gap + TRACKING_ALLOWANCE_M:
         faults.append(
-            f"tracking error reached {err * 1e3:.3g} mm, above its bound {bound * 1e3:.3g} mm"
-            + (f" + soft gap {gap * 1e3:.3g} mm" if gap else "")
-            + f" + {TRACKING_ALLOWANCE_M * 1e3:g} mm"
+            (
+                EXIT_NOT_RENDERED,
+                f"tracking error reached {err * 1e3:.3g} mm, above its bound "
+                f"{bound * 1e3:.3g} mm"
+                + (f" + soft gap {gap * 1e3:.3g} mm" if gap else "")
+                + f" + {TRACKING_ALLOWANCE_M * 1e3:g} mm",
+            )
         )
     for key, limit, what in (
         ("saturated_fraction", MAX_SATURATED_FRACTION, "saturated"),
         ("unrenderable_fraction", MAX_UNRENDERABLE_FRACTION, "unrenderable (a push asked)"),
     ):
         if num(key) > limit:
-            faults.append(f"{100 * num(key):.1f} % of frames {what}, more than {100 * limit:g} %")
+            faults.append(
+                (
+                    EXIT_NOT_RENDERED,
+                    f"{100 * num(key):.1f} % of frames {what}, more than {100 * limit:g} %",
+                )
+            )
     return faults
 
 
@@ -265,7 +324,7 @@ def play(
     profile: DisplayProfile | None = None,
     force: float = GRASP_FORCE_N,
     baudrate: int = DEFAULT_BAUD,
-    idle_timeout_s: float = 0.1,
+    idle_timeout_s: float | None = None,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     status_interval_s: float = 1.0,
     loop: str = "thread",
@@ -297,8 +356,10 @@ def play(
         :func:`~tissuecli.render.check.check`).
     baudrate : int
         Line rate, bit/s.
-    idle_timeout_s : float
-        A display silent this long is taken as lost, s.
+    idle_timeout_s : float, optional
+        A display silent this long (while the host runs) is taken as lost, s; by
+        default :data:`DISPLAY_SILENCE_S` for a loop with elevated scheduling and
+        :data:`DISPLAY_SILENCE_UNELEVATED_S` for one without.
     on_status : callable, optional
         Called every ``status_interval_s`` with the running figures.
     loop : {"thread", "process", "plain"}
@@ -412,7 +473,7 @@ def _render(
     profile: DisplayProfile | None,
     force: float,
     baudrate: int,
-    idle_timeout_s: float,
+    idle_timeout_s: float | None,
     on_status: Callable[[dict[str, Any]], None] | None,
     status_interval_s: float,
     in_thread: bool,
@@ -463,10 +524,11 @@ def _render(
             link,
             Encoder,
             stop=stop if stop is not None else StopFlag(),
-            idle_timeout_s=idle_timeout_s,
+            idle_timeout_s=DISPLAY_SILENCE_S if idle_timeout_s is None else idle_timeout_s,
             status_interval_s=status_interval_s,
             before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
         )
+        player.auto_silence = idle_timeout_s is None
         player.where = "process" if inbox is not None else "thread" if in_thread else "plain"
         if in_thread:  # the main thread stays free for signals
             summary = run_in_thread(
@@ -496,6 +558,7 @@ def _render(
             partial["tissue"] = tissue.describe()
             partial = _jsonable(partial)
             partial["faults"] = [f"the display was lost: {exc}"]
+            partial["exit_code"] = DeviceLost.exit_code
             partial["verdict"] = "display lost"
             if log_file is not None:
                 partial["log"] = {"path": str(log), "group": log_file.group}
@@ -506,7 +569,9 @@ def _render(
     summary["check"] = verdict.as_dict()
     summary["tissue"] = tissue.describe()
     summary = _jsonable(summary)
-    summary["faults"] = play_faults(summary, rate_hz)
+    classified = classify_faults(summary, rate_hz)
+    summary["faults"] = [text for _, text in classified]
+    summary["exit_code"] = worst_fault({code for code, _ in classified})
     summary["verdict"] = "faulty" if summary["faults"] else "as checked"
     if log_file is not None:
         summary["log"] = {"path": str(log), "group": log_file.group}
@@ -558,6 +623,8 @@ class _Player:
         self.link, self.ctrl, self.profile, self.log = link, ctrl, profile, log
         self.realtime, self.on_message, self.inbox = realtime, on_message, inbox
         self.where = "plain"  # which of LOOPS runs it, for the summary
+        # the display's silence limit follows what the loop's scheduling can guarantee
+        self.auto_silence = False
         self.spin_s = 0.0
         self.elevation = Elevation()
         self.period = 1.0 / rate_hz
@@ -585,13 +652,22 @@ class _Player:
         self.link.nonblocking()
         restore: Callable[[], None] = lambda: None  # noqa: E731
         if self.realtime:
-            self.elevation, restore = elevate()
+            self.elevation, restore = elevate(cpu=None)
             message = fallback_message(self.elevation)
             if message is not None and self.on_message is not None:
                 self.on_message(message)
         # a spin pays only at real-time priority: an ordinary thread spinning on a busy
         # machine spends its time slice and is then descheduled for longer
         self.spin_s = SPIN_S if self.elevation.elevated else 0.0
+        if self.auto_silence:
+            elevated = self.elevation.elevated
+            stream.idle_timeout_s = (
+                DISPLAY_SILENCE_S if elevated else DISPLAY_SILENCE_UNELEVATED_S
+            )
+            stream.limit_note = (
+                f"; the limit is {stream.idle_timeout_s * 1e3:g} ms for a loop "
+                + ("under SCHED_FIFO" if elevated else "without real-time scheduling")
+            )
         try:
             summary = self._loop(stream, duration_s, on_status, period, fd)
         finally:
@@ -703,7 +779,18 @@ class _Player:
             "frames_bad": self.link.decoder.bad_frames,
             "missed_periods": self.missed,
             **figures,
+            **silence_figures(stream),
         }
+
+
+def silence_figures(stream: Stream) -> dict[str, float]:
+    """The display's longest silence, the host's own longest stall and the limit the
+    display's silence was judged against, ms."""
+    return {
+        "longest_silence_ms": stream.longest_silence_s * 1e3,
+        "host_stall_ms": stream.host_stall_s * 1e3,
+        "no_frame_limit_ms": stream.idle_timeout_s * 1e3,
+    }
 
 
 class PlayFigures:

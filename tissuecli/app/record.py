@@ -248,9 +248,19 @@ DEFAULT_CLOCK_HZ = 1e6
 
 def _check_not_stopped(stop: StopFlag, url: str) -> None:
     if stop:
-        raise DeviceError(
-            f"stopped by signal before recording from {url} began; nothing was recorded"
+        raise _stopped(
+            DeviceError(
+                f"stopped by signal before recording from {url} began; nothing was recorded"
+            ),
+            stop,
         )
+
+
+def _stopped(error: DeviceError, stop: StopFlag) -> DeviceError:
+    """``error`` with the exit status of the signal that ended the run, if one did."""
+    if stop:
+        error.exit_code = stop.exit_code
+    return error
 
 
 def _check_calibration(cal: Calibration, bits: object) -> None:
@@ -408,9 +418,12 @@ class _Recording:
                 raise DeviceLost(f"{lost}; nothing was recorded")
             raise DeviceLost(f"{lost}; the {self.samples} samples received are saved {where}")
         if not self.samples:
-            raise DeviceError(
-                f"{stream.reason} before any sample arrived from {self.link.url}; "
-                "nothing was recorded"
+            raise _stopped(
+                DeviceError(
+                    f"{stream.reason} before any sample arrived from {self.link.url}; "
+                    "nothing was recorded"
+                ),
+                stream.stop,
             )
         duration = self.duration_s
         return RecordResult(

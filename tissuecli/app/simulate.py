@@ -4,12 +4,13 @@ a pseudo-terminal, until Ctrl-C, SIGTERM or a set duration."""
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
 from typing import Any
 
 from ..core.tissue import DEFAULT_TISSUE, Tissue
 from ..formats.params import read_profile, read_tissue
-from ..hw.realtime import StopFlag
+from ..hw.realtime import StopFlag, device_loop
 from ..sim.display import run_simulated_display
 from ..sim.forceps import Faults, run_forceps
 from ..sim.port import VirtualPort
@@ -77,16 +78,21 @@ def simulate_forceps(
     stop = StopFlag().install()
     port = VirtualPort(link)
     try:
-        return run_forceps(
-            model,
-            port,
-            faults=faults,
-            stop=stop,
-            duration_s=duration_s,
-            on_ready=None if on_ready is None else lambda p: on_ready(p, tissue),
-        )
+        with device_loop(_to_stderr):
+            return run_forceps(
+                model,
+                port,
+                faults=faults,
+                stop=stop,
+                duration_s=duration_s,
+                on_ready=None if on_ready is None else lambda p: on_ready(p, tissue),
+            )
     finally:
         port.close()
+
+
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def simulate_display(
@@ -102,12 +108,13 @@ def simulate_display(
     """Run the simulated display until SIGINT/SIGTERM (or ``duration_s``); see
     :func:`tissuecli.sim.display.run_simulated_display`. ``profile`` is a display
     profile file (the paper's prototype otherwise)."""
-    return run_simulated_display(
-        link,
-        profile=read_profile(profile) if profile else None,
-        rate_hz=rate_hz,
-        seed=seed,
-        duration_s=duration_s,
-        on_ready=on_ready,
-        say=say,
-    )
+    with device_loop(say or _to_stderr):
+        return run_simulated_display(
+            link,
+            profile=read_profile(profile) if profile else None,
+            rate_hz=rate_hz,
+            seed=seed,
+            duration_s=duration_s,
+            on_ready=on_ready,
+            say=say,
+        )

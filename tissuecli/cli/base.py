@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import signal
 import sys
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -10,22 +11,73 @@ from typing import Any, TypeVar
 import click
 
 from .._version import __version__
-from ..core.errors import TissueError
+from ..core.errors import (
+    EXIT_ERROR,
+    Interrupted,
+    TissueError,
+    signal_exit_code,
+    signal_name,
+)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+class Failure(click.ClickException):
+    """A library error as click shows it (``Error: ...``), with the exit status of its
+    class (docs/usage.md, "Exit status")."""
+
+    def __init__(self, message: str, exit_code: int = EXIT_ERROR) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
 def fail_cleanly(fn: F) -> F:
-    """Turn library errors into click errors: one line on stderr, exit 1."""
+    """Turn library errors into click errors: one line on stderr, the exit status of the
+    error's class (1 for an error a user can fix; 3-7 for a run with faults)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except TissueError as exc:
-            raise click.ClickException(str(exc)) from None
+            raise Failure(str(exc), exc.exit_code) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    """SIGTERM or SIGHUP in a command without a loop of its own to stop: unwind as Ctrl-C
+    does, so that partial outputs are removed on the way out."""
+    raise Interrupted(signum)
+
+
+def interruptible() -> Callable[[], None]:
+    """SIGTERM and SIGHUP end the command as Ctrl-C does (the long commands replace
+    these handlers with a :class:`~tissuecli.hw.realtime.StopFlag` for a clean stop);
+    returns what puts the handlers back as they were (for a command run in-process)."""
+    previous: dict[int, Any] = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None:
+            try:
+                previous[sig] = signal.signal(sig, _interrupt)
+            except ValueError:  # not the main thread (a test's runner): leave them
+                break
+
+    def restore() -> None:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+    return restore
+
+
+def end_by_signal(stop: Any) -> None:
+    """After a long command's summary: exit ``128 + signum`` if a signal (``stop``, a
+    :class:`~tissuecli.hw.realtime.StopFlag`) ended it, saying so on stderr."""
+    if stop:
+        said = signal_name(stop.signal)
+        click.echo(f"stopped by {said}; everything up to then is saved", err=True)
+        raise click.exceptions.Exit(signal_exit_code(stop.signal))
 
 
 class Command(click.Command):
@@ -77,17 +129,27 @@ class Group(click.Group):
         """As click's, but every bad input (usage errors too) exits with code 1."""
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
+        restore = interruptible()
         try:
             code = super().main(*args, standalone_mode=False, **kwargs)
         except click.exceptions.NoArgsIsHelpError as exc:
             click.echo(exc.ctx.get_help())  # no command given: the help is the answer
             sys.exit(0)
+        except Failure as exc:
+            exc.show()
+            sys.exit(exc.exit_code)
         except click.ClickException as exc:
             exc.show()
-            sys.exit(1)
-        except click.exceptions.Abort:
-            click.echo("aborted", err=True)
-            sys.exit(1)
+            sys.exit(EXIT_ERROR)
+        except (click.exceptions.Abort, KeyboardInterrupt):
+            # click turns a KeyboardInterrupt into Abort; both are Ctrl-C
+            click.echo(f"aborted: interrupted by {signal_name(signal.SIGINT)}", err=True)
+            sys.exit(signal_exit_code(signal.SIGINT))
+        except Interrupted as exc:
+            click.echo(f"aborted: {exc}", err=True)
+            sys.exit(signal_exit_code(exc.signum))
+        finally:
+            restore()
         sys.exit(code if isinstance(code, int) else 0)
 
 

@@ -6,7 +6,7 @@ from typing import Any
 
 import click
 
-from .base import cli, end_live_line, live_line
+from .base import cli, end_by_signal, end_live_line, live_line
 from .options import duration_option, rate_option, realtime_option, say_once, session_option
 
 
@@ -49,6 +49,10 @@ def live(
     the end: the rendered force against the law fitted offline to the same
     recording, the delay to the first rendering and the energy figures.
 
+    Exit status (docs/usage.md): 3 the recording lost frames, 4 the display's
+    watchdog fired, 5 the display loop ran off its rate, 7 either device was lost
+    (the recording is kept), 128 + the signal after Ctrl-C (130), SIGTERM or SIGHUP.
+
     \b
     Examples:
         tissuecli simulate forceps --link /tmp/forceps &
@@ -59,6 +63,7 @@ def live(
     from ..app.live import summary_lines
     from ..hw.realtime import StopFlag
 
+    stop = StopFlag().install()
     try:
         summary = run_live(
             forceps,
@@ -67,7 +72,7 @@ def live(
             session,
             duration,
             rate_hz=rate,
-            stop=StopFlag().install(),
+            stop=stop,
             realtime=not no_realtime,
             on_status=_status_line,
             on_message=say_once,
@@ -76,3 +81,13 @@ def live(
         end_live_line()
     for line in summary_lines(summary):
         click.echo(line)
+    if summary.get("faults"):
+        from ..core.errors import RunFault
+
+        rec = summary["recording"]
+        raise RunFault(
+            "the live run was faulty: " + "; ".join(summary["faults"]) + f" (the recording "
+            f"is saved in {rec['path']}, session {rec['session']!r})",
+            summary["exit_code"],
+        )
+    end_by_signal(stop)

@@ -7,7 +7,7 @@ from typing import Any
 import click
 
 from ..core.errors import InputError, RenderError
-from .base import cli, end_live_line, live_line
+from .base import cli, end_by_signal, end_live_line, live_line
 from .options import (
     duration_option,
     file_argument,
@@ -78,12 +78,14 @@ def play(
     refused with the reason. Ctrl-C, SIGTERM, a lost display or any error leave
     the solenoid at 0 V.
 
-    Exit status 1 also after a faulty play: the summary and log are written, then
-    "Error: the play was faulty: ..." says why (the display's watchdog fired, the
-    loop rate more than 2 % off, over 5 % of periods missed or frames lost, the
-    tracking error beyond its bound by over 0.4 mm, over 5 % of frames saturated or
-    30 % unrenderable; docs/rendering.md). A display lost mid-play also ends
-    with exit 1 after the summary up to the loss and the log are written.
+    After a faulty play the summary and log are written, then "Error: the play was
+    faulty: ..." says why, with the exit status of its class (docs/usage.md): 4 the
+    display's watchdog fired, 5 the loop rate more than 2 % off or over 5 % of
+    periods missed, 3 frames lost, 6 the tracking error beyond its bound by over
+    0.4 mm, over 5 % of frames saturated or 30 % unrenderable (docs/rendering.md).
+    A display lost mid-play ends with exit 7 after the summary up to the loss and
+    the log are written. A play ended by Ctrl-C, SIGTERM or SIGHUP (the terminal
+    closed) sends 0 V, writes its summary and exits 128 + the signal (130 Ctrl-C).
 
     \b
     Examples:
@@ -106,6 +108,7 @@ def play(
     if port is None:
         raise InputError("give the display's port with --port (or use --check)")
     faulty: PlayFaults | PlayLost | None = None
+    stop = StopFlag().install()
     try:
         summary = play_file(
             params_file,
@@ -116,7 +119,7 @@ def play(
             force=force,
             rate_hz=rate,
             log=log,
-            stop=StopFlag().install(),
+            stop=stop,
             on_status=_status_line,
             realtime=not no_realtime,
             on_message=say_once,
@@ -129,3 +132,4 @@ def play(
         click.echo(line)
     if faulty is not None:
         raise faulty
+    end_by_signal(stop)

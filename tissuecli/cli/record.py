@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from .base import cli, end_live_line, live_line
+from .base import cli, end_by_signal, end_live_line, live_line
 from .options import duration_option, h5_out_option, label_options
 
 
@@ -132,11 +132,13 @@ def record(
     """Record a session from the forceps into an HDF5 file.
 
     Everything received is flushed to disk at least every 0.25 s, so a crash
-    or power cut loses at most that; Ctrl-C and SIGTERM stop cleanly and lose
-    nothing. A device that vanishes ends the recording with the data saved and
-    exit code 1; a recording stopped before any sample arrived writes nothing and
-    exits 1. Frames whose clock or sequence number is absurd are repaired or
-    rejected and counted (docs/recording.md).
+    or power cut loses at most that; Ctrl-C, SIGTERM and SIGHUP (the terminal
+    closed) stop cleanly and lose nothing, then exit 128 + the signal (130 for
+    Ctrl-C). A device that vanishes ends the recording with the data saved and
+    exit code 7; a recording that lost, corrupt or rejected frames prints its
+    summary, then exits 3; one stopped before any sample arrived writes nothing.
+    Frames whose clock or sequence number is absurd are repaired or rejected and
+    counted (docs/recording.md; exit codes in docs/usage.md).
 
     While recording, the tissue is identified online (the paper's four laws, exact
     posteriors, forgetting older samples): the status line shows the current
@@ -191,3 +193,27 @@ def record(
         est = result.estimate
         last = "no estimate (too few samples in contact)" if est is None else est.describe()
         click.echo(f"online estimate: {result.identify_note or last}")
+    lost = lost_data(result)
+    if lost:
+        from ..core.errors import EXIT_LOST_DATA, RunFault
+
+        raise RunFault(
+            f"the recording lost data: {lost}; the {result.samples} samples received are "
+            f"saved in {result.path}, session {result.session!r}",
+            EXIT_LOST_DATA,
+        )
+    end_by_signal(stop)
+
+
+def lost_data(result: Any) -> str:
+    """What a recording lost, in words (``3 frames lost on the line, 2 corrupt``), or ''."""
+    said = [
+        f"{n} {what}"
+        for n, what in (
+            (result.lost_frames, "frame(s) lost"),
+            (result.bad_frames, "corrupt"),
+            (result.faults.frames_rejected, "rejected (absurd clock or sequence)"),
+        )
+        if n
+    ]
+    return ", ".join(said)

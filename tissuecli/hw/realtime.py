@@ -29,13 +29,23 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, TypeVar
 
-from ..core.errors import DeviceLost
+from ..core.errors import DeviceLost, signal_exit_code, signal_name
 
 T = TypeVar("T")
 
 
+#: The signals a long command ends on cleanly: Ctrl-C, SIGTERM, and the hang-up of a
+#: closed terminal or a logout, handled alike (docs/usage.md, "Exit status").
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+
 class StopFlag:
-    """Set by SIGINT or SIGTERM; long loops poll it and finish cleanly."""
+    """Set by SIGINT, SIGTERM or SIGHUP; long loops poll it and finish cleanly.
+
+    The first signal is the one kept (:attr:`signal`): it names the stop reason and
+    the exit status (``128 + signum``)."""
 
     def __init__(self) -> None:
         self.signal: int | None = None
@@ -44,12 +54,26 @@ class StopFlag:
         return self.signal is not None
 
     def set(self, signum: int, frame: FrameType | None = None) -> None:
-        self.signal = signum
+        if self.signal is None:
+            self.signal = signum
 
     def install(self) -> StopFlag:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        """Handle :data:`STOP_SIGNALS` by setting this flag (main thread only)."""
+        for sig in STOP_SIGNALS:
             signal.signal(sig, self.set)
         return self
+
+    @property
+    def reason(self) -> str:
+        """``interrupted by signal SIGHUP (hang-up)``: the stop reason stored and printed."""
+        if self.signal is None:
+            return ""
+        return f"interrupted by signal {signal_name(self.signal)}"
+
+    @property
+    def exit_code(self) -> int:
+        """``128 + signum`` once set (130 for Ctrl-C), else 0."""
+        return signal_exit_code(self.signal) if self.signal is not None else 0
 
 
 class Deadlines:
@@ -219,19 +243,44 @@ def elevate(
     return got, restore
 
 
-def fallback_message(elevation: Elevation) -> str | None:
+def fallback_message(elevation: Elevation, what: str = "the haptic loop") -> str | None:
     """The one line to tell people when the loop runs without elevated scheduling; None
     if it has it, or if that line was already given in this process."""
     if elevation.elevated or not elevation.refused:
         return None
     text = (
-        "real-time scheduling not allowed, the haptic loop runs as an ordinary thread "
+        f"real-time scheduling not allowed, {what} runs as an ordinary thread "
         "(expect a slower, jittery loop under load): " + "; ".join(elevation.refused)
     )
     if text in _fallback_said:
         return None
     _fallback_said.add(text)
     return text
+
+
+@contextlib.contextmanager
+def device_loop(
+    say: Callable[[str], None] | None = None, *, enabled: bool = True
+) -> Iterator[Elevation]:
+    """A simulated device's firmware loop kept on time as the host's haptic loop is:
+    the calling thread under SCHED_FIFO (at the host loop's priority, on any CPU) with
+    memory locked, where the system allows it; ``say`` is told once when it does not.
+    Undone on leaving. A real device's microcontroller never waits for the host's
+    scheduler; a simulated one descheduled for tens of ms looks to the host like a
+    display gone (``no Encoder frame for 100 ms``).
+    """
+    if not enabled:
+        yield Elevation()
+        return
+    # one above the host loop: a device keeps its own time whatever the host does
+    got, restore = elevate(FIFO_PRIORITY + 1, cpu=None)
+    message = fallback_message(got, "the simulated device's loop")
+    if message is not None and say is not None:
+        say(f"note: {message}")
+    try:
+        yield got
+    finally:
+        restore()
 
 
 def wait_until(fd: int | None, deadline: float, spin_s: float = SPIN_S) -> bool:

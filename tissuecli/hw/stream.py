@@ -63,6 +63,11 @@ class Stream:
         lost device ended it (or the owner says otherwise).
     t_start : float
         Monotonic time of START, s.
+    longest_silence_s : float
+        Longest time the device went without a frame while this host was running, s.
+    host_stall_s : float
+        Longest time this host itself did not poll (descheduled on a busy machine), s:
+        such a stall is not held against the device (see :meth:`check_idle`).
     """
 
     def __init__(
@@ -85,38 +90,54 @@ class Stream:
         self.track_sequence = track_sequence
         self.seqs = SequenceTracker()
         self.reason = "duration reached"
-        self.t_start = self.last_frame = self.next_status = math.nan
+        self.t_start = self.last_frame = self.next_status = self.last_poll = math.nan
+        self.longest_silence_s = self.host_stall_s = 0.0
 
     def __enter__(self) -> Stream:
         self.link.command("start")
-        self.t_start = self.last_frame = time.monotonic()
+        self.t_start = self.last_frame = self.last_poll = time.monotonic()
         self.next_status = self.t_start + self.status_interval_s
         return self
 
     def running(self) -> bool:
         """False once the stop flag is set (the reason is then recorded)."""
         if self.stop:
-            self.reason = "interrupted by signal"
+            self.reason = self.stop.reason or "interrupted by signal"
             return False
         return True
 
     def poll(self) -> list[Message]:
         """The frames of the stream's type that have arrived (sequence numbers tracked if
         ``track_sequence``)."""
+        before = time.monotonic()
+        stall = before - self.last_poll
+        if stall > 0.5 * self.idle_timeout_s:
+            # this host was not running (descheduled): the device's silence is counted
+            # from when it could have been heard again, not held against it
+            self.last_frame += stall
+        self.host_stall_s = max(self.host_stall_s, stall)
         frames = [m for m in self.link.poll() if isinstance(m, self.frame_type)]
+        now = self.last_poll = time.monotonic()
         if frames:
             if self.track_sequence:
                 for m in frames:
                     self.seqs.update(m.seq)  # type: ignore[attr-defined]
-            self.last_frame = time.monotonic()
+            self.longest_silence_s = max(self.longest_silence_s, before - self.last_frame)
+            self.last_frame = now
         return frames
 
     def check_idle(self, now: float) -> None:
         """Raise :class:`DeviceLost` if no frame arrived for ``idle_timeout_s``."""
         if now - self.last_frame > self.idle_timeout_s:
             timeout = self.idle_timeout_s
-            span = f"{timeout * 1e3:g} ms" if timeout < 1 else f"{timeout:g} s"
-            raise DeviceLost(f"no {self.frame_type.__name__} frame from {self.link.url} for {span}")
+            raise DeviceLost(
+                f"no {self.frame_type.__name__} frame from {self.link.url} for "
+                f"{_span(timeout)} while this host was running (its own longest stall "
+                f"{_span(self.host_stall_s)}){self.limit_note}"
+            )
+
+    #: Said after a lost device's message: how the silence limit was chosen.
+    limit_note = ""
 
     def status_due(self, now: float) -> bool:
         """True once every ``status_interval_s``."""
@@ -139,3 +160,8 @@ class Stream:
             self.link.command("stop")
         except DeviceLost:
             pass
+
+
+def _span(seconds: float) -> str:
+    """``100 ms`` or ``2 s``."""
+    return f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds:.3g} s"
