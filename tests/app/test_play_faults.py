@@ -24,7 +24,7 @@ from tissuecli.app.play import (
     summary_lines,
 )
 from tissuecli.cli import cli
-from tissuecli.core.errors import RenderError
+from tissuecli.core.errors import EXIT_WATCHDOG, RenderError
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.formats.jsonfile import write_json
@@ -147,11 +147,11 @@ def test_a_stalling_loop_is_faulty_after_its_summary_and_log_are_written(
         assert bool(attrs["complete"]) and attrs["verdict"] == "faulty"
 
 
-def test_the_command_prints_the_figures_then_exits_1(stalling_controller, display, params):
+def test_the_command_prints_the_figures_then_exits_4(stalling_controller, display, params):
     result = CliRunner().invoke(
         cli, ["play", str(params), "--port", str(display.link), "--duration", "1.5"]
     )
-    assert result.exit_code == 1, result.output
+    assert result.exit_code == EXIT_WATCHDOG, result.output
     lines = result.output.strip().splitlines()
     assert any(line.startswith("played 1.") for line in lines), result.output
     assert any(line.startswith("FAULT: the display's watchdog") for line in lines)

@@ -108,13 +108,12 @@ def simulate_display(
     """Run the simulated display until SIGINT/SIGTERM (or ``duration_s``); see
     :func:`tissuecli.sim.display.run_simulated_display`. ``profile`` is a display
     profile file (the paper's prototype otherwise)."""
-    with device_loop(say or _to_stderr):
-        return run_simulated_display(
-            link,
-            profile=read_profile(profile) if profile else None,
-            rate_hz=rate_hz,
-            seed=seed,
-            duration_s=duration_s,
-            on_ready=on_ready,
-            say=say,
-        )
+    return run_simulated_display(
+        link,
+        profile=read_profile(profile) if profile else None,
+        rate_hz=rate_hz,
+        seed=seed,
+        duration_s=duration_s,
+        on_ready=on_ready,
+        say=say,
+    )

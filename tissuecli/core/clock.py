@@ -691,6 +691,10 @@ def fit_clock_map(
     quantum = float(np.median(batches)) if batches.size else 0.0
     uncertainty = math.hypot(uncertainty, quantum / (2.0 * span))
     slope = 1.0 + fit.slope
+    if not (slope > 0 and math.isfinite(slope)):
+        # arrivals all in one batch (a host descheduled through a short recording): the
+        # host's stamps say nothing about the device's rate
+        return None
     latency = y - (fit.intercept + fit.slope * d)
     return ClockMap(
         slope=slope,

@@ -130,10 +130,14 @@ class Stream:
         """Raise :class:`DeviceLost` if no frame arrived for ``idle_timeout_s``."""
         if now - self.last_frame > self.idle_timeout_s:
             timeout = self.idle_timeout_s
+            stalled = (
+                f" (this host itself was descheduled for up to {_span(self.host_stall_s)})"
+                if self.host_stall_s > 0.2 * timeout
+                else ""
+            )
             raise DeviceLost(
                 f"no {self.frame_type.__name__} frame from {self.link.url} for "
-                f"{_span(timeout)} while this host was running (its own longest stall "
-                f"{_span(self.host_stall_s)}){self.limit_note}"
+                f"{_span(timeout)}{stalled}{self.limit_note}"
             )
 
     #: Said after a lost device's message: how the silence limit was chosen.

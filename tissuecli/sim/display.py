@@ -32,7 +32,7 @@ from ..hw.protocol import (
     SetVoltage,
     encode,
 )
-from ..hw.realtime import Deadlines, StopFlag, realtime
+from ..hw.realtime import Deadlines, StopFlag, device_loop, realtime
 from ..render.plant import piston_step
 from ..render.profile import PAPER_DISPLAY, DisplayProfile
 from .finger import OperatorForce
@@ -266,15 +266,16 @@ def run_simulated_display(
             print(line, file=sys.stderr, flush=True)
 
     try:
-        return simulate_display(
-            (profile or PAPER_DISPLAY).validate(),
-            port,
-            rate_hz=rate_hz,
-            operator=OperatorForce(seed=seed),
-            stop=stop,
-            duration_s=duration_s,
-            on_ready=on_ready,
-            say=say,
-        )
+        with device_loop(say):  # SCHED_FIFO where allowed, as the host's loop
+            return simulate_display(
+                (profile or PAPER_DISPLAY).validate(),
+                port,
+                rate_hz=rate_hz,
+                operator=OperatorForce(seed=seed),
+                stop=stop,
+                duration_s=duration_s,
+                on_ready=on_ready,
+                say=say,
+            )
     finally:
         port.close()
