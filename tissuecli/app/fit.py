@@ -4,9 +4,10 @@ the report."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
-from ..core.errors import InputError
+from ..core.errors import InputError, Interrupted
 from ..core.progress import as_progress
 from ..formats.atomic import write_bytes_atomic, write_text_atomic
 from ..formats.draws import structures_path, write_draws
@@ -81,6 +82,12 @@ def fit_file(
     if plots is not None:
         check_plots(plots, plot_format, force=force)
     progress = as_progress(options.get("progress"))
+    # outputs this run creates; an interrupted run removes them (a finished one keeps them)
+    made = [
+        Path(o)
+        for o in (out, report, draws, structures_path(draws) if draws else None)
+        if o is not None and not Path(o).exists()
+    ]
     try:
         progress.stage(f"reading {os.fspath(path)}")
         data, read = load_session(path, session, **(reading or {}))
@@ -97,6 +104,10 @@ def fit_file(
         if plots is not None:
             progress.stage("writing the plots")
             write_plots(plots, outcome, plot_format)
+    except (KeyboardInterrupt, Interrupted):
+        for made_path in made:
+            made_path.unlink(missing_ok=True)
+        raise
     finally:
         progress.close()
     return outcome
