@@ -19,15 +19,17 @@ from typing import Any
 import serial
 
 from ..core.errors import DeviceError, DeviceLost
+from .device import ADC_BITS_RANGE as ADC_BITS_RANGE  # the names this module always had
+from .device import CLOCK_HZ_RANGE as CLOCK_HZ_RANGE
+from .device import MISSING as _MISSING
+from .device import RATE_HZ_RANGE as RATE_HZ_RANGE
+from .device import TICKS_PER_SAMPLE_RANGE as TICKS_PER_SAMPLE_RANGE
+from .device import device_class
+from .device import number as _number
 from .protocol import COMMANDS, PROTOCOL_VERSION, Command, FrameDecoder, Info, Message, encode
 
 DEFAULT_BAUD = 921600  # ptys ignore it; real 1 kHz forceps need >= 460800 (docs/protocol.md)
 
-#: What each kind of device is for, said when another kind answers.
-ROLES = {
-    "forceps": "record reads the forceps (a display is driven by `tissuecli play`)",
-    "display": "play drives the display (a forceps is read by `tissuecli record`)",
-}
 
 
 class Link:
@@ -156,8 +158,9 @@ def open_device(
     ----------
     url : str
         Device path or pyserial URL.
-    kind : {"forceps", "display"}
-        The device expected.
+    kind : str
+        The device expected: a kind registered in :data:`tissuecli.hw.device.DEVICES`
+        (``forceps``, ``display``).
     baudrate, timeout
         See :class:`Link`.
     require_info : bool
@@ -215,15 +218,9 @@ def check_identity(info: dict[str, Any], url: str, kind: str) -> None:
         )
     device = info.get("device", kind)
     if device != kind:
-        raise DeviceError(f"{url} is a {_show(device)}, not a {kind}; {ROLES.get(kind, '')}")
+        raise DeviceError(f"{url} is a {_show(device)}, not a {kind}; {device_class(kind).role}")
 
 
-#: Plausible values of the Info fields a host uses (docs/protocol.md, section 6).
-RATE_HZ_RANGE = (1.0, 1e6)
-CLOCK_HZ_RANGE = (1e3, 1e10)
-#: device clock ticks per sample: enough to tell samples apart, far below the 2**32 wrap
-TICKS_PER_SAMPLE_RANGE = (10.0, float(1 << 24))
-ADC_BITS_RANGE = (8, 16)
 #: largest magnitude at either ADC end (N, m) and smallest span of the ADC range
 SI_END_LIMIT = {"force": 1e4, "position": 1.0}
 SI_SPAN_MIN = {"force": 1e-6, "position": 1e-6}
@@ -231,19 +228,17 @@ SI_UNITS = {"force": "N", "position": "m"}
 
 
 def check_info(info: dict[str, Any], url: str, kind: str, *, uses_calibration: bool = True) -> None:
-    """Check every Info field the host uses: present, of the right type, plausible.
-
-    A forceps must report ``rate_hz``, ``clock_hz`` and ``adc_bits``, and, if
-    ``uses_calibration``, a ``calibration`` whose SI values at both ADC ends are
-    finite and plausible. A display's ``rate_hz`` and ``clock_hz`` are checked when
-    present (the host has defaults for them).
+    """Check every Info field the host uses: present, of the right type, plausible, as
+    the device class of ``kind`` says (:meth:`~tissuecli.hw.device.Device.check_info`:
+    a forceps must report ``rate_hz``, ``clock_hz`` and ``adc_bits`` and, if
+    ``uses_calibration``, a plausible ``calibration``; a display's ``rate_hz`` and
+    ``clock_hz`` are checked when present).
 
     Raises
     ------
     DeviceError
         One line naming the field, its value (shortened) and what it must be.
     """
-    forceps = kind == "forceps"
 
     def refuse(name: str, value: object, must: str, hint: str = "") -> DeviceError:
         said = f"no Info {name}" if value is _MISSING else f"Info {name} = {_show(value)}"
@@ -251,32 +246,7 @@ def check_info(info: dict[str, Any], url: str, kind: str, *, uses_calibration: b
             f"{url} reports {said}; it must be {must}. Check the {kind} firmware{hint}"
         )
 
-    for name, (lo, hi) in (("rate_hz", RATE_HZ_RANGE), ("clock_hz", CLOCK_HZ_RANGE)):
-        if name not in info and not forceps:
-            continue
-        value = _number(info.get(name))
-        if value is None or not lo <= value <= hi:
-            raise refuse(name, info.get(name, _MISSING), f"a number of Hz in [{lo:g}, {hi:g}]")
-    rate, clock = _number(info.get("rate_hz")), _number(info.get("clock_hz"))
-    if rate is not None and clock is not None:
-        lo, hi = TICKS_PER_SAMPLE_RANGE
-        if not lo <= clock / rate <= hi:
-            raise refuse(
-                "clock_hz / rate_hz",
-                clock / rate,
-                f"between {lo:g} and {hi:g} clock ticks per sample",
-            )
-    if not forceps:
-        return
-    bits = info.get("adc_bits", _MISSING)
-    lo_bits, hi_bits = ADC_BITS_RANGE
-    if type(bits) is not int or not lo_bits <= bits <= hi_bits:
-        raise refuse("adc_bits", bits, f"an integer in [{lo_bits}, {hi_bits}]")
-    if uses_calibration:
-        problem = calibration_problem(info.get("calibration", _MISSING), bits)
-        if problem is not None:
-            name, value, must = problem
-            raise refuse(name, value, must, ", or give --calibration FILE")
+    device_class(kind).check_info(info, url, refuse, uses_calibration=uses_calibration)
 
 
 def calibration_problem(calibration: object, bits: int) -> tuple[str, object, str] | None:
@@ -321,18 +291,6 @@ def calibration_problem(calibration: object, bits: int) -> tuple[str, object, st
     return None
 
 
-_MISSING = object()  # a field the device did not send
-
-
-def _number(value: object) -> float | None:
-    """``value`` as a finite float if it is a JSON number (not a boolean), else None."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    try:
-        out = float(value)
-    except OverflowError:  # an integer beyond the range of a double
-        return None
-    return out if math.isfinite(out) else None
 
 
 def _show(value: object, limit: int = 60) -> str:
