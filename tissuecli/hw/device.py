@@ -12,17 +12,29 @@ name. Adding a device is one class and that registry entry (docs/architecture.md
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 from ..core.errors import DeviceError
+from .link import (
+    ADC_BITS_RANGE,
+    CLOCK_HZ_RANGE,
+    DEFAULT_BAUD,
+    DEVICES,
+    MISSING,
+    RATE_HZ_RANGE,
+    TICKS_PER_SAMPLE_RANGE,
+    Link,
+    calibration_problem,
+    device_class,
+    number,
+    open_device,
+)
 from .protocol import Encoder, Message, Sample, SetVoltage
 
-D = TypeVar("D", bound="type[Device]")
+__all__ = ["DEVICES", "Device", "Display", "Forceps", "device_class", "register"]
 
-#: The device classes by kind name (``forceps``, ``display``, ...).
-DEVICES: dict[str, type[Device]] = {}
+D = TypeVar("D", bound="type[Device]")
 
 
 def register(cls: D) -> D:
@@ -31,23 +43,6 @@ def register(cls: D) -> D:
         raise TypeError(f"{cls.__name__} has no kind")
     DEVICES[cls.kind] = cls
     return cls
-
-
-def device_class(kind: str) -> type[Device]:
-    """The registered class of ``kind``; :class:`DeviceError` naming those known if none."""
-    try:
-        return DEVICES[kind]
-    except KeyError:
-        raise DeviceError(
-            f"no device of kind {kind!r}; known kinds: {', '.join(sorted(DEVICES))}"
-        ) from None
-
-
-#: Plausible values of the Info fields a host uses (docs/protocol.md, section 6).
-RATE_HZ_RANGE = (1.0, 1e6)
-CLOCK_HZ_RANGE = (1e3, 1e10)
-#: device clock ticks per sample: enough to tell samples apart, far below the 2**32 wrap
-TICKS_PER_SAMPLE_RANGE = (10.0, float(1 << 24))
 
 
 class Device:
@@ -89,38 +84,39 @@ class Device:
     required_info: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, url: str, *, baudrate: int | None = None, timeout: float = 0.05) -> None:
-        from .link import DEFAULT_BAUD
-
         self.url = url
         self.baudrate = DEFAULT_BAUD if baudrate is None else baudrate
         self.timeout = timeout
-        self.link: Any = None
+        self.link: Link | None = None
         self.info: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
     def open(self, **options: Any) -> Device:
         """Open the line, stop and drain the device, identify and check it."""
-        from .link import open_device
-
         self.link, self.info = open_device(
             self.url, self.kind, baudrate=self.baudrate, timeout=self.timeout, **options
         )
         return self
 
+    def _line(self) -> Link:
+        if self.link is None:
+            raise DeviceError(f"the {self.kind} at {self.url} is not open")
+        return self.link
+
     def start(self) -> None:
-        self.link.command("start")
+        self._line().command("start")
 
     def stop(self) -> None:
-        self.link.command("stop")
+        self._line().command("stop")
 
     def read(self) -> list[Message]:
         """The frames of :attr:`frame_type` that have arrived."""
-        return [m for m in self.link.poll() if isinstance(m, self.frame_type)]
+        return [m for m in self._line().poll() if isinstance(m, self.frame_type)]
 
     def send(self, message: Message) -> None:
         """Send one command frame."""
-        self.link.send(message)
+        self._line().send(message)
 
     def close(self) -> None:
         if self.link is not None:
@@ -164,24 +160,6 @@ class Device:
                 )
 
 
-MISSING = object()  # a field the device did not send
-
-
-def number(value: object) -> float | None:
-    """``value`` as a finite float if it is a JSON number (not a boolean), else None."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    try:
-        out = float(value)
-    except OverflowError:  # an integer beyond the range of a double
-        return None
-    return out if math.isfinite(out) else None
-
-
-#: ADC resolutions a forceps may report, bits
-ADC_BITS_RANGE = (8, 16)
-
-
 @register
 class Forceps(Device):
     """The sensorised forceps: streams :class:`~tissuecli.hw.protocol.Sample` frames
@@ -198,8 +176,6 @@ class Forceps(Device):
     ) -> None:
         """Rate, clock and ADC bits required; the calibration checked when the host uses
         it (``uses_calibration``)."""
-        from .link import calibration_problem
-
         super().check_info(info, url, refuse)
         bits = info.get("adc_bits", MISSING)
         lo_bits, hi_bits = ADC_BITS_RANGE

@@ -9,6 +9,7 @@ speaks this protocol and is the kind of device expected.
 
 from __future__ import annotations
 
+import importlib
 import math
 import os
 import stat
@@ -19,14 +20,24 @@ from typing import Any
 import serial
 
 from ..core.errors import DeviceError, DeviceLost
-from .device import ADC_BITS_RANGE as ADC_BITS_RANGE  # the names this module always had
-from .device import CLOCK_HZ_RANGE as CLOCK_HZ_RANGE
-from .device import MISSING as _MISSING
-from .device import RATE_HZ_RANGE as RATE_HZ_RANGE
-from .device import TICKS_PER_SAMPLE_RANGE as TICKS_PER_SAMPLE_RANGE
-from .device import device_class
-from .device import number as _number
 from .protocol import COMMANDS, PROTOCOL_VERSION, Command, FrameDecoder, Info, Message, encode
+
+#: Device classes by kind name (:class:`tissuecli.hw.device.Device` subclasses, added
+#: with :func:`tissuecli.hw.device.register`); the built-in ones load on first lookup.
+DEVICES: dict[str, Any] = {}
+
+
+def device_class(kind: str) -> Any:
+    """The registered device class of ``kind``; :class:`DeviceError` naming those known."""
+    if "forceps" not in DEVICES:  # the built-in classes register as their module loads
+        importlib.import_module(f"{__package__}.device")
+    try:
+        return DEVICES[kind]
+    except KeyError:
+        raise DeviceError(
+            f"no device of kind {kind!r}; known kinds: {', '.join(sorted(DEVICES))}"
+        ) from None
+
 
 DEFAULT_BAUD = 921600  # ptys ignore it; real 1 kHz forceps need >= 460800 (docs/protocol.md)
 
@@ -221,6 +232,12 @@ def check_identity(info: dict[str, Any], url: str, kind: str) -> None:
         raise DeviceError(f"{url} is a {_show(device)}, not a {kind}; {device_class(kind).role}")
 
 
+#: Plausible values of the Info fields a host uses (docs/protocol.md, section 6).
+RATE_HZ_RANGE = (1.0, 1e6)
+CLOCK_HZ_RANGE = (1e3, 1e10)
+#: device clock ticks per sample: enough to tell samples apart, far below the 2**32 wrap
+TICKS_PER_SAMPLE_RANGE = (10.0, float(1 << 24))
+ADC_BITS_RANGE = (8, 16)
 #: largest magnitude at either ADC end (N, m) and smallest span of the ADC range
 SI_END_LIMIT = {"force": 1e4, "position": 1.0}
 SI_SPAN_MIN = {"force": 1e-6, "position": 1e-6}
@@ -291,6 +308,24 @@ def calibration_problem(calibration: object, bits: int) -> tuple[str, object, st
     return None
 
 
+
+
+_MISSING = object()  # a field the device did not send
+MISSING = _MISSING
+
+
+def _number(value: object) -> float | None:
+    """``value`` as a finite float if it is a JSON number (not a boolean), else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        out = float(value)
+    except OverflowError:  # an integer beyond the range of a double
+        return None
+    return out if math.isfinite(out) else None
+
+
+number = _number
 
 
 def _show(value: object, limit: int = 60) -> str:
