@@ -1,0 +1,73 @@
+"""``tissuecli demo`` run after run beside CPU-bound processes: how many pass (exit 0),
+and the play step's loop figures of each.
+
+Usage::
+
+    python benchmarks/demo_runs.py --runs 20 --busy 2
+
+Each run is ``tissuecli demo --duration 2`` in a process of its own, with ``--busy``
+processes running ``while 1: pass`` beside it for the whole benchmark. Prints one
+row per run (exit status, loop rate, p99 and longest period, watchdog frames, periods
+without a frame) and the count of runs that exited 0, with the load average before and
+after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import time
+
+PLAYED = re.compile(
+    r"played [\d.]+ s: (\d+) frames at ([\d.]+) Hz \(period p99 ([\d.]+) ms, max ([\d.]+) ms\)"
+    r".*?(\d+) periods without a frame"
+)
+WATCHDOG = re.compile(r"watchdog frames (\d+)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--busy", type=int, default=2)
+    ap.add_argument("--duration", type=float, default=2.0)
+    args = ap.parse_args()
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.busy)
+    ]
+    print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
+    print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} {'watchdog':>8} "
+          f"{'missed':>6} {'s':>5}")
+    passed = 0
+    try:
+        for run in range(args.runs):
+            t0 = time.monotonic()
+            done = subprocess.run(
+                [sys.executable, "-m", "tissuecli", "demo", "--duration", str(args.duration)],
+                capture_output=True, text=True, timeout=600,
+            )  # fmt: skip
+            played = PLAYED.search(done.stdout)
+            watchdog = WATCHDOG.search(done.stdout)
+            passed += done.returncode == 0
+            if played is None:
+                last = (done.stderr.strip().splitlines() or ["?"])[-1]
+                print(f"{run:>3} {done.returncode:>4} no play: {last[:100]}")
+                continue
+            _, rate, p99, worst, missed = played.groups()
+            print(
+                f"{run:>3} {done.returncode:>4} {float(rate):8.1f} {float(p99):7.2f} "
+                f"{float(worst):7.2f} {watchdog.group(1) if watchdog else '?':>8} "
+                f"{missed:>6} {time.monotonic() - t0:5.0f}",
+                flush=True,
+            )
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    print(f"{passed} of {args.runs} runs exited 0; load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
