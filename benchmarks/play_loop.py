@@ -13,9 +13,10 @@ thread, or its own process: ``tissuecli.app.play.LOOPS``), each without and with
 elevated scheduling (``+rt``: SCHED_FIFO 10, memory locked, one CPU, a spin through each
 expected frame). First on the machine as it is ("idle"), then with ``--busy``
 processes running ``while 1: pass``; the loops alternate run by run, so the figures of
-one load are side by side. ``--display-fifo`` raises the simulated display's process to
-SCHED_FIFO 20 (a real display is a microcontroller that keeps its own time), so that
-what remains is the host's. ``--live S`` then runs ``live`` for S seconds under each
+one load are side by side. The simulated display runs under SCHED_FIFO 11 of its own
+where the system allows it; ``--display-fifo`` raises it to SCHED_FIFO 20 and
+``--display-other`` lowers it to ordinary scheduling, to compare.
+``--live S`` then runs ``live`` for S seconds under each
 load (simulated forceps and display; the haptic loop in its own process, elevated),
 with the recorder and the online fit in the calling process.
 """
@@ -27,6 +28,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -47,11 +49,16 @@ VARIANTS = {
 }
 
 
-def _display(link: Path, fifo: bool) -> SimulatorProcess:
+def _display(link: Path, fifo: bool, other: bool = False) -> SimulatorProcess:
+    """A simulated display (SCHED_FIFO 11 of its own where allowed); ``fifo`` raises it
+    to 20, ``other`` lowers it to ordinary scheduling (as before it kept its own time)."""
     disp = SimulatorProcess("display", link)
     disp.__enter__()
-    if fifo and disp.process is not None:
-        os.sched_setscheduler(disp.process.pid, os.SCHED_FIFO, os.sched_param(20))
+    if disp.process is not None and (fifo or other):
+        time.sleep(0.2)  # its own elevation first, then this one over it
+        policy, prio = (os.SCHED_OTHER, 0) if other else (os.SCHED_FIFO, 20)
+        for tid in os.listdir(f"/proc/{disp.process.pid}/task"):
+            os.sched_setscheduler(int(tid), policy, os.sched_param(prio))
     return disp
 
 
@@ -72,11 +79,15 @@ def main() -> None:
     ap.add_argument("--busy", type=int, default=2, help="busy processes for the loaded case")
     ap.add_argument("--loops", default=",".join(VARIANTS), help="which host loops, comma-separated")
     ap.add_argument("--display-fifo", action="store_true", help="raise the display to SCHED_FIFO")
+    ap.add_argument(
+        "--display-other", action="store_true", help="lower the display to SCHED_OTHER"
+    )
     ap.add_argument("--live", type=float, default=0.0, help="also run live for this many s")
     args = ap.parse_args()
     tissue = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05)
     labels = args.loops.split(",")
-    print(f"{os.cpu_count()} CPUs; display {'SCHED_FIFO 20' if args.display_fifo else 'ordinary'}")
+    said = "SCHED_FIFO 20" if args.display_fifo else "ordinary" if args.display_other else "its own"
+    print(f"{os.cpu_count()} CPUs; display scheduling {said}")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     head = (
         f"{'load':<8} {'loop':<11} {'run':>3} {'rate Hz':>8} {'p50 ms':>7} {'p99 ms':>7} "
@@ -96,7 +107,11 @@ def main() -> None:
                 for run in range(args.runs):
                     for label in labels:
                         loop, rt = VARIANTS[label]
-                        disp = _display(Path(tmp) / f"d-{label}-{load[0]}{run}", args.display_fifo)
+                        disp = _display(
+                            Path(tmp) / f"d-{label}-{load[0]}{run}",
+                            args.display_fifo,
+                            args.display_other,
+                        )
                         try:
                             s = play(tissue, str(disp.link), args.duration, loop=loop, realtime=rt)
                             print(_row(load, label, run, s), flush=True)
@@ -125,7 +140,7 @@ def _live(tmp: Path, load: str, args: argparse.Namespace) -> str:
     """``live`` for ``args.live`` s on simulated devices: one row of figures."""
     tag = load.split()[0]
     with SimulatorProcess("forceps", tmp / f"f-{tag}") as forceps:
-        disp = _display(tmp / f"dl-{tag}", args.display_fifo)
+        disp = _display(tmp / f"dl-{tag}", args.display_fifo, args.display_other)
         try:
             s = live(str(forceps.link), str(disp.link), tmp / f"live-{tag}.h5", "s", args.live)
         except DeviceLost as exc:

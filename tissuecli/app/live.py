@@ -46,7 +46,7 @@ from ..render.handover import TISSUE, read_tissue_message, tissue_message
 from ..render.law import Gains
 from ..render.passivity import PassivityController
 from ..render.profile import DisplayProfile
-from .play import _jsonable, _open_display, _Player, classify_faults
+from .play import HostLoop, Rendering, _jsonable, _open_display, classify_faults
 from .record import RecordStatus, SampleBlock, record
 
 #: The forceps silent this long (no sample block) and the display goes to 0 V, s.
@@ -69,15 +69,25 @@ RETARGET_INTERVAL_S = 0.25
 GRASP_START_N = 0.1
 
 
-class _LivePlayer(_Player):
-    """``play``'s loop with a tissue that arrives (and changes) while it runs, handed
-    over by the process that started it."""
+class LiveRendering(Rendering):
+    """``live``'s computation in the haptic loop: a tissue that arrives (and changes)
+    while the loop runs, handed over by the process that started it, rendered behind a
+    passivity controller; 0 V until it is confident and whenever the forceps is silent.
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+    Parameters
+    ----------
+    profile : DisplayProfile
+        The display's constants.
+    rate_hz : float
+        The loop's rate, Hz.
+    """
+
+    def __init__(self, profile: DisplayProfile, rate_hz: float) -> None:
+        super().__init__(None)  # a controller once a tissue arrives
+        self.profile, self.rate_hz = profile, rate_hz
         self.active = False  # a confident, renderable estimate
         self.last_sample = -math.inf  # monotonic time of the forceps' last block
-        self.pc = PassivityController(self.profile, 1.0 / self.period)
+        self.pc = PassivityController(profile, rate_hz)
         self.first_render: float | None = None
         self.rendered: Tissue | None = None
         self.handovers = 0
@@ -91,7 +101,7 @@ class _LivePlayer(_Player):
         if kind == TISSUE:
             tissue, gains = read_tissue_message(message)
             if self.ctrl is None:
-                self.ctrl = Controller(tissue, self.profile, 1.0 / self.period, gains)
+                self.ctrl = Controller(tissue, self.profile, self.rate_hz, gains)
             else:
                 try:
                     self.ctrl.retarget(tissue)
@@ -126,11 +136,6 @@ class _LivePlayer(_Player):
             self.n_trace += 1
         return replace(step, volts=pc.volts)
 
-    def summary(self, stream: Stream) -> dict[str, Any]:
-        if self.ctrl is None:  # nothing was ever rendered: no controller figures
-            return {"duration_s": self.elapsed, "frames": self.figures.frames}
-        return super().summary(stream)
-
 
 def _live_loop(
     parent: Parent,
@@ -145,9 +150,10 @@ def _live_loop(
     link, info, profile = _open_display(display_url, baudrate, rate_hz, profile)
     try:
         parent.send(("opened", profile))
-        player = _LivePlayer(
+        rendering = LiveRendering(profile, rate_hz)
+        loop = HostLoop(
             link,
-            None,  # type: ignore[arg-type]  (a controller once a tissue arrives)
+            rendering,
             profile,
             rate_hz,
             float(info.get("clock_hz", 1e6)),
@@ -156,32 +162,32 @@ def _live_loop(
             lambda m: parent.send(("message", m)),
             parent,
         )
-        player.where = "process"
+        loop.where = "process"
         stream = Stream(
             link,
             Encoder,
             stop=parent.stop,
             idle_timeout_s=DISPLAY_SILENCE_S,
             status_interval_s=1.0,
-            before_stop=lambda: player.send(0.0),
+            before_stop=lambda: loop.send(0.0),
         )
-        render = player.run(
-            stream, None, lambda s: parent.send(("status", {"energy_j": player.pc.energy_j}))
+        render = loop.run(
+            stream, None, lambda s: parent.send(("status", {"energy_j": rendering.pc.energy_j}))
         )
     finally:
         link.close()
     return {
         "render": _jsonable(render),
-        "passivity": player.pc.summary(),
-        "first_render": player.first_render,
+        "passivity": rendering.pc.summary(),
+        "first_render": rendering.first_render,
         "rendered": (
-            {**player.rendered.describe(), "units": player.rendered.law.units}
-            if player.rendered is not None
+            {**rendering.rendered.describe(), "units": rendering.rendered.law.units}
+            if rendering.rendered is not None
             else None
         ),
-        "handovers": player.handovers,
-        "refused": player.refused,
-        "trace": player.trace[: player.n_trace].copy(),
+        "handovers": rendering.handovers,
+        "refused": rendering.refused,
+        "trace": rendering.trace[: rendering.n_trace].copy(),
     }
 
 

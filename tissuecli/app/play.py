@@ -485,7 +485,7 @@ def _render(
     of its own if ``in_thread``)."""
     link, info, profile = _open_display(url, baudrate, rate_hz, profile)
     log_file: PlayLog | None = None
-    player: _Player | None = None
+    player: HostLoop | None = None
     stream: Stream | None = None
     try:
         verdict = check(tissue, profile, rate_hz, force)
@@ -509,7 +509,7 @@ def _render(
                 "check": verdict.as_dict(),
             }
             log_file = PlayLog(log, name or "play-" + stamp.strftime("%Y%m%dT%H%M%S"), meta)
-        player = _Player(
+        player = HostLoop(
             link,
             Controller(tissue, profile, rate_hz, verdict.gains),
             profile,
@@ -605,13 +605,46 @@ def _open_display(
         raise
 
 
-class _Player:
-    """The control loop's state: one answer per Encoder frame, deadlines, figures, log."""
+class Rendering:
+    """What the haptic loop computes for each frame (read, *compute*, command): the
+    controller's answer. The base renders one tissue with ``ctrl``; ``live`` composes
+    its own (a tissue that arrives and changes while the loop runs, behind a passivity
+    controller) into the same :class:`HostLoop`.
+
+    Parameters
+    ----------
+    ctrl : Controller or None
+        The per-frame controller (None: nothing to render yet, 0 V).
+    """
+
+    def __init__(self, ctrl: Controller | None) -> None:
+        self.ctrl = ctrl
+
+    def step(self, x: float, volts: float, dt: float) -> Step:
+        """The answer to one frame: encoder reading ``x`` (m), volts in use, ``dt`` (s)."""
+        assert self.ctrl is not None
+        return self.ctrl.update(x, volts, dt)
+
+    def handle(self, message: Any) -> None:
+        """A message from the process that started the loop (``live`` sends tissues)."""
+
+
+class HostLoop:
+    """The haptic loop over a display: read each Encoder frame, compute the answer
+    (:class:`Rendering`), command it at once; deadlines, figures and the log.
+
+    Parameters
+    ----------
+    link : Link
+        The open display.
+    rendering : Rendering or Controller
+        What computes each answer (a bare controller is wrapped in :class:`Rendering`).
+    """
 
     def __init__(
         self,
         link: Link,
-        ctrl: Controller,
+        rendering: Rendering | Controller | None,
         profile: DisplayProfile,
         rate_hz: float,
         clock_hz: float,
@@ -620,7 +653,10 @@ class _Player:
         on_message: Callable[[str], None] | None = None,
         inbox: Parent | None = None,
     ) -> None:
-        self.link, self.ctrl, self.profile, self.log = link, ctrl, profile, log
+        if not isinstance(rendering, Rendering):
+            rendering = Rendering(rendering)
+        self.rendering = rendering
+        self.link, self.profile, self.log = link, profile, log
         self.realtime, self.on_message, self.inbox = realtime, on_message, inbox
         self.where = "plain"  # which of LOOPS runs it, for the summary
         # the display's silence limit follows what the loop's scheduling can guarantee
@@ -722,12 +758,17 @@ class _Player:
         summary["commands_sent"] = self.sent
         return summary
 
+    @property
+    def ctrl(self) -> Controller | None:
+        return self.rendering.ctrl
+
     def handle(self, message: Any) -> None:
-        """A message from the process that started the loop (``live`` sends tissues)."""
+        """A message from the process that started the loop, for the rendering."""
+        self.rendering.handle(message)
 
     def step(self, x: float, volts: float, dt: float) -> Step:
-        """The controller's answer to one frame (``live`` adds its own stages here)."""
-        return self.ctrl.update(x, volts, dt)
+        """The rendering's answer to one frame."""
+        return self.rendering.step(x, volts, dt)
 
     def _receive(self, stream: Stream, deadline: float, fd: int | None) -> tuple[int, float]:
         """Answer-ready: run every Encoder frame that arrives before ``deadline`` through
@@ -771,6 +812,21 @@ class _Player:
                 wait_readable(fd, deadline)
 
     def summary(self, stream: Stream) -> dict[str, Any]:
+        if self.ctrl is None:  # nothing was ever rendered: the loop's figures alone
+            f = self.figures
+            return {
+                "duration_s": self.elapsed,
+                "frames": f.frames,
+                "frames_lost": stream.seqs.lost,
+                "frames_bad": self.link.decoder.bad_frames,
+                "missed_periods": self.missed,
+                "watchdog_frames": f.watchdog,
+                "loop_rate_hz": f.loop_rate(),
+                "period_p99_ms": f.percentile(99) * 1e3,
+                "period_p50_ms": f.percentile(50) * 1e3,
+                "period_max_ms": f.max_period * 1e3,
+                **silence_figures(stream),
+            }
         figures = self.figures.summary(self.ctrl, self.profile)
         return {
             "duration_s": self.elapsed,
@@ -781,6 +837,10 @@ class _Player:
             **figures,
             **silence_figures(stream),
         }
+
+
+#: The loop's former name, for code that used it.
+_Player = HostLoop
 
 
 def silence_figures(stream: Stream) -> dict[str, float]:

@@ -71,6 +71,21 @@ def interruptible() -> Callable[[], None]:
     return restore
 
 
+def _signal_behind(exc: BaseException) -> int | None:
+    """The signal number of an :class:`Interrupted` or ``KeyboardInterrupt`` that caused
+    ``exc`` (through ``__cause__`` or ``__context__``), or None."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, Interrupted):
+            return cause.signum
+        if isinstance(cause, KeyboardInterrupt):
+            return int(signal.SIGINT)
+        cause = cause.__cause__ or cause.__context__
+    return None
+
+
 def end_by_signal(stop: Any) -> None:
     """After a long command's summary: exit ``128 + signum`` if a signal (``stop``, a
     :class:`~tissuecli.hw.realtime.StopFlag`) ended it, saying so on stderr."""
@@ -148,6 +163,14 @@ class Group(click.Group):
         except Interrupted as exc:
             click.echo(f"aborted: {exc}", err=True)
             sys.exit(signal_exit_code(exc.signum))
+        except Exception as exc:
+            # a signal that landed inside an import or a class being made comes back
+            # wrapped (RuntimeError from __set_name__, ...): still the signal's ending
+            signum = _signal_behind(exc)
+            if signum is None:
+                raise
+            click.echo(f"aborted: interrupted by {signal_name(signum)}", err=True)
+            sys.exit(signal_exit_code(signum))
         finally:
             restore()
         sys.exit(code if isinstance(code, int) else 0)
