@@ -140,6 +140,17 @@ SPIN_S = 3e-4
 FIFO_PRIORITY = 10
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
+
+
+def cpu_to_spare() -> bool:
+    """Whether the machine has a CPU to spare: its 1-minute load average below the
+    number of CPUs this process may use, less one (True where the OS does not say)."""
+    try:
+        load = os.getloadavg()[0]
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    except OSError:
+        return True
+    return load < max((cpus or 1) - 1, 1)
 _fallback_said: set[str] = set()
 
 
