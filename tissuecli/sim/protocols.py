@@ -280,8 +280,10 @@ def _triangle(kind: str) -> Callable[..., Scene]:
     return build
 
 
-def _relaxation_law(rng: np.random.Generator, K: float, branches: int, hold_s: float) -> Tissue:
-    taus = sorted(math.exp(rng.uniform(math.log(0.05), math.log(hold_s / 4)))
+def _relaxation_law(
+    rng: np.random.Generator, K: float, branches: int, hold_s: float, shortest_s: float = 0.05
+) -> Tissue:
+    taus = sorted(math.exp(rng.uniform(math.log(shortest_s), math.log(hold_s / 4)))
                   for _ in range(branches))  # fmt: skip
     if branches == 2 and taus[1] < 8 * taus[0]:
         taus[1] = min(8 * taus[0], hold_s / 3)
@@ -328,7 +330,8 @@ def _creep(rng: np.random.Generator, **fixed: Any) -> Scene:
     s = _settings(rng, fixed)
     duration = _duration(s, 20.0)
     amp, K = float(s["amplitude_m"]), float(s["stiffness"])
-    tissue = _relaxation_law(rng, K, 1, duration)
+    # a time constant that leaves the creep to be seen in the hold
+    tissue = _relaxation_law(rng, K, 1, duration, shortest_s=duration / 20)
     Km, tau = float(tissue.coef[1]), float(tissue.law.terms[1].tau)  # type: ignore[attr-defined]
     preload = amp * rng.uniform(0.3, 1.0)
     # the step that creeps by ``amp`` in the end: x_inf - x_pre = step / K

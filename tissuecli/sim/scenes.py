@@ -392,9 +392,13 @@ def random_scene(
     squeeze = Operator(sum(amps) * 1.1, amps, freqs, phases)
     motion: Motion = squeeze
     duration = float(draw["duration_s"])
+    rate = float(draw["rate_hz"])
     if draw["contact"] == "grasps":
         grasp_s = float(np.clip(rng.uniform(1.0, 3.0) / math.sqrt(tempo), 0.5, 4.0))
         free_s = rng.uniform(0.3, 1.0)
+        # three and a half grasps at least, quicker ones where the samples run short
+        fit = min(1.0, max_samples / rate / (3.5 * (grasp_s + free_s)))
+        grasp_s, free_s = grasp_s * fit, free_s * fit
         motion = GraspingOperator(
             squeeze=squeeze,
             grasp_s=grasp_s,
@@ -403,7 +407,6 @@ def random_scene(
             open_m=rng.uniform(0.5e-3, 3e-3),
         )
         duration = max(duration, 3.5 * (grasp_s + free_s))
-    rate = float(draw["rate_hz"])
     duration = min(duration, max_samples / rate)
     draw["duration_s"] = duration
     draw["excitation"] = (
