@@ -74,8 +74,9 @@ def test_the_reference_intervals_cover_at_their_nominal_rate():
 
 @pytest.mark.xfail(
     strict=False,
-    reason="quantised noisy continuous contact is read as out of contact: 'only 0 filtered "
-    "samples have a window free of lost, clipped or out-of-contact samples'",
+    reason="quantised noisy continuous contact is refused: 'no grasp stands above the "
+    "free-jaw force', or 'only N filtered samples have a window free of lost, clipped or "
+    "out-of-contact samples'",
 )
 def test_noisy_quantised_continuous_contact_is_never_refused():
     """8 bits, 10 % noise, an x^3 law near zero at small closure, continuous contact."""
