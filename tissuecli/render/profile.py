@@ -163,7 +163,8 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
             continue
         entry = data[key]
         if isinstance(entry, Mapping):
-            extra = [k for k in entry if k not in ("value", "unit")]
+            # ci95: the interval a calibration measured, kept for people, not used
+            extra = [k for k in entry if k not in ("value", "unit", "ci95")]
             if extra or "value" not in entry:
                 raise InputError(
                     f'{source}: {key} must be a number or {{"value": number, "unit": "{unit}"}}'
@@ -173,6 +174,13 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
                     f"{source}: {key} is in {_shown(entry['unit'])}; give it in {unit!r}"
                 )
             value = entry["value"]
+            ci = entry.get("ci95")
+            if ci is not None and not (
+                isinstance(ci, list)
+                and len(ci) == 2
+                and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in ci)
+            ):
+                raise InputError(f"{source}: {key}.ci95 must be [low, high] in {unit}")
         else:
             value = entry
         if not isinstance(value, (int, float)) or isinstance(value, bool):
@@ -184,3 +192,43 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
         return replace(PAPER_DISPLAY, **values).validate()
     except InputError as exc:
         raise InputError(str(exc).replace("display profile", source, 1)) from None
+
+
+#: Relative slack when a profile's limits are compared with a display's (float32 and
+#: decimal round trips of the same number).
+LIMIT_SLACK = 1e-6
+
+
+def exceeded_limits(asked: DisplayProfile, reported: DisplayProfile) -> list[str]:
+    """Where ``asked`` (a ``--profile``) asks more of the display than it reports.
+
+    The display's amplifier limit ``v_max``, its piston's ``stroke`` and its largest
+    pull ``alpha v_max^2`` bound every command: a profile above any of them would let
+    the host command more than the hardware allows (and judge renderable what is
+    not). Each item names both numbers.
+
+    Returns
+    -------
+    list of str
+        One phrase per limit exceeded, e.g. ``"v_max 100 V > 1.5 V"``; empty if none.
+    """
+    out = []
+    for name, unit, a, r in (
+        ("v_max", "V", asked.v_max, reported.v_max),
+        ("stroke", "m", asked.stroke, reported.stroke),
+        ("force alpha v_max^2", "N", asked.max_pull, reported.max_pull),
+    ):
+        if a > r * (1 + LIMIT_SLACK):
+            out.append(f"{name} {a:.4g} {unit} > {r:.4g} {unit}")
+    return out
+
+
+def clamp_volts(volts: float, v_max: float) -> tuple[float, bool]:
+    """``volts`` within [0, ``v_max``] (NaN read as 0); and whether it was changed."""
+    if not volts == volts:
+        return 0.0, True
+    if volts < 0.0:
+        return 0.0, True
+    if volts > v_max:
+        return v_max, True
+    return volts, False
