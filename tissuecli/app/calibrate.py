@@ -593,7 +593,8 @@ def display_lines(result: DisplayCalibration) -> list[str]:
     def row(name: str, est: Estimate, fmt: str) -> str:
         unit = PROFILE_UNITS[name]
         was = f"; reported {getattr(rep, name):{fmt}}" if rep is not None else ""
-        return f"{name:5s} = {est.value:{fmt}} {unit} (95 % {est.lo:{fmt}} .. {est.hi:{fmt}}{was})"
+        half = 0.5 * (est.hi - est.lo)
+        return f"{name:5s} = {est.value:{fmt}} {unit} +- {half:.2g} (95 %{was})"
 
     free = sum(r is not None for _, r in result.holds)
     lines = [

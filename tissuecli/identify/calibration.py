@@ -120,11 +120,16 @@ class ChannelFit:
         u = (ref - mu) / scale
         X = np.column_stack([np.ones(n), u])
         coef, rss1 = _lstsq(X, y)
-        if coef[1] == 0 or not np.isfinite(coef[1]):
-            raise InputError(f"{what}: the readings do not change with the reference")
         dof = n - 2
         s2 = rss1 / dof if dof > 0 else 0.0
         cov_u = s2 * np.linalg.inv(X.T @ X)
+        t = _t(dof, self.level)
+        floor = max(t * math.sqrt(cov_u[1, 1]), 1e-9 * float(np.max(np.abs(y))))
+        if not (np.isfinite(coef[1]) and abs(coef[1]) > floor):
+            raise InputError(
+                f"{what}: the readings do not change with the reference (more than their "
+                "scatter): is the right channel connected?"
+            )
         # back to raw = a + b ref
         b = coef[1] / scale
         a = coef[0] - b * mu
@@ -134,7 +139,6 @@ class ChannelFit:
         # delta method: d(gain)/d(a, b) = (0, -1/b^2); d(offset)/d(a, b) = (-1/b, a/b^2)
         g_grad = np.array([0.0, -1.0 / b**2])
         o_grad = np.array([-1.0 / b, a / b**2])
-        t = _t(dof, self.level) if dof > 0 else math.inf
         g_sd = math.sqrt(max(float(g_grad @ cov @ g_grad), 0.0))
         o_sd = math.sqrt(max(float(o_grad @ cov @ o_grad), 0.0))
         self.gain_, self.offset_ = gain, offset
