@@ -1,0 +1,159 @@
+"""The display's limits rule every command: a profile asking more than the display
+reports is refused with both numbers, and no command the display receives exceeds its
+reported v_max (a property over random tissues and profiles, against the simulated
+display's firmware on a real pty)."""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tissuecli.app.play import play
+from tissuecli.core.errors import DeviceError, RenderError
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
+from tissuecli.hw.realtime import StopFlag
+from tissuecli.render.profile import PAPER_DISPLAY, DisplayProfile, exceeded_limits
+from tissuecli.sim.display import simulate_display
+from tissuecli.sim.port import VirtualPort
+
+LINEAR = Law.paper("x", "xdot")
+
+
+@contextmanager
+def display(profile: DisplayProfile) -> Iterator[tuple[str, dict[str, Any]]]:
+    """A simulated display reporting (and running) ``profile``, in a thread; yields its
+    port and, after the block, its counters."""
+    with tempfile.TemporaryDirectory() as tmp:
+        link = Path(tmp) / "display"
+        port = VirtualPort(link)
+        stop = StopFlag()
+        counters: dict[str, Any] = {}
+
+        def run() -> None:
+            counters.update(simulate_display(profile, port, stop=stop))
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        try:
+            yield str(link), counters
+        finally:
+            stop.set(0)
+            thread.join(10)
+            port.close()
+
+
+def test_a_profile_above_the_display_is_refused_with_both_numbers():
+    asked = replace(PAPER_DISPLAY, v_max=100.0, alpha=1e-4)
+    with display(PAPER_DISPLAY) as (url, counters), pytest.raises(DeviceError) as info:
+        play(Tissue(LINEAR, 600.0, 3.0, 0.05), url, 0.2, profile=asked, realtime=False)
+    message = str(info.value)
+    assert "\n" not in message
+    assert "v_max 100 V > 1.5 V" in message
+    assert counters["commands"] == 0  # refused before a single command
+
+
+def test_limits_compare_voltage_stroke_and_pull():
+    assert exceeded_limits(PAPER_DISPLAY, PAPER_DISPLAY) == []
+    low = replace(PAPER_DISPLAY, v_max=1.0, stroke=0.01, alpha=1.0)
+    assert exceeded_limits(low, PAPER_DISPLAY) == []
+    over = exceeded_limits(replace(PAPER_DISPLAY, stroke=0.02, alpha=2.0), PAPER_DISPLAY)
+    assert over == ["stroke 0.02 m > 0.015 m", "force alpha v_max^2 4.5 N > 2.648 N"]
+
+
+factor = st.floats(0.6, 1.6)
+
+
+@settings(
+    max_examples=12,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+@given(
+    K=st.floats(100.0, 3000.0),
+    S=st.floats(0.5, 10.0),
+    M=st.floats(0.02, 0.2),
+    reported=st.fixed_dictionaries(
+        {"Kp": factor, "alpha": factor, "Mp": factor, "v_max": st.floats(0.5, 3.0)}
+    ),
+    asked=st.one_of(
+        st.none(),
+        st.fixed_dictionaries({"v_max": st.floats(0.1, 1.2), "alpha": st.floats(0.3, 1.2)}),
+        st.fixed_dictionaries({"v_max": st.floats(1.01, 100.0)}),
+        st.fixed_dictionaries({"stroke": st.floats(1.01, 3.0)}),
+    ),
+)
+def test_no_command_exceeds_the_reported_v_max(K, S, M, reported, asked):
+    shown = replace(
+        PAPER_DISPLAY,
+        Kp=PAPER_DISPLAY.Kp * reported["Kp"],
+        alpha=PAPER_DISPLAY.alpha * reported["alpha"],
+        Mp=PAPER_DISPLAY.Mp * reported["Mp"],
+        v_max=reported["v_max"],
+    )
+    profile = None
+    if asked is not None:  # factors of the display's own constants
+        profile = replace(shown, **{k: getattr(shown, k) * f for k, f in asked.items()})
+    over = exceeded_limits(profile, shown) if profile is not None else []
+    with display(shown) as (url, counters):
+        try:
+            play(
+                Tissue(LINEAR, K, S, M),
+                url,
+                0.25,
+                profile=profile,
+                realtime=False,
+                idle_timeout_s=2.0,
+            )
+        except DeviceError as exc:
+            assert over, exc  # refused only for asking more than the display reports
+            assert "\n" not in str(exc) and "reports" in str(exc)
+        except RenderError:
+            assert not over  # judged (and refused) only within the display's limits
+        else:
+            assert not over
+    if over:
+        assert counters["commands"] == 0
+    elif counters["max_command_volts"] is not None:
+        assert counters["max_command_volts"] <= shown.v_max * (1 + 1e-6)
+
+
+class _Wire:
+    """A link that keeps what is sent."""
+
+    def __init__(self) -> None:
+        self.sent: list[float] = []
+
+    def send(self, message: Any) -> None:
+        self.sent.append(message.volts)
+
+
+def test_every_command_is_clamped_before_it_is_sent_and_counted():
+    from tissuecli.app.play import _Player
+    from tissuecli.render.check import check
+    from tissuecli.render.controller import Controller
+
+    tissue = Tissue(LINEAR, 600.0, 3.0, 0.05)
+    gains = check(tissue, PAPER_DISPLAY, 1000.0).gains
+    wire = _Wire()
+    player = _Player(
+        wire,  # type: ignore[arg-type]
+        Controller(tissue, PAPER_DISPLAY, 1000.0, gains),
+        PAPER_DISPLAY,
+        1000.0,
+        1e6,
+        None,
+    )
+    for volts in (0.5, 70.9, -1.0, float("nan"), 1.5):
+        player.send(volts)
+    assert wire.sent == [0.5, 1.5, 0.0, 0.0, 1.5]
+    assert player.clamped == 3
