@@ -18,6 +18,7 @@ from tissuecli.identify.calibration import (
     G,
     fit_display,
     fit_ringdown,
+    off_stops,
     slow_force_warning,
 )
 from tissuecli.render.plant import piston_step
@@ -125,7 +126,7 @@ def bench_frames(profile, mass: float, seed: int, cut_share: float = 0.02):
             vs.append(applied)
             x, v, _ = piston_step(plant, x, v, applied, lambda t: weight, 0.0, 1e-3)
     xs, vs = np.array(xs), np.array(vs)
-    inside = (xs > 2e-6) & (xs < profile.stroke - 2e-6)
+    inside = off_stops(xs, 0.0, profile.stroke, 2e-6)
     starts = inside & ~np.roll(inside, 1)
     starts[0] = inside[0]
     return xs[inside], vs[inside], np.cumsum(starts)[inside]

@@ -42,6 +42,7 @@ from ..identify.calibration import (
     DisplayFit,
     Estimate,
     fit_display,
+    off_stops,
     slow_force_warning,
 )
 from ..render.profile import PAPER_DISPLAY, PROFILE_UNITS, DisplayProfile, profile_from_dict
@@ -572,8 +573,7 @@ def _frames(
     limit = (flags & FLAG_LIMIT) != 0
     top = limit & (x < x.min() + 0.5 * limits.stroke)
     zero = float(np.median(x[top])) if top.any() else 0.0
-    margin = 2 * limits.resolution
-    inside = ~limit & (x > zero + margin) & (x < zero + limits.stroke - margin)
+    inside = ~limit & off_stops(x, zero, zero + limits.stroke, 2 * limits.resolution)
     period = 1.0 / bench.rate_hz
     step = np.diff(t, prepend=t[0] - period)
     contiguous = np.abs(step - period) < 0.5 * period

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..core.errors import InputError
+from .noise import data_weight, integrated_time
 
 Array = NDArray[np.float64]
 
@@ -417,6 +418,19 @@ def _display_columns(
     return X
 
 
+def off_stops(x: ArrayLike, lo: float, hi: float, margin: float) -> NDArray[np.bool_]:
+    """Frames (shape (n,)) whose piston cannot have touched an end stop from the frame
+    before to the frame after: a touch stops it dead, which the linear law does not
+    follow. The reach between frames is the largest step on either side."""
+    x = np.asarray(x, dtype=float).ravel()
+    step = np.abs(np.diff(x))
+    reach = np.zeros_like(x)
+    if x.size > 1:
+        reach[:-1] = step
+        reach[1:] = np.maximum(reach[1:], step)
+    return (x - reach > lo + margin) & (x + reach < hi - margin)
+
+
 def fit_display(
     x: ArrayLike,
     volts: ArrayLike,
@@ -497,7 +511,10 @@ def fit_display(
     J = np.column_stack([*cols, X])
     dof = max(x.size - J.shape[1], 1)
     s2 = float(r @ r) / dof
-    cov = s2 * np.linalg.pinv(J.T @ J)[:4, :4]  # (omega, sigma, x0, kappa)
+    # residuals that are not white (the encoder's step, and any misfit of the law)
+    # count for fewer samples: intervals widened by the data weight
+    weight = data_weight(J, r, integrated_time(r))
+    cov = s2 * np.linalg.pinv(J.T @ J)[:4, :4] / weight  # (omega, sigma, x0, kappa)
     x0, kappa = float(beta[0]), float(beta[1])
     if not (x0 > 0 and kappa > 0 and omega > 0):
         raise InputError(
