@@ -5,6 +5,7 @@ live forceps."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -21,7 +22,7 @@ from tissuecli.app.calibrate import calibrate_display, display_lines, parse_mass
 from tissuecli.cli import cli
 from tissuecli.core.errors import DeviceLost, InputError
 from tissuecli.formats.params import read_calibration, read_profile
-from tissuecli.render.profile import PAPER_DISPLAY
+from tissuecli.render.profile import PAPER_DISPLAY, exceeded_limits
 
 DISPLAY = """
 import json, sys
@@ -89,8 +90,13 @@ def test_calibrate_display_recovers_constants_it_is_not_told(tmp_path: Path, fac
     for key in ("Kp", "alpha", "Mp"):
         assert getattr(measured, key) == pytest.approx(getattr(truth, key), rel=0.05), key
     assert measured.b == pytest.approx(truth.b, rel=0.2)
-    # the limits and the encoder are the display's own
-    assert (measured.v_max, measured.stroke) == (PAPER_DISPLAY.v_max, PAPER_DISPLAY.stroke)
+    # the limits and the encoder are the display's own: the voltage lowered if the
+    # measured solenoid would pull harder than the display reports
+    assert exceeded_limits(measured, PAPER_DISPLAY) == []
+    assert measured.stroke == PAPER_DISPLAY.stroke
+    assert measured.v_max == pytest.approx(
+        min(PAPER_DISPLAY.v_max, math.sqrt(PAPER_DISPLAY.max_pull / measured.alpha))
+    )
     # each interval holds the truth it was not told (generously: 4 half-widths, as the
     # simulator's integrator is not the exact discretisation the fit assumes)
     for key in ("Kp", "alpha", "Mp"):

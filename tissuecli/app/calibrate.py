@@ -474,16 +474,25 @@ def calibrate_display(
     x, volts, segment, zero, cut = _frames(bench, limits)
     say(f"fitting {x.size} frames")
     fit = fit_display(x - zero, volts, segment, 1.0 / rate_hz, mass_kg)
+    notes = []
+    v_max = limits.v_max
+    if reported is not None and fit.alpha.value * v_max**2 > reported.max_pull:
+        # the display's limits rule: its reported pull bounds the profile too
+        v_max = math.sqrt(reported.max_pull / fit.alpha.value)
+        notes.append(
+            f"v_max lowered to {v_max:.4g} V so that the pull stays within the "
+            f"{reported.max_pull:.4g} N the display reports (its alpha {reported.alpha:.5g} "
+            "is too low); store the measured constants in the display to use its full range"
+        )
     profile = DisplayProfile(
         Mp=fit.Mp.value,
         Kp=fit.Kp.value,
         alpha=fit.alpha.value,
-        v_max=limits.v_max,
+        v_max=v_max,
         stroke=limits.stroke,
         resolution=limits.resolution,
         b=max(fit.b.value, 0.0),
     ).validate()
-    notes = []
     if reported is None:
         notes.append(f"{url} reports no profile: v_max, stroke and resolution are the paper's")
     doc = profile.as_dict()
@@ -491,8 +500,8 @@ def calibrate_display(
     doc["note"] = (
         f"measured by tissuecli calibrate display at {url} with a {mass_kg:g} kg mass on the "
         f"piston: {len(holds)} held voltages, {ringdowns} ring-downs, {fit.frames} frames "
-        "fitted; ci95 are 95 % intervals; v_max, stroke and resolution as the display "
-        "reports them"
+        "fitted; ci95 are 95 % intervals; v_max, stroke and resolution within what the "
+        "display reports"
     )
     for key, est in (("Mp", fit.Mp), ("Kp", fit.Kp), ("alpha", fit.alpha), ("b", fit.b)):
         doc[key]["ci95"] = [est.lo, est.hi]
