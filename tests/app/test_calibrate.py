@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -107,6 +108,8 @@ def test_calibrate_display_recovers_constants_it_is_not_told(tmp_path: Path, fac
     assert data["Kp"]["ci95"][0] < data["Kp"]["value"] < data["Kp"]["ci95"][1]
     lines = display_lines(result)
     assert lines[-1] == f"wrote {out}" and any("reported 264.78" in line for line in lines)
+    if factors["Kp"] < 1:  # the page's example: the same display
+        check_display_docs(lines, str(tmp_path / "display"), out)
 
 
 def test_calibrate_display_refuses_to_overwrite_before_touching_the_port(tmp_path: Path):
@@ -230,3 +233,48 @@ def test_calibrate_forceps_reads_the_live_forceps_at_each_prompt(tmp_path: Path)
     assert res.exit_code in (0, 1)
     if res.exit_code == 1:
         assert "do not change" in res.output or "not linear" in res.output
+
+
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "calibration.md"
+
+
+def docs_block(after: str) -> str:
+    """The first fenced block after the line ``after`` in docs/calibration.md."""
+    text = DOCS.read_text()
+    start = text.index("```\n", text.index(after)) + 4
+    return text[start : text.index("```", start)]
+
+
+def masked(line: str) -> str:
+    """A line with its numbers masked: what must match between the page and a run."""
+    return re.sub(r"[-+]?\d[\d.]*(e[-+]?\d+)?", "#", line)
+
+
+def test_the_forceps_example_of_the_docs_prints_what_the_page_says(tmp_path: Path):
+    (tmp_path / "loads.csv").write_text(docs_block("`loads.csv`"))
+    (tmp_path / "gaps.csv").write_text(docs_block("`gaps.csv`"))
+    block = next(
+        b for b in re.findall(r"```\n(.*?)```", DOCS.read_text(), re.S) if "$ tissuecli" in b
+    ).splitlines()
+    command, expected = block[0].removeprefix("$ tissuecli ").split(), block[1:]
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        res = CliRunner().invoke(cli, command)
+    finally:
+        os.chdir(cwd)
+    assert res.exit_code == 0, res.output
+    assert res.output.splitlines() == expected
+
+
+def check_display_docs(lines: list[str], url: str, out: Path) -> None:
+    """Every line the page shows for the display example, numbers masked, is one the
+    run printed (the watchdog's note only if it cut)."""
+    printed = {
+        masked(line.replace(url, "/tmp/display").replace(str(out), "display.json"))
+        for line in lines
+    }
+    for line in docs_block("After Enter").splitlines():
+        if "watchdog" in line and not any("watchdog" in p for p in printed):
+            continue
+        assert masked(line) in printed, line

@@ -157,3 +157,29 @@ def test_every_command_is_clamped_before_it_is_sent_and_counted():
         player.send(volts)
     assert wire.sent == [0.5, 1.5, 0.0, 0.0, 1.5]
     assert player.clamped == 3
+
+
+def test_the_refusal_the_docs_quote_is_what_play_prints(tmp_path: Path):
+    import json
+    import re
+
+    from click.testing import CliRunner
+
+    from tissuecli.cli import cli
+    from tissuecli.core.tissue import DEFAULT_TISSUE
+    from tissuecli.formats.params import tissue_to_dict
+
+    docs = Path(__file__).resolve().parents[2] / "docs" / "calibration.md"
+    block = next(
+        b for b in re.findall(r"```\n(.*?)```", docs.read_text(), re.S) if "--profile big" in b
+    )
+    command, expected = [line.strip() for line in block.strip().splitlines()]
+    (tmp_path / "liver.json").write_text(json.dumps(tissue_to_dict(DEFAULT_TISSUE)))
+    (tmp_path / "big.json").write_text('{"v_max": 100, "alpha": 0.0001}')
+    with display(PAPER_DISPLAY) as (url, counters):
+        args = command.removeprefix("$ tissuecli ").replace("/tmp/display", url).split()
+        args = [str(tmp_path / a) if a.endswith(".json") else a for a in args]
+        res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 1
+    assert res.output.strip() == expected.replace("/tmp/display", url)
+    assert counters["commands"] == 0

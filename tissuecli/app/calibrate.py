@@ -596,7 +596,7 @@ def _frames(
 
 def display_lines(result: DisplayCalibration) -> list[str]:
     """The calibration of :func:`calibrate_display` as lines for people."""
-    p, f = result.profile, result.fit
+    f = result.fit
     rep = result.reported
 
     def row(name: str, est: Estimate, fmt: str) -> str:
@@ -606,9 +606,11 @@ def display_lines(result: DisplayCalibration) -> list[str]:
         return f"{name:5s} = {est.value:{fmt}} {unit} +- {half:.2g} (95 %{was})"
 
     free = sum(r is not None for _, r in result.holds)
+    shown = rep or PAPER_DISPLAY
     lines = [
-        f"display at {result.url}: {result.rate_hz:g} Hz, v_max {p.v_max:g} V, stroke "
-        f"{p.stroke * 1e3:g} mm; {result.mass_kg:g} kg on the piston",
+        f"display at {result.url}: {result.rate_hz:g} Hz, "
+        f"{'reports' if rep is not None else 'assumed'} v_max {shown.v_max:g} V, stroke "
+        f"{shown.stroke * 1e3:g} mm; {result.mass_kg:g} kg on the piston",
         f"sweep: {len(result.holds)} voltages held, {free} off the end stops; rest at 0 V "
         f"{f.x0 * 1e3:.3f} mm; {result.ringdowns} ring-downs released from "
         f"{result.release_volts:.3f} V",
