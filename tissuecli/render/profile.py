@@ -31,7 +31,8 @@ class DisplayProfile:
         Encoder resolution, m per count.
     b : float
         Piston viscous damping, N s/m. The paper gives none; 0.5 N s/m (damping
-        ratio 0.05) is an assumption to be replaced by a ring-down measurement.
+        ratio 0.05) is an assumption: ``tissuecli calibrate display`` measures it
+        by ring-downs.
     """
 
     Mp: float = 0.08335
