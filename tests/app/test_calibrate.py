@@ -18,8 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from tissuecli.app.calibrate import calibrate_display, display_lines, parse_mass
+from tissuecli.app.calibrate import (
+    calibrate_display,
+    display_lines,
+    parse_mass,
+    parse_reference,
+)
 from tissuecli.cli import cli
 from tissuecli.core.errors import DeviceLost, InputError
 from tissuecli.formats.params import read_calibration, read_profile
@@ -278,3 +285,37 @@ def check_display_docs(lines: list[str], url: str, out: Path) -> None:
         if "watchdog" in line and not any("watchdog" in p for p in printed):
             continue
         assert masked(line) in printed, line
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(max_size=20))
+def test_any_typed_mass_or_reference_is_a_value_or_one_line_error(text: str):
+    for parse in (
+        lambda t: parse_mass(t, "--mass"),
+        lambda t: parse_reference(t, "force"),
+        lambda t: parse_reference(t, "position"),
+    ):
+        try:
+            value = parse(text)
+        except InputError as exc:
+            assert "\n" not in str(exc)
+        else:
+            assert math.isfinite(value) and value >= 0
+
+
+def test_bad_point_tables_are_one_line_errors(tmp_path: Path):
+    out = tmp_path / "cal.json"
+    one = tmp_path / "one.csv"
+    one.write_text("load_g\n0\n50\n100\n")
+    flat = tmp_path / "flat.csv"
+    flat.write_text("load_g,raw\n0,5\n50,5\n100,5\n")
+    volts = tmp_path / "volts.csv"
+    volts.write_text("load [V],raw\n0,5\n1,6\n2,7\n")
+    _, gaps = write_points(tmp_path)
+    for bad, words in ((one, "no rows of numbers"), (flat, "do not change"), (volts, "V")):
+        res = CliRunner().invoke(
+            cli,
+            ["calibrate", "forceps", "--loads", str(bad), "--gaps", str(gaps), "--out", str(out)],
+        )
+        assert res.exit_code == 1 and words in res.output, res.output
+        assert len(res.output.strip().splitlines()) == 1 and not out.exists()

@@ -183,3 +183,22 @@ def test_the_refusal_the_docs_quote_is_what_play_prints(tmp_path: Path):
     assert res.exit_code == 1
     assert res.output.strip() == expected.replace("/tmp/display", url)
     assert counters["commands"] == 0
+
+
+def test_the_play_log_counts_the_clamps(tmp_path: Path):
+    from tissuecli import formats
+
+    log = tmp_path / "play.h5"
+    with display(PAPER_DISPLAY) as (url, counters):
+        summary = play(
+            Tissue(LINEAR, 600.0, 3.0, 0.05),
+            url,
+            0.3,
+            log=log,
+            name="clamps",
+            realtime=False,
+            idle_timeout_s=2.0,
+        )
+    _, attrs = formats.read_group(log, "plays/clamps")
+    assert attrs["clamped_commands"] == summary["clamped_commands"] == 0
+    assert counters["max_command_volts"] <= PAPER_DISPLAY.v_max

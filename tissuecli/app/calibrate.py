@@ -143,6 +143,14 @@ def read_points(path: StrPath, channel: str) -> Points:
     unit = unit_in_header(name, channel) if table.header else None
     if unit is None and table.units:
         unit = table.units[ref_col] or None
+    if unit is None and table.header:
+        stray = _stray_unit(name)
+        if stray is not None:
+            raise InputError(
+                f"{os.fspath(path)} column {name!r}: {stray} is not a unit of "
+                f"{CHANNEL_DIMENSION[channel]}; give the {CHANNEL_WORDS[channel]} in "
+                + ("N, g (grams-force), kgf, ..." if channel == "force" else "m, mm, um, ...")
+            )
     factor = 1.0
     if unit is not None:
         factor = parse_quantity(f"1{unit}", CHANNEL_DIMENSION[channel], f"{path} column {name!r}")
@@ -152,6 +160,20 @@ def read_points(path: StrPath, channel: str) -> Points:
     for ref, raw in data[keep]:
         points.add(ref * factor, raw)
     return points
+
+
+def _stray_unit(header: str) -> str | None:
+    """A unit a header names that is none the channel may have: one in brackets, or a
+    known unit (or a mass) after an underscore."""
+    from ..core.units import dimension_of
+
+    bracket = re.search(r"[\[(]\s*([^\])]+?)\s*[\])]\s*$", header)
+    if bracket:
+        return bracket.group(1)
+    tail = re.search(r"[_\s/-]([A-Za-zµ]+)\s*$", header)
+    if tail and (dimension_of(tail.group(1)) is not None or tail.group(1) in MASS_UNITS):
+        return tail.group(1)
+    return None
 
 
 class ForcepsReader:
