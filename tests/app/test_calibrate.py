@@ -319,3 +319,14 @@ def test_bad_point_tables_are_one_line_errors(tmp_path: Path):
         )
         assert res.exit_code == 1 and words in res.output, res.output
         assert len(res.output.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_simulate_display_refuses_a_bad_load_or_reported_profile(tmp_path: Path):
+    runner = CliRunner()
+    res = runner.invoke(cli, ["simulate", "display", "--load", "9kg", "--duration", "0.1"])
+    assert res.exit_code == 1 and "--load" in res.output
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"Kp": -1}')
+    res = runner.invoke(cli, ["simulate", "display", "--reports", str(bad), "--duration", "0.1"])
+    assert res.exit_code == 1 and "Kp" in res.output
+    assert len(res.output.strip().splitlines()) == 1
