@@ -4,6 +4,7 @@ prototype, and the profile as a JSON object (files and the display's IDENTIFY re
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
@@ -225,11 +226,18 @@ def exceeded_limits(asked: DisplayProfile, reported: DisplayProfile) -> list[str
 
 
 def clamp_volts(volts: float, v_max: float) -> tuple[float, bool]:
-    """``volts`` within [0, ``v_max``] (NaN read as 0); and whether it was changed."""
-    if not volts == volts:
+    """``volts`` within [0, ``v_max``] (NaN read as 0), also once rounded to the float32
+    a SetVoltage frame carries; and whether it was changed."""
+    if not volts == volts or volts < 0.0:
         return 0.0, True
-    if volts < 0.0:
-        return 0.0, True
-    if volts > v_max:
-        return v_max, True
-    return volts, False
+    clamped = volts > v_max
+    if clamped:
+        volts = v_max
+    if _float32(volts) > v_max:  # the frame's float32 would round above the limit
+        bits = struct.unpack("<I", struct.pack("<f", volts))[0] - 1
+        volts = struct.unpack("<f", struct.pack("<I", bits))[0]
+    return volts, clamped
+
+
+def _float32(value: float) -> float:
+    return float(struct.unpack("<f", struct.pack("<f", value))[0])
