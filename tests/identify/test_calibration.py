@@ -18,6 +18,7 @@ from tissuecli.identify.calibration import (
     G,
     fit_display,
     fit_ringdown,
+    held_rate,
     off_stops,
     slow_force_warning,
 )
@@ -156,3 +157,12 @@ def test_a_display_fit_without_a_sweep_is_refused():
         fit_display(x[:700], np.zeros(700), seg[:700], 1e-3, 0.2)
     with pytest.raises(InputError, match="frames off the end stops"):
         fit_display(x[:100], volts[:100], seg[:100], 1e-3, 0.2)
+
+
+def test_a_reading_repeated_on_a_faster_line_gives_its_own_rate():
+    rng = np.random.default_rng(0)
+    hx711 = np.repeat(rng.normal(0, 5, 20).round(), 12)  # 80 Hz held on a 1 kHz line
+    assert held_rate(hx711, 1000.0) == pytest.approx(1000.0 / 12)
+    quiet = rng.normal(0, 0.6, 240).round()  # an ADC at rest: changes at random
+    assert held_rate(quiet, 1000.0) is None
+    assert held_rate(np.zeros(240), 1000.0) is None

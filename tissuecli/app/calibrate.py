@@ -42,6 +42,7 @@ from ..identify.calibration import (
     DisplayFit,
     Estimate,
     fit_display,
+    held_rate,
     off_stops,
     slow_force_warning,
 )
@@ -194,6 +195,9 @@ class ForcepsReader:
         What the forceps answered to IDENTIFY.
     rate_hz : float or None
         Its sample rate, Hz (from its Info).
+    force_rate_hz : float or None
+        How often the force really changed in the readings so far, when it repeats
+        regularly on the line (a load cell board read more slowly than the samples).
     """
 
     def __init__(self, url: str, frames: int = 200, baudrate: int = DEFAULT_BAUD) -> None:
@@ -205,6 +209,8 @@ class ForcepsReader:
         )
         rate = (self.info or {}).get("rate_hz")
         self.rate_hz = float(rate) if isinstance(rate, (int, float)) else None
+        #: how often the force really changes, if it repeats on the line (see read)
+        self.force_rate_hz: float | None = None
 
     def read(self) -> tuple[float, float]:
         """Mean raw force and position counts over :attr:`frames` samples."""
@@ -221,6 +227,10 @@ class ForcepsReader:
                     position.append(m.position)
         if not force:
             raise DeviceError(f"no sample from {self.link.url}")
+        if self.rate_hz is not None:
+            held = held_rate(force, self.rate_hz)
+            if held is not None:
+                self.force_rate_hz = min(held, self.force_rate_hz or held)
         return float(np.mean(force[: self.frames])), float(np.mean(position[: self.frames]))
 
     def close(self) -> None:

@@ -133,7 +133,9 @@ def calibrate_forceps(
                 if path is not None
                 else _collect(channel, reader, frames)
             )
-        rate = force_rate if force_rate is not None else (reader.rate_hz if reader else None)
+        rate = force_rate
+        if rate is None and reader is not None:  # the force's own rate, if slower
+            rate = reader.force_rate_hz or reader.rate_hz
     finally:
         if reader is not None:
             reader.close()

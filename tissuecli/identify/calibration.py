@@ -8,7 +8,8 @@ display's static voltage sweep and its free ring-down.
   decay rate and frequency with their covariance;
 - :func:`fit_display`: the display's spring, solenoid, moving mass and damping from
   every frame of a voltage sweep and its ring-downs under a known weight;
-- :func:`slow_force_warning`: a load cell read too slowly to see the mass term.
+- :func:`slow_force_warning`, :func:`held_rate`: a load cell read too slowly to see the
+  mass term, and how often a reading repeated on a faster line really changes.
 """
 
 from __future__ import annotations
@@ -30,6 +31,10 @@ G = 9.80665
 LEVEL = 0.95
 #: A quadratic term whose F-test p-value is below this is reported as nonlinearity.
 QUADRATIC_P = 0.05
+
+#: Largest reference (N or m) and raw reading a calibration accepts: beyond any sensor.
+MAX_REFERENCE = 1e6
+MAX_RAW = 1e12
 
 #: Slowest force reading that still resolves the mass term M at grasp speeds, Hz. Grasps
 #: carry motion up to about 20 Hz (a jaw-scale stiffness of 100-1350 N/m on a 0.05 kg
@@ -115,6 +120,20 @@ class ChannelFit:
                 f"{what}: {ref.size} point(s) at {distinct} reference value(s); give at "
                 "least 3 points at 2 or more reference values (5 or more to test linearity)"
             )
+        if np.max(np.abs(ref)) > MAX_REFERENCE or np.max(np.abs(y)) > MAX_RAW:
+            raise InputError(
+                f"{what}: a reference beyond {MAX_REFERENCE:g} (SI) or a reading beyond "
+                f"{MAX_RAW:g}: beyond any sensor; check the columns and units"
+            )
+        try:
+            return self._fit(ref, y, distinct, what)
+        except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError):
+            raise InputError(
+                f"{what}: the references are too close together for their readings to "
+                "give a line; spread them over the range you record"
+            ) from None
+
+    def _fit(self, ref: Array, y: Array, distinct: int, what: str) -> ChannelFit:
         n = ref.size
         # centred and scaled so the normal equations are well conditioned in any unit
         mu, scale = float(ref.mean()), float(np.ptp(ref))
@@ -572,6 +591,23 @@ def _start(x: Array, u: Array, bounds: list[tuple[int, int]], dt: float) -> tupl
     lo, hi = best
     ring = fit_ringdown(np.arange(hi - lo) * dt, x[lo:hi])
     return ring.omega_n, ring.sigma
+
+
+def held_rate(values: ArrayLike, rate_hz: float) -> float | None:
+    """The rate at which a reading really changes, Hz, when a faster line repeats it:
+    ``values`` (shape (n,)) that change every ``k >= 2`` samples, regularly (four
+    runs in five a multiple of the commonest run, as a load cell board read more slowly
+    than the line that carries it), give ``rate_hz / k``; None otherwise (noise at
+    rest changes at random, not every ``k`` samples)."""
+    v = np.asarray(values, dtype=float).ravel()
+    changes = np.flatnonzero(np.diff(v) != 0)
+    if changes.size < 10:
+        return None
+    runs = np.diff(changes)
+    k = int(np.argmax(np.bincount(runs)))
+    if k < 2 or np.mean(runs % k == 0) < 0.8:
+        return None
+    return rate_hz / k
 
 
 def slow_force_warning(force_rate_hz: float) -> str | None:
