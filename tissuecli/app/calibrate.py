@@ -7,11 +7,11 @@ readings, typed at prompts, read from a CSV file or averaged from the live force
 calibration file ``record --calibration`` and ``import --calibration`` read.
 
 Display (the paper's procedure, with a reference mass for the known force): a sweep
-of held voltages gives the static equilibria, so ``Kp`` and ``alpha``; releases from
+of held voltages sets the static equilibria, so ``Kp`` and ``alpha``; releases from
 a held pull ring down freely, so the natural frequency and damping, and with ``Kp``
-the moving mass ``Mp`` and the damping ``b``. Written as a display profile with
-intervals. Nothing here does arithmetic beyond bookkeeping: the fits are in
-:mod:`tissuecli.identify.calibration`.
+the moving mass ``Mp`` and the damping ``b``; every frame off the end stops is fitted
+at once. Written as a display profile with intervals. Nothing here does arithmetic
+beyond bookkeeping: the fits are in :mod:`tissuecli.identify.calibration`.
 """
 
 from __future__ import annotations

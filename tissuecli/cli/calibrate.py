@@ -235,10 +235,13 @@ def calibrate_display(
             show_default=False,
             err=True,
         )
+    from ..hw.realtime import StopFlag
+
     result = run(
         port,
         out,
         mass_kg,
+        stop=StopFlag().install(),  # Ctrl-C, SIGTERM: 0 V, STOP, nothing written
         points=points,
         hold_s=hold,
         ringdowns=ringdowns,
