@@ -330,3 +330,38 @@ def test_simulate_display_refuses_a_bad_load_or_reported_profile(tmp_path: Path)
     res = runner.invoke(cli, ["simulate", "display", "--reports", str(bad), "--duration", "0.1"])
     assert res.exit_code == 1 and "Kp" in res.output
     assert len(res.output.strip().splitlines()) == 1
+
+
+def test_sigterm_during_calibrate_display_leaves_0_v_and_no_file(tmp_path: Path):
+    display = Display(tmp_path / "display", {}, 0.2)
+    out = tmp_path / "profile.json"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tissuecli",
+            "calibrate",
+            "display",
+            "--port",
+            str(tmp_path / "display"),
+            "--mass",
+            "200g",
+            "--out",
+            str(out),
+            "--yes",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # the first hold is under way
+        assert "held" in line, line + proc.stderr.read()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        counters = display.stop()
+    assert proc.returncode == 1 and "interrupted" in err and "Traceback" not in err
+    assert not out.exists()
+    assert counters["last_command_volts"] == 0.0
