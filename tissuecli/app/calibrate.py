@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from .._version import __version__
 from ..core.errors import DeviceError, InputError
 from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG
-from ..core.units import parse_quantity, unit_in_header
+from ..core.units import UNITS, parse_quantity, unit_in_header
 from ..formats.jsonfile import write_json
 from ..formats.outputs import Output, check_outputs
 from ..hw.link import DEFAULT_BAUD, Link, open_device
@@ -113,9 +113,19 @@ class Points:
 def parse_reference(text: str, channel: str) -> float:
     """A reference value typed at a prompt: a load (``50g``, ``0.49N``, ``0``) or a gap
     (``2mm``, ``0``), in SI. Zero is allowed (no load, jaws closed)."""
-    if re.fullmatch(r"\s*[-+]?0*\.?0*\s*[A-Za-zµ]*\s*", text or "") and re.search(r"0", text):
-        return 0.0
-    return parse_quantity(text, CHANNEL_DIMENSION[channel], CHANNEL_WORDS[channel])
+    dimension, word = CHANNEL_DIMENSION[channel], CHANNEL_WORDS[channel]
+    zero = re.fullmatch(r"\s*\+?0*\.?0+\s*([A-Za-zµ]*)\s*", text or "")
+    try:
+        if zero:  # no load, jaws closed: parse_quantity takes only positive values
+            parse_quantity(f"1{zero.group(1)}", dimension, word)
+            return 0.0
+        return parse_quantity(text, dimension, word)
+    except InputError:
+        example = "50g or 0.5N" if channel == "force" else "2mm"
+        raise InputError(
+            f"{word} {str(text)[:30]!r}: give 0 or a positive {dimension} such as {example} "
+            f"(units: {', '.join(UNITS[dimension])})"
+        ) from None
 
 
 def read_points(path: StrPath, channel: str) -> Points:
