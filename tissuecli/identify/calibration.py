@@ -580,17 +580,23 @@ def fit_display(
 
 
 def _start(x: Array, u: Array, bounds: list[tuple[int, int]], dt: float) -> tuple[float, float]:
-    """(omega, sigma) from linear prediction on the longest stretch at one voltage."""
-    best: tuple[int, int] = (0, 0)
+    """(omega, sigma) from linear prediction on the longest stretch at one voltage where
+    the piston swings (a stretch at rest has nothing to predict)."""
+    runs: list[tuple[int, int]] = []
     for lo, hi in bounds:
         changes = np.flatnonzero(np.diff(u[lo:hi]) != 0) + lo + 1
         edges = [lo, *changes.tolist(), hi]
-        for a, b in zip(edges[:-1], edges[1:], strict=True):
-            if b - a > best[1] - best[0]:
-                best = (a, b)
-    lo, hi = best
-    ring = fit_ringdown(np.arange(hi - lo) * dt, x[lo:hi])
-    return ring.omega_n, ring.sigma
+        runs.extend((a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b - a >= 20)
+    for lo, hi in sorted(runs, key=lambda r: r[0] - r[1])[:8]:
+        try:
+            ring = fit_ringdown(np.arange(hi - lo) * dt, x[lo:hi])
+        except InputError:
+            continue
+        return ring.omega_n, ring.sigma
+    raise InputError(
+        "the piston never swung freely at a held voltage: is it free to move, with the "
+        "mass resting on it?"
+    )
 
 
 def held_rate(values: ArrayLike, rate_hz: float) -> float | None:
