@@ -369,3 +369,18 @@ def test_sigterm_during_calibrate_display_leaves_0_v_and_no_file(tmp_path: Path)
     assert proc.returncode == 1 and "interrupted" in err and "Traceback" not in err
     assert not out.exists()
     assert counters["last_command_volts"] == 0.0
+
+
+def test_a_mass_that_presses_the_piston_to_its_stop_is_named(tmp_path: Path):
+    display = Display(tmp_path / "display", {}, 1.0)  # 9.8 N: 37 mm of a 15 mm stroke
+    out = tmp_path / "profile.json"
+    try:
+        with pytest.raises(InputError, match="mid-stroke"):
+            calibrate_display(
+                str(tmp_path / "display"), out, 1.0, points=4, hold_s=0.3, ringdowns=1
+            )
+    except DeviceLost as exc:
+        pytest.skip(f"the machine starved the display ({exc}); load {os.getloadavg()}")
+    finally:
+        counters = display.stop()
+    assert not out.exists() and counters["last_command_volts"] == 0.0
