@@ -27,8 +27,11 @@ from tissuecli.app.calibrate import (
     parse_mass,
     parse_reference,
 )
+from tissuecli.app.play import play
 from tissuecli.cli import cli
 from tissuecli.core.errors import DeviceError, DeviceLost, InputError
+from tissuecli.core.terms import Law
+from tissuecli.core.tissue import Tissue
 from tissuecli.formats.params import read_calibration, read_profile
 from tissuecli.render.profile import PAPER_DISPLAY, exceeded_limits
 
@@ -89,6 +92,15 @@ def test_calibrate_display_recovers_constants_it_is_not_told(tmp_path: Path, fac
         result = calibrate_display(
             str(tmp_path / "display"), out, 0.2, points=6, hold_s=0.8, ringdowns=2, ring_s=1.5
         )
+        # the measured profile drives the same display: accepted, within its limits
+        played = play(
+            Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05),
+            str(tmp_path / "display"),
+            0.3,
+            profile=read_profile(out),
+            realtime=False,
+            idle_timeout_s=2.0,
+        )
     except (DeviceLost, DeviceError) as exc:
         if isinstance(exc, DeviceLost) or "did not answer" in str(exc):
             pytest.skip(
@@ -97,7 +109,8 @@ def test_calibrate_display_recovers_constants_it_is_not_told(tmp_path: Path, fac
         raise
     finally:
         counters = display.stop()
-    assert counters["commands"] > 0
+    assert counters["commands"] > 0 and played["commands_sent"] > 0
+    assert counters["max_command_volts"] <= PAPER_DISPLAY.v_max
     measured = read_profile(out)
     for key in ("Kp", "alpha", "Mp"):
         assert getattr(measured, key) == pytest.approx(getattr(truth, key), rel=0.05), key
