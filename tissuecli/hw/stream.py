@@ -92,6 +92,7 @@ class Stream:
         self.reason = "duration reached"
         self.t_start = self.last_frame = self.next_status = self.last_poll = math.nan
         self.longest_silence_s = self.host_stall_s = 0.0
+        self.frames_seen = 0
 
     def __enter__(self) -> Stream:
         self.link.command("start")
@@ -110,7 +111,8 @@ class Stream:
         """The frames of the stream's type that have arrived (sequence numbers tracked if
         ``track_sequence``)."""
         before = time.monotonic()
-        stall = before - self.last_poll
+        # the wait for the first frame is the loop's own choice, not a stall
+        stall = before - self.last_poll if self.frames_seen else 0.0
         if stall > 0.5 * self.idle_timeout_s:
             # this host was not running (descheduled): the device's silence is counted
             # from when it could have been heard again, not held against it
@@ -119,10 +121,12 @@ class Stream:
         frames = [m for m in self.link.poll() if isinstance(m, self.frame_type)]
         now = self.last_poll = time.monotonic()
         if frames:
+            self.frames_seen += len(frames)
             if self.track_sequence:
                 for m in frames:
                     self.seqs.update(m.seq)  # type: ignore[attr-defined]
-            self.longest_silence_s = max(self.longest_silence_s, before - self.last_frame)
+            if self.frames_seen > len(frames):  # silences between frames, not before
+                self.longest_silence_s = max(self.longest_silence_s, before - self.last_frame)
             self.last_frame = now
         return frames
 
