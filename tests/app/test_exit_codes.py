@@ -399,3 +399,15 @@ def test_an_interrupted_fit_removes_its_outputs_and_exits_128_plus_n(tmp_path, s
     assert _last(stderr).startswith("aborted: interrupted by SIG")
     assert not out.exists() and not report.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.h5"]  # no temporary left
+
+
+def test_the_usage_page_documents_every_exit_code() -> None:
+    """docs/usage.md's table names each code the library uses, and the order of faults."""
+    from tissuecli.core.errors import FAULT_ORDER
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "usage.md").read_text()
+    table = page.split("## Exit status", 1)[1]
+    for code in (0, 1, *FAULT_ORDER):
+        assert f"\n| {code} | " in table, code
+    assert "first of 7, 4, 5,\n3, 6" in table or "first of 7, 4, 5, 3, 6" in table
+    assert FAULT_ORDER == (7, 4, 5, 3, 6)
