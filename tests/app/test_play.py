@@ -9,7 +9,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import click
@@ -96,6 +96,19 @@ def display(tmp_path: Path) -> Iterator[callable]:
         d.stop()
 
 
+def _stop_after(play_s: float, action: Callable[[], object]) -> Callable[[dict], None]:
+    """A status listener that runs ``action`` once the play has lasted ``play_s`` (display
+    time): timed by the play itself, not by a clock a loaded machine outruns."""
+    done: list[bool] = []
+
+    def listen(status: dict) -> None:
+        if not done and (status.get("duration_s") or 0.0) >= play_s:
+            done.append(True)
+            action()
+
+    return listen
+
+
 def _figures(s: dict) -> str:
     return (
         f"rms {s['tracking_rms_m'] * 1e6:.2f} um, max {s['tracking_max_m'] * 1e6:.1f} um, "
@@ -144,9 +157,17 @@ def test_matched_mass_tracks_close_to_the_encoder_resolution(display):
 def test_stop_flag_ends_with_zero_volts_received_by_the_display(display, tmp_path):
     d = display()
     stop = StopFlag()
-    threading.Timer(0.8, stop.set, args=(signal.SIGINT,)).start()  # mid-press
     log = tmp_path / "p.h5"
-    s = play(INSIDE, str(d.link), 30.0, log=log, stop=stop, name="stopped")
+    s = play(
+        INSIDE,
+        str(d.link),
+        30.0,
+        log=log,
+        stop=stop,
+        name="stopped",
+        on_status=_stop_after(0.8, lambda: stop.set(signal.SIGINT)),  # mid-press
+        status_interval_s=0.05,
+    )
     assert s["stop_reason"] == "interrupted by signal SIGINT (Ctrl-C)"
     cols, _ = formats.read_group(log, "plays/stopped")
     assert cols["V"][-50:].max() > 0.1  # the solenoid was pulling when the flag came
@@ -158,8 +179,13 @@ def test_stop_flag_ends_with_zero_volts_received_by_the_display(display, tmp_pat
 def test_a_play_in_a_process_of_its_own_logs_reports_and_stops_on_the_flag(display, tmp_path):
     d = display()
     stop, statuses = StopFlag(), []
-    threading.Timer(1.5, stop.set, args=(signal.SIGINT,)).start()  # the loop starts first
     log = tmp_path / "p.h5"
+    stop_later = _stop_after(0.5, lambda: stop.set(signal.SIGINT))  # once the loop plays
+
+    def on_status(status: dict) -> None:
+        statuses.append(status)
+        stop_later(status)
+
     s = play(
         INSIDE,
         str(d.link),
@@ -168,7 +194,7 @@ def test_a_play_in_a_process_of_its_own_logs_reports_and_stops_on_the_flag(displ
         stop=stop,
         name="apart",
         loop="process",
-        on_status=statuses.append,
+        on_status=on_status,
         status_interval_s=0.2,
     )
     assert s["realtime"]["loop"] == "process" and s["stop_reason"].startswith(
@@ -186,9 +212,15 @@ def test_a_play_in_a_process_raises_what_the_loop_raised(display):
     d = display()
     with pytest.raises(RenderError, match="cannot render"):
         play(STIFF, str(d.link), RUN_S, loop="process")
-    threading.Timer(1.5, d.proc.kill).start()
     with pytest.raises(PlayLost, match="0 V") as info:
-        play(INSIDE, str(d.link), 30.0, loop="process")
+        play(
+            INSIDE,
+            str(d.link),
+            30.0,
+            loop="process",
+            on_status=_stop_after(0.5, d.proc.kill),  # once the loop plays, not by the clock
+            status_interval_s=0.1,
+        )
     assert info.value.summary["verdict"] == "display lost"
 
 
