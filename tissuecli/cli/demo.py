@@ -30,6 +30,11 @@ from .base import cli
 def demo(duration: float, workdir: str | None, force: bool) -> None:
     """Everything on simulated devices: simulate, record, list, export, fit, report, play.
 
+    A recording that lost frames or a faulty play ends the demo with "Error: the
+    demo ran with faults: ..." and the exit status of the worst fault (3 data lost,
+    4 watchdog, 5 loop off rate, 6 not rendered as checked, 7 a device lost;
+    docs/usage.md).
+
     \b
     Example:
         tissuecli demo --dir demo-files
