@@ -261,7 +261,8 @@ class TestFaultsSetTheExitCode:
                 ["live", "--forceps", str(f.link), "--display", str(display.link)]
                 + ["--out", str(tmp_path / "l.h5"), "--duration", "3"],
             )
-        assert result.exit_code == EXIT_LOST_DATA, result.output
+        # a loaded machine may add a watchdog cut or a slow loop, which outrank lost data
+        assert result.exit_code in (EXIT_LOST_DATA, EXIT_WATCHDOG, EXIT_OFF_RATE), result.output
         assert "FAULT: the recording lost data:" in result.output
         assert _last(result.output).startswith("Error: the live run was faulty")
 
