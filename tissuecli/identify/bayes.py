@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
-from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law, shape_kind
+from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law
 from .derivatives import Differentiator, Kinematics
 from .design import (
     design,
@@ -191,6 +191,9 @@ class BayesianFit(Estimator):
         Residual SD the best form expects (N): force noise plus position noise
         carried through the law.
     warnings_ : list of str
+    law_, coef_, coef_sd_, coef_ci95_, tissue_
+        As every estimator (:class:`~tissuecli.identify.estimator.Estimator`): the chosen
+        law, its posterior means, SDs and 95 % intervals.
     """
 
     def __init__(
@@ -778,6 +781,12 @@ class BayesianFit(Estimator):
         assert post is not None
         return self.best_.model, post.mean
 
+    def _uncertainty(self) -> tuple[Array, Array]:
+        """The chosen law's posterior SDs and 95 % intervals."""
+        post = self.best_.posterior
+        assert post is not None
+        return np.asarray(post.sd, dtype=float), np.asarray(post.ci95, dtype=float)
+
     def contributions(self) -> Array:
         """Each term's share of the fitted force at the fitted samples, shape (m, p), N
         (the best law's columns times its posterior means)."""
@@ -1035,10 +1044,11 @@ def _bic(res: ModelResult, n: int) -> float:
 
 def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
     """Mean, SD and central 95 % interval (SI) of each shape parameter from draws in
-    ``u`` (time constants drawn in their logarithm)."""
+    ``u`` (parameters of log-uniform prior, such as time constants, drawn in their
+    logarithm)."""
     out: dict[str, dict[str, Any]] = {}
     for j, name in enumerate(grid.names):
-        v = np.exp(draws[:, j]) if shape_kind(name) == "tau" else draws[:, j]
+        v = np.exp(draws[:, j]) if grid.log(name) else draws[:, j]
         out[name] = {
             "mean": float(np.mean(v)),
             "sd": float(np.std(v, ddof=1)),

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._version import __version__
-from ..core.terms import SHAPE_MEANING, Law, Term, shape_kind, shape_unit
+from ..core.terms import Law, Term
 from ..identify.bayes import DECISIVE, BayesianFit, ModelResult
 from ..identify.outcome import FitOutcome
 from ..identify.pinv import WindowedPinv
@@ -276,10 +276,11 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
         mean, sd = float(sp["mean"]), float(sp["sd"])
         lo, hi = (float(q) for q in sp["ci95"])
         digit = place(sd) if sd > 0 else place(abs(mean) * 1e-3 or 1e-3)
-        unit = shape_unit(name)
+        declared = best.model.shape_parameter(name)
+        unit = declared.unit
         rows.append(
             [
-                f"<b>{esc(name)}</b> {esc(SHAPE_MEANING[shape_kind(name)])}",
+                f"<b>{esc(name)}</b> {esc(declared.meaning)}",
                 with_sd(mean, sd),
                 sig(sd, 2),
                 f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
