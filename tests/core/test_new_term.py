@@ -197,3 +197,48 @@ def test_a_registered_name_is_not_taken_twice(logspring):
     with pytest.raises(InputError, match="already registered"):
         register(Other)
     assert type(TERMS["logspring"]) is LogSpring
+
+
+class _Fading(Term):
+    """A relaxation branch written only as its series (no recursion of its own, no
+    rendering declared): what the simulator, the report's step response and the
+    display make of a term with memory from the class alone."""
+
+    name, symbol, unit, label, role, variable = "fading", "Kf", "N/m", "fade", "relaxation", "h"
+    memory = True
+    shapes = ("tf",)
+    parameters = (ShapeParameter("tf", "s", "fading time", (1e-4, 1e4), prior=(0.01, 10.0),
+                                 log=True),)  # fmt: skip
+
+    def __init__(self, shape: dict[str, float] | None = None) -> None:
+        self.shape = dict(shape or {})
+
+    def __call__(self, u: ArrayLike) -> Array:
+        raise TypeError("needs the history")
+
+    def derivative(self, u: ArrayLike) -> Array:
+        return np.ones_like(np.asarray(u, dtype=float))
+
+    def series(self, dt: float, x: Array, v: Array, a: Array) -> Array:
+        # r_k = sum_j exp(-(k - j) dt / tf) (x_j - x_{j-1}): the branch as a convolution
+        steps = np.diff(np.asarray(x, dtype=float), prepend=x[0])
+        kernel = np.exp(-np.arange(steps.size) * dt / self.shape["tf"])
+        return np.convolve(steps, kernel)[: steps.size]
+
+
+def test_a_term_with_memory_is_simulated_and_stepped_from_its_series_alone():
+    fading = _Fading({"tf": 0.2})
+    tissue = Tissue(Law((Law.of(["x"]).terms[0], fading)), 300.0, 100.0)
+    branch = Law.of(["x", "maxwell"]).bind({"tau1": 0.2})
+    model = ForcepsModel(tissue=tissue, seed=1)
+    reference = ForcepsModel(tissue=Tissue(branch, 300.0, 100.0), seed=1)
+    # streamed in two blocks, as the simulated forceps does
+    first, second = model.truth(np.arange(300))[3], model.truth(np.arange(300, 600))[3]
+    expected = reference.truth(np.arange(600))[3]
+    # the convolution of the discrete steps against the exact recursion: within the
+    # closure's change over a fine step, a part in a thousand of the branch force
+    np.testing.assert_allclose(np.concatenate([first, second]), expected, rtol=2e-3, atol=1e-3)
+    t = np.array([0.05, 0.2, 1.0])
+    np.testing.assert_allclose(fading.step_response(t, 1e-3), 1e-3 * np.exp(-t / 0.2), rtol=1e-3)
+    assert fading.steady(3e-3, 0.01) == pytest.approx(0.2 * 0.01, rel=0.02)
+    assert "fading (Kf) has a memory" in split_law(tissue).refusals[0]

@@ -376,13 +376,14 @@ class Term(ABC):
             if self.variable == "x":
                 return np.full_like(t, float(self(np.array([step]))[0]))
             return np.zeros_like(t)
-        # the series on a uniform grid fine enough for the earliest time asked
-        dt = max(float(np.min(t)) / 4.0, float(np.max(t)) / 200_000.0)
-        n = int(math.ceil(float(np.max(t)) / dt)) + 2
+        # the series on a uniform grid fine enough for the earliest time asked, the
+        # closure stepping between its first two samples (at -dt and 0)
+        dt = max(float(np.min(t)) / 20.0, float(np.max(t)) / 200_000.0)
+        n = int(math.ceil(float(np.max(t)) / dt)) + 3
         x = np.full(n, step)
         x[0] = 0.0
         r = self.series(dt, x, np.zeros(n), np.zeros(n))
-        return np.interp(t, dt * np.arange(n), r)
+        return np.interp(t, dt * (np.arange(n) - 1.0), r)
 
     def typical(self, scales: MotionScales) -> float:
         """The regressor's size at a session's typical motion (for prior scales)."""
