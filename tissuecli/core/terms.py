@@ -160,6 +160,9 @@ CONTACT_POINT = ContactPoint()
 #: each), left out by design (a sensor's offset), or refused with a reason
 DISPLAY = ("position", "speed", "mixed", "friction", "inertia", "relaxation", "omitted", "refused")
 
+#: what the default structure search may do with a term (:attr:`Term.search`)
+SEARCH = ("replace", "grow", "prune")
+
 #: where a term without an ``order`` of its own goes in a law, by role
 ROLE_ORDER = {"stiffness": 25.0, "relaxation": 40.0, "damping": 65.0, "friction": 80.0,
               "inertia": 90.0, "offset": 100.0}  # fmt: skip
@@ -203,6 +206,12 @@ class Term(ABC):
         :meth:`instance`).
     requires : tuple of str
         Terms a law must hold beside it (contact damping needs its contact).
+    search : str, optional
+        What the default structure search does with it (:data:`SEARCH`): ``"replace"``
+        (tried, with the others so marked, in place of the best linear law's stiffness
+        and damping: contact), ``"grow"`` (added one at a time while it raises the
+        evidence: relaxation branches), ``"prune"`` (taken out again where that raises
+        the evidence), or None (fitted only when a law names it).
     shapes, parameters : tuple
         The names of its shape parameters and their :class:`ShapeParameter`
         declarations (unit, prior, range), in the same order; ``shape`` their values
@@ -223,6 +232,7 @@ class Term(ABC):
     order: ClassVar[float | None] = None
     max_count: ClassVar[int] = 1
     requires: ClassVar[tuple[str, ...]] = ()
+    search: ClassVar[str | None] = None
 
     #: names of the nonlinear (shape) parameters the term reads, their declarations, and
     #: their values once bound (a term with shapes fits as a family; a tissue holds it bound)
@@ -321,9 +331,7 @@ class Term(ABC):
         the first sample): what a term with memory needs; the others ignore ``dt``."""
         return self.regressor(x, v, a)
 
-    def columns(
-        self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None
-    ) -> Array:
+    def columns(self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None) -> Array:
         """The term's column at exact kinematics, shape (n,); a term with memory reads the
         series' sample interval ``dt`` (s), the series starting from rest."""
         x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
@@ -333,9 +341,7 @@ class Term(ABC):
             return self.series(dt, x, v, a)
         return self.regressor(x, v, a)
 
-    def continued(
-        self, x: Array, dt: float, state: object = None
-    ) -> tuple[Array, object]:
+    def continued(self, x: Array, dt: float, state: object = None) -> tuple[Array, object]:
         """A term with memory over the next closures ``x`` (m, every ``dt`` s), from
         ``state`` (None: at rest before ``x[0]``); returns the regressor there and the
         state to continue from. What a simulation streams block by block.
@@ -415,6 +421,8 @@ def register(cls: type[Term]) -> type[Term]:
         raise InputError(f"term {cls.name!r} is already registered by {type(known).__name__}")
     if proto.rendering not in DISPLAY:
         raise InputError(f"term {cls.name!r}: display {proto.rendering!r} is not one of {DISPLAY}")
+    if proto.search is not None and proto.search not in SEARCH:
+        raise InputError(f"term {cls.name!r}: search {proto.search!r} is not one of {SEARCH}")
     for name, param in zip(proto.shapes, proto.parameters, strict=True):
         for other in TERMS.values():
             if other.name != cls.name and name in other.shapes:
@@ -448,6 +456,13 @@ def term_order(t: Term) -> tuple[float, int]:
     return (order, place)
 
 
+def searched(kind: str) -> list[str]:
+    """The registered terms the default structure search treats as ``kind`` (one of
+    :data:`SEARCH`), in law order (``prune``: last first, as the search takes them out)."""
+    names = [t.name for t in sorted(TERMS.values(), key=term_order) if t.search == kind]
+    return names[::-1] if kind == "prune" else names
+
+
 def shape_parameter(name: str) -> ShapeParameter:
     """The declaration of a shape parameter by name (``tau2``, ``n``), from the
     registered terms; a numbered name matches its kind's stem."""
@@ -478,7 +493,7 @@ class Linear(_Proportional):
     """x: Hookean stiffness, K in N/m."""
 
     name, symbol, unit, label, role, variable = "x", "K", "N/m", "x", "stiffness", "x"
-    order, display = 10.0, "position"
+    order, display, search = 10.0, "position", "prune"
 
 
 @register
@@ -486,7 +501,7 @@ class Cubic(Term):
     """x^3: hardening stiffness, K3 in N/m^3."""
 
     name, symbol, unit, label, role, variable = "x^3", "K3", "N/m^3", "x³", "stiffness", "x"
-    order, display = 20.0, "position"
+    order, display, search = 20.0, "position", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         u = np.asarray(u, dtype=float)
@@ -538,7 +553,7 @@ class Coulomb(Term):
     name, symbol, unit, label, role, variable = (
         "sign(xdot)", "Fc", "N", "sign(ẋ)", "friction", "v",
     )  # fmt: skip
-    order, display = 80.0, "friction"
+    order, display, search = 80.0, "friction", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.tanh(np.asarray(u, dtype=float) / V_SMOOTH)
@@ -566,7 +581,7 @@ class Offset(Term):
     name, symbol, unit, label, role, variable = "offset", "F0", "N", "1", "offset", "1"
     passive = False
     rendered = False
-    order, display = 100.0, "omitted"
+    order, display, search = 100.0, "omitted", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.ones_like(np.asarray(u, dtype=float))
@@ -586,7 +601,7 @@ class Contact(Term):
     name, symbol, unit, label, role, variable = (
         "contact", "Kc", "N/m^n", "dⁿ", "stiffness", "x",
     )  # fmt: skip
-    order, display = 30.0, "position"
+    order, display, search = 30.0, "position", "replace"
     shapes = ("n", "x0")
     parameters = (EXPONENT, CONTACT_POINT)
 
@@ -625,7 +640,7 @@ class ContactDamping(Contact):
     name, symbol, unit, label, role, variable = (
         "contact*xdot", "Lc", "N s/m^(n+1)", "dⁿẋ", "damping", "xv",
     )  # fmt: skip
-    order, display, requires = 70.0, "mixed", ("contact",)
+    order, display, requires, search = 70.0, "mixed", ("contact",), "replace"
 
     def regressor(self, x: Array, v: Array, a: Array) -> Array:
         return Contact.__call__(self, x) * np.asarray(v, dtype=float)
@@ -644,7 +659,7 @@ class Maxwell(Term):
     name, label, role, variable = "maxwell", "relax", "relaxation", "h"
     unit = "N/m"
     memory = True
-    order, display, max_count = 40.0, "relaxation", 3
+    order, display, max_count, search = 40.0, "relaxation", 3, "grow"
     parameters = (TIME_CONSTANT,)
 
     def __init__(self, index: int = 1, shape: dict[str, float] | None = None) -> None:

@@ -20,7 +20,15 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
-from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law
+from ..core.terms import (
+    MAX_BRANCHES,
+    Law,
+    MotionScales,
+    paper_laws,
+    parse_law,
+    searched,
+    term,
+)
 from .derivatives import Differentiator, Kinematics
 from .design import (
     design,
@@ -642,11 +650,12 @@ class BayesianFit(Estimator):
         self, linear: list[ModelResult], fit: _Context, warnings: list[str]
     ) -> list[ModelResult]:
         """Laws beyond the linear ones, built from the best of them and scored by exact
-        evidence (a greedy search; docs/estimators.md): Hunt-Crossley contact in place
-        of its stiffness and damping; then, to the better of the two, relaxation branches
-        one at a time (up to three, one on a contact law) while each raises the
-        evidence; after each, terms the new one makes redundant are taken out while
-        that raises the evidence."""
+        evidence (a greedy search; docs/estimators.md): the terms that declare
+        ``search = "replace"`` (Hunt-Crossley contact) in place of its stiffness and
+        damping; then, to the better of the two, the ``"grow"`` terms (relaxation
+        branches) one at a time (up to three, one on a contact law) while each raises
+        the evidence; after each, ``"prune"`` terms the new one makes redundant are taken
+        out while that raises the evidence."""
         # from the law the evidence prefers, and from the one that fits best by BIC:
         # on a misfit's correlated residuals the two part, and only the second may be
         # the stem of the law that fits
@@ -680,9 +689,10 @@ class BayesianFit(Estimator):
             while improved:
                 improved = False
                 names = [t.name for t in res.family.terms]  # type: ignore[union-attr]
-                for extra in ("offset", "sign(xdot)", "x^3", "x"):
+                for extra in searched("prune"):
                     fewer = [n for n in names if n != extra]
-                    if extra not in names or not any(n in ("x", "x^3", "contact") for n in fewer):
+                    stiff = any(term(n).role == "stiffness" for n in fewer)
+                    if extra not in names or not stiff:
                         continue
                     trial = score(fewer)
                     if trial.ln_evidence > res.ln_evidence:
@@ -691,7 +701,7 @@ class BayesianFit(Estimator):
             return res
 
         keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
-        contact = prune(score(["contact", "contact*xdot", *keep]))
+        contact = prune(score([*searched("replace"), *keep]))
         base = contact if contact.ln_evidence > best.ln_evidence else best
         if not resolvable(fit.kin):
             lo, hi = tau_range(fit.kin)
@@ -714,7 +724,8 @@ class BayesianFit(Estimator):
                 )
                 break
             names = [t.name for t in (current.family or current.model).terms]
-            trial = score([*names, "maxwell"])
+            trial = max((score([*names, g]) for g in searched("grow")),
+                        key=lambda r: r.ln_evidence)  # fmt: skip
             if trial.ln_evidence <= current.ln_evidence:
                 break
             current = prune(trial)

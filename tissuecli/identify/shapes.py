@@ -94,9 +94,7 @@ class ShapeGrid:
             lo, hi = (self.params[n].to_u(b) for b in self.ranges[n])
             if not lo <= v <= hi:
                 return False
-        return all(
-            at[a] < at[b] for group in self.ordered for a, b in itertools.pairwise(group)
-        )
+        return all(at[a] < at[b] for group in self.ordered for a, b in itertools.pairwise(group))
 
     def interior(self, u: Array) -> Array:
         """``u`` moved inside the box by a millionth of a grid step: a node on the
