@@ -1,16 +1,20 @@
 """Terms of the tissue law: ``F = sum_i c_i r_i(x, xdot, xddot)``, one regressor r_i and
 one coefficient c_i per term, in SI units.
 
-Each term is one small class in a registry (:data:`TERMS`), so a new law is a new
-class and touches no fitting, rendering or file code. A term says which kinematic
-variable it reads (``x``, ``v`` for xdot, ``a`` for xddot, or none for a constant),
-the symbol and SI unit of its coefficient, whether the coefficient of a passive
-tissue is non-negative (``passive``), and whether the display renders it (a sensor
-offset is not tissue, so it is not rendered).
+A term is one class in a registry (:data:`TERMS`): a new law is a new class and touches
+no fitting, rendering, report or file code. The class declares everything the rest of
+the program asks of a term: its column (from ``x``, ``xdot``, ``xddot``, or for a term
+with memory from their history on a time base), the symbol and SI unit of its
+coefficient, its display name, whether a passive tissue's coefficient is non-negative,
+its place in a law, its shape parameters with their priors and ranges
+(:class:`ShapeParameter`), whether it has memory and how a simulation continues it,
+how the display renders it or why it refuses it, and what the default structure
+search does with it. :meth:`Law.of` and parameter files look names up here and refuse
+an unknown one.
 
 The paper's four laws are ``x`` or ``x^3`` with ``xdot`` or ``xdot|xdot|``, plus
 ``xddot``; real tissue adds an offset, hardening ``x + x^3``, dry friction
-``sign(xdot)``.
+``sign(xdot)``, Hunt-Crossley contact and relaxation branches.
 """
 
 from __future__ import annotations
