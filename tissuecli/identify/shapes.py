@@ -106,23 +106,24 @@ class ShapeGrid:
         return out
 
 
-def session_span(kin: Kinematics) -> SessionSpan:
+def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
     """What a session lets the shape parameters' priors span (see
-    :class:`~tissuecli.core.terms.SessionSpan`)."""
+    :class:`~tissuecli.core.terms.SessionSpan`); without ``closure`` the closure's low
+    end and span are NaN (a pass over every sample saved where only times matter)."""
     x = kin.x_raw
     return SessionSpan(
         dt=float(np.median(np.diff(kin.time))),
         cutoff_hz=float(kin.cutoff_hz),
         duration_s=float(kin.time[-1] - kin.time[0]),
-        x_low=float(np.percentile(x, 2)),
-        x_span=float(np.ptp(x)),
+        x_low=float(np.percentile(x, 2)) if closure else math.nan,
+        x_span=float(np.ptp(x)) if closure else math.nan,
     )
 
 
 def tau_range(kin: Kinematics) -> tuple[float, float]:
     """The time constants a fit can tell apart, s (a relaxation branch's prior:
     :class:`~tissuecli.core.terms.TimeConstant`)."""
-    return TIME_CONSTANT.prior_range(session_span(kin))
+    return TIME_CONSTANT.prior_range(session_span(kin, closure=False))
 
 
 def resolvable(kin: Kinematics) -> bool:
