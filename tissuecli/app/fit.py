@@ -109,9 +109,7 @@ def check_plots(
     from ..report import PLOT_FORMATS, PLOT_NAMES
 
     if plot_format not in PLOT_FORMATS:
-        raise InputError(
-            f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}"
-        )
+        raise InputError(f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}")
     names = [f"{name}.{plot_format}" for name in PLOT_NAMES]
     check_directory_outputs(directory, names, "--plots", force=force)
 

@@ -113,6 +113,8 @@ def record(
     on_samples: Callable[[SampleBlock], None] | None = None,
     identify: bool = True,
     forgetting_s: float = 5.0,
+    protocol: str = "binary",
+    **text_options: Any,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -159,6 +161,10 @@ def record(
         in it stops the identification, never the recording.
     forgetting_s : float
         Forgetting time constant of the online identification, s.
+    protocol : {"binary", "text"}
+        What the device speaks: the framed protocol (docs/protocol.md), or lines of
+        text (:func:`tissuecli.app.record_text.record_text`, which takes
+        ``text_options``: ``columns``, ``units``, ``jaw_length_m``).
 
     Raises
     ------
@@ -176,6 +182,23 @@ def record(
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
     _check_not_stopped(stop, url)
+    if protocol not in PROTOCOLS:
+        raise InputError(f"--protocol {protocol!r}: give one of {', '.join(PROTOCOLS)}")
+    if protocol == "text":
+        from .record_text import record_text
+
+        return record_text(
+            url, out, session, duration_s=duration_s, tissue=tissue, note=note,
+            calibration=calibration, baudrate=baudrate, stop=stop, on_status=on_status,
+            status_interval_s=status_interval_s, flush_interval_s=flush_interval_s,
+            idle_timeout_s=idle_timeout_s, on_samples=on_samples, identify=identify,
+            forgetting_s=forgetting_s, **text_options,
+        )  # fmt: skip
+    if text_options:
+        raise InputError(
+            f"--{next(iter(text_options)).removesuffix('_m').replace('_', '-')} "
+            "is for --protocol text"
+        )
     link, info = open_device(
         url,
         "forceps",
@@ -241,6 +264,9 @@ def record(
     finally:
         link.close()
 
+
+#: what a forceps may speak: the framed protocol, or lines of text
+PROTOCOLS = ("binary", "text")
 
 #: device clock rate of protocol version 1, for a forceps that does not identify, Hz
 DEFAULT_CLOCK_HZ = 1e6
