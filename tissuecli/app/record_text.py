@@ -222,7 +222,7 @@ class _Lines:
                 row = dialect.read(text)
             except MalformedLine:
                 continue
-            if row is not None:
+            if row:
                 rows.append([row.get(n, math.nan) for n in dialect.names])
         dialect.reset()
         row_units = [dialect.units.get(n, "") for n in dialect.names]
@@ -255,6 +255,8 @@ class _Lines:
         self.stamped = self.reading.stamped
         self.stamps = StampChecker()
         self._malformed = self._ignored = 0
+        self.bad_lines = []  # numbers of the malformed lines of the last take
+        self.first_stamp: float | None = None  # the first kept stamp, in its own unit
         self.slots = 0  # sample slots so far: rows and malformed lines (host-stamped)
 
     @property
@@ -277,7 +279,7 @@ class _Lines:
                 row = self.dialect.read(ln.text)
             except MalformedLine:
                 continue
-            if row is not None and all(k in row for k in self.keys):
+            if row and all(k in row for k in self.keys):
                 arrivals.append(ln.host_s)
                 stamps.append(row[self.keys[0]])
         self.dialect.reset()  # the lines are read again, from the start, as samples
@@ -299,6 +301,12 @@ class _Lines:
             return float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0]))
         return math.nan
 
+    def uncount(self, after: int) -> None:
+        """Count no more the malformed lines of the last take after line ``after`` (past
+        the end of the recording)."""
+        late = sum(1 for n in self.bad_lines if n > after)
+        self._malformed -= late
+
     def take(self, lines: list[Line]) -> tuple[SampleTable, int]:
         """The samples of ``lines``: ``(raw stamps or slots, force N, position m, host s)``
         and how many lines were malformed."""
@@ -307,26 +315,33 @@ class _Lines:
         host: list[float] = []
         slots: list[float] = []
         bad = 0
+        self.bad_lines: list[int] = []
         for ln in lines:
             try:
                 row = self.dialect.read(ln.text)
             except MalformedLine:
                 bad += 1
+                self.bad_lines.append(ln.number)
                 self.slots += 1  # a damaged sample: it keeps its place in time
                 continue
             if row is None:
                 self._ignored += 1
                 continue
+            if not row:
+                continue  # part of a row (one variable of several)
             try:
                 vals = [row[k] for k in self.keys]
             except KeyError:
                 bad += 1  # a labelled line without a chosen label
+                self.bad_lines.append(ln.number)
                 self.slots += 1
                 continue
             if self.stamped:
                 stamp = self.stamps(vals[0])
                 if stamp is None:
                     continue  # counted by the checker
+                if self.first_stamp is None:
+                    self.first_stamp = vals[0]
                 vals[0] = stamp
             values.append(vals)
             numbers.append(ln.number)
@@ -337,7 +352,8 @@ class _Lines:
         if not values:
             empty = np.zeros(0)
             return (empty, empty, empty, empty), bad
-        block = Block(np.array(values, dtype=float), np.array(numbers, dtype=np.int64))
+        self.numbers = np.array(numbers, dtype=np.int64)
+        block = Block(np.array(values, dtype=float), self.numbers)
         if self.calibration is not None:
             force_col = self.order.index("force")
             pos_col = self.order.index("position")
@@ -473,6 +489,9 @@ class _TextRecording:
             keep = secs <= self.duration_s
             secs, force, position, host = secs[keep], force[keep], position[keep], host[keep]
             self.done = True
+            # lines after the last sample kept are not part of the recording
+            beyond = self.reader.numbers[~keep]
+            self.reader.uncount(int(beyond[0]) - 1)
             if not secs.size:
                 return
         host = host - t_start
@@ -501,6 +520,11 @@ class _TextRecording:
             "sequence_restarts": self.reader.stamps.restarts,
             "frames_lost": self.lost,
             "samples_missing": self.missing,
+            **(
+                {"device_stamp_first": self.reader.first_stamp}
+                if self.reader.first_stamp is not None
+                else {}
+            ),
         }
 
     def _faults(self) -> ClockFaults:

@@ -191,7 +191,10 @@ def simulate_forceps(
             on_ready=announce,
         )
         click.echo(
-            f"stopped: {counters['sent']} lines printed, {counters['broken']} broken", err=True
+            f"stopped: {counters['sent']} lines printed, {counters['broken']} broken, "
+            f"{counters['skipped']} skipped (starved), {counters['overrun_bytes']} bytes "
+            "nobody read",
+            err=True,
         )
         return
     from ..app.simulate import simulate_forceps as run

@@ -114,8 +114,9 @@ class LineDialect(ABC):
 
     @abstractmethod
     def read(self, text: str) -> dict[str, float] | None:
-        """The values of a row this line completes, None for a line that carries no
-        sample (blank, comment, header, a row not complete yet).
+        """The values of a row this line completes; an empty dict for a line that is part
+        of a row not complete yet; None for a line that carries no sample (blank,
+        comment, header).
 
         Raises
         ------
@@ -286,6 +287,8 @@ class SerialPlotter(LineDialect):
 _TELEPLOT = re.compile(
     r">\s*([^:|§]+?)\s*:\s*(?:([-+0-9.eE]+)\s*:\s*)?([^:§|]*?)\s*(?:§\s*([^|]*?)\s*)?(?:\|(.*))?"
 )
+#: a Teleplot log line, ``>:text`` or ``>1627551892437:text``
+_TELEPLOT_LOG = re.compile(r"\s*>\s*[0-9.]*:")
 #: the column a Teleplot line's own timestamp becomes (milliseconds, by its name)
 TELEPLOT_TIME = "t_ms"
 
@@ -358,7 +361,7 @@ class Teleplot(LineDialect):
         return MalformedLine(reason)
 
     def read(self, text: str) -> dict[str, float] | None:
-        if _ignorable(text):
+        if _ignorable(text) or _TELEPLOT_LOG.match(text):
             return None
         m = self._match(text)
         if m is None:
@@ -382,7 +385,7 @@ class Teleplot(LineDialect):
         if stamp is not None and self._stamp is None:
             self._stamp = _number(stamp)
         if len(self._pending) < len(self._order):
-            return None
+            return {}
         row, self._pending = self._pending, {}
         self._broken = True  # until the next row begins
         if TELEPLOT_TIME in self.names:

@@ -175,13 +175,15 @@ def run_text_logger(
     Returns
     -------
     dict
-        ``sent`` lines, ``broken`` among them, ``overrun_bytes`` the port could not take.
+        ``sent`` lines, ``broken`` among them, ``skipped`` samples never printed (the
+        process was starved of CPU for more than :data:`MAX_BURST_S`), ``overrun_bytes``
+        the port could not take (nobody read them).
     """
     stop = stop if stop is not None else StopFlag()
     model = logger.model
     rate = model.rate_hz * (1.0 + model.drift_ppm * 1e-6)
     clock = Deadlines(period_s)
-    k_next = sent = broken = 0
+    k_next = sent = broken = skipped = 0
     next_header = clock.t0
     if on_ready is not None:
         on_ready(port)
@@ -192,7 +194,10 @@ def run_text_logger(
         port.read()
         k_due = int((now - clock.t0) * rate) + 1
         if k_due > k_next:
-            k_next = max(k_next, k_due - int(MAX_BURST_S * rate))
+            behind = k_due - int(MAX_BURST_S * rate)
+            if behind > k_next:  # starved: those samples are never printed
+                skipped += behind - k_next
+                k_next = behind
             out = b""
             if logger.header_every_s > 0 and now >= next_header:
                 out += logger.header()
@@ -205,7 +210,7 @@ def run_text_logger(
         delay = clock.next() - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-    return {"sent": sent, "broken": broken, "overrun_bytes": port.overruns}
+    return {"sent": sent, "broken": broken, "skipped": skipped, "overrun_bytes": port.overruns}
 
 
 __all__ = ["CLOCK_HZ", "FORMATS", "STAMPS", "TextLogger", "run_text_logger"]
