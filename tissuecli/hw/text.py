@@ -567,11 +567,11 @@ class TextLink:
             if self._skipping:
                 self._skipping = False
                 continue
+            self.lines += 1
             if len(piece) > MAX_LINE_BYTES:
                 self.overlong += 1
                 continue
             text = self._decode(piece)
-            self.lines += 1
             if text is None:
                 self.undecodable += 1
                 continue
