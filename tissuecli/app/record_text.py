@@ -581,7 +581,9 @@ class _TextRecording:
             self.writer.rewrite("time", t, clock=note)
         except TissueError:  # pragma: no cover  (a storage fault: the writer says so)
             pass
-        self.writer.close(**self._counters(), stop_reason=stream.reason, clock_map=stored)
+        self.writer.close(
+            **self._counters(), stop_reason=stream.reason, clock_map=stored, time_base=note
+        )
         return clock_map, rescaled, note
 
     def _status(self, elapsed: float) -> RecordStatus:

@@ -577,6 +577,7 @@ class TextLink:
                 continue
             out.append(Line(text, self.lines, now))
         if len(self._buffer) > MAX_LINE_BYTES and not self._skipping:
+            self.lines += 1
             self.overlong += 1
             self._buffer, self._skipping = b"", True
         elif self._skipping and len(self._buffer) > MAX_LINE_BYTES:
