@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tissuecli import formats
-from tissuecli.app.record import record
+from tissuecli.app.record_text import record_text as record
 from tissuecli.core.errors import DeviceError, InputError
 from tissuecli.sim.synth import ForcepsModel
 from tissuecli.sim.textlogger import TextLogger
@@ -35,7 +35,7 @@ def test_every_line_at_1_khz_is_a_sample_or_a_counted_malformed_line(forceps, tm
     rate, broken = 1000.0, 0.01
     sim = _text(forceps, "--rate", "1000", "--broken", str(broken))
     out = tmp_path / "t.h5"
-    res = record(str(sim.link), out, "s", duration_s=3.0, protocol="text", identify=False)
+    res = record(str(sim.link), out, "s", duration_s=3.0, identify=False)
     _starved(res.lost_frames)
     assert res.lost_frames == 0
     s = formats.read_session(out)
@@ -71,7 +71,7 @@ def test_each_dialect_records_with_or_without_device_stamps(forceps, tmp_path, a
     sim = _text(forceps, *args, "--broken", "0")
     rate = float(args[args.index("--rate") + 1])
     out = tmp_path / "t.h5"
-    res = record(str(sim.link), out, "s", duration_s=1.5, protocol="text", identify=False)
+    res = record(str(sim.link), out, "s", duration_s=1.5, identify=False)
     _starved(res.lost_frames)
     s = formats.read_session(out)
     assert res.bad_frames == 0 and res.lost_frames == 0
@@ -88,7 +88,7 @@ def test_a_wrapping_micros_counter_is_unwrapped(forceps, tmp_path):
     # micros() starts 2.5 s before its wrap: the recording crosses it
     sim = _text(forceps, "--rate", "500", "--broken", "0", "--clock-start", str(2**32 - 2_500_000))
     out = tmp_path / "t.h5"
-    res = record(str(sim.link), out, "s", duration_s=3.0, protocol="text", identify=False)
+    res = record(str(sim.link), out, "s", duration_s=3.0, identify=False)
     _starved(res.lost_frames)
     s = formats.read_session(out)
     if res.faults.clock_wraps == 0:
@@ -104,7 +104,7 @@ def test_calibration_turns_printed_counts_into_si(forceps, tmp_path):
     sim = _text(forceps, "--rate", "200", "--broken", "0")
     cal = Calibration(force=Channel(2.0, 0.5, "N"), position=Channel(1e-3, 0.0, "m"))
     out = tmp_path / "t.h5"
-    opts = {"protocol": "text", "identify": False, "duration_s": 1.0}
+    opts = {"identify": False, "duration_s": 1.0}
     record(str(sim.link), out, "s", calibration=cal, **opts)
     s = formats.read_session(out)
     k = int(s.meta["device_stamp_first"] * rate // 1e6) + np.rint(s.time * rate).astype(int)
@@ -119,7 +119,7 @@ def test_calibration_turns_printed_counts_into_si(forceps, tmp_path):
 def test_a_silent_port_and_a_port_of_frames_are_refused_in_words(forceps, tmp_path):
     sim = forceps("--seed", "1")  # binary: silent until START, which text never sends
     with pytest.raises(DeviceError, match="printed no line"):
-        record(str(sim.link), tmp_path / "t.h5", "s", protocol="text", duration_s=1.0)
+        record(str(sim.link), tmp_path / "t.h5", "s", duration_s=1.0)
     assert not (tmp_path / "t.h5").exists()
 
 

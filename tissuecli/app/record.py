@@ -113,8 +113,6 @@ def record(
     on_samples: Callable[[SampleBlock], None] | None = None,
     identify: bool = True,
     forgetting_s: float = 5.0,
-    protocol: str = "binary",
-    **text_options: Any,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -161,10 +159,6 @@ def record(
         in it stops the identification, never the recording.
     forgetting_s : float
         Forgetting time constant of the online identification, s.
-    protocol : {"binary", "text"}
-        What the device speaks: the framed protocol (docs/protocol.md), or lines of
-        text (:func:`tissuecli.app.record_text.record_text`, which takes
-        ``text_options``: ``columns``, ``units``, ``jaw_length_m``).
 
     Raises
     ------
@@ -182,23 +176,6 @@ def record(
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
     _check_not_stopped(stop, url)
-    if protocol not in PROTOCOLS:
-        raise InputError(f"--protocol {protocol!r}: give one of {', '.join(PROTOCOLS)}")
-    if protocol == "text":
-        from .record_text import record_text
-
-        return record_text(
-            url, out, session, duration_s=duration_s, tissue=tissue, note=note,
-            calibration=calibration, baudrate=baudrate, stop=stop, on_status=on_status,
-            status_interval_s=status_interval_s, flush_interval_s=flush_interval_s,
-            idle_timeout_s=idle_timeout_s, on_samples=on_samples, identify=identify,
-            forgetting_s=forgetting_s, **text_options,
-        )  # fmt: skip
-    if text_options:
-        raise InputError(
-            f"--{next(iter(text_options)).removesuffix('_m').replace('_', '-')} "
-            "is for --protocol text"
-        )
     link, info = open_device(
         url,
         "forceps",
@@ -264,9 +241,6 @@ def record(
     finally:
         link.close()
 
-
-#: what a forceps may speak: the framed protocol, or lines of text
-PROTOCOLS = ("binary", "text")
 
 #: device clock rate of protocol version 1, for a forceps that does not identify, Hz
 DEFAULT_CLOCK_HZ = 1e6
@@ -583,6 +557,7 @@ def record_live(
     on_status: Callable[[RecordStatus], None] | None = None,
     on_samples: Callable[[SampleBlock], None] | None = None,
     status_interval_s: float = 0.5,
+    recorder: Callable[..., RecordResult] | None = None,
     **options: Any,
 ) -> RecordResult:
     """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
@@ -593,7 +568,8 @@ def record_live(
     memory; the pages are served from another process, which ends with this one. The
     view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
-    and once at the end.
+    and once at the end. ``recorder`` records (:func:`record` by default; a text
+    logger's is :func:`tissuecli.app.record_text.record_text`).
     Other parameters as :func:`record`.
     """
     from ..live.server import LiveServer, parse_address
@@ -624,7 +600,7 @@ def record_live(
         with LiveServer(state, host, port) as server:
             on_url(server.url)
             try:
-                return record(
+                return (recorder or record)(
                     url,
                     out,
                     session,

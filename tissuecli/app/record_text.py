@@ -16,6 +16,7 @@ arrival times. Malformed lines are counted, never fatal.
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from datetime import datetime, timezone
@@ -28,11 +29,12 @@ from numpy.typing import NDArray
 from ..core.calibration import Calibration
 from ..core.clock import ClockFaults, ClockMap, fit_clock_map
 from ..core.errors import DeviceError, DeviceLost, InputError, TissueError
-from ..core.session import COLUMNS
+from ..core.session import COLUMNS, check_name
 from ..core.timebase import regularise
 from ..core.units import ColumnUnits, parse_units
+from ..formats.outputs import Output, check_outputs
 from ..formats.recording import Reading, reading_of
-from ..formats.sessions import session_writer
+from ..formats.sessions import check_new_session, session_writer
 from ..formats.tables import Block, Table
 from ..formats.writer import SeriesWriter
 from ..hw.realtime import StopFlag
@@ -47,7 +49,7 @@ from ..hw.text import (
     read_lines,
     sniff_dialect,
 )
-from .record import RecordResult, RecordStatus, SampleBlock, _Online
+from .record import RecordResult, RecordStatus, SampleBlock, _check_not_stopped, _Online
 
 #: lines read to learn the dialect and columns, and how long to wait for them, s
 SNIFF_LINES = 64
@@ -60,7 +62,7 @@ TEXT_BAUD = 115200
 
 def record_text(
     url: str,
-    out: Path,
+    out: str | os.PathLike[str],
     session: str,
     *,
     duration_s: float | None = None,
@@ -68,7 +70,7 @@ def record_text(
     note: str = "",
     calibration: Calibration | None = None,
     baudrate: int = TEXT_BAUD,
-    stop: StopFlag,
+    stop: StopFlag | None = None,
     on_status: Callable[[RecordStatus], None] | None = None,
     status_interval_s: float = 0.5,
     flush_interval_s: float = 0.25,
@@ -80,9 +82,8 @@ def record_text(
     units: str | None = None,
     jaw_length_m: float | None = None,
 ) -> RecordResult:
-    """Record from the text logger at ``url`` (called by
-    :func:`tissuecli.app.record.record` with ``protocol="text"``, after it has checked
-    the output and the session name).
+    """Record from the text logger at ``url`` into session ``session`` of ``out``: what
+    :func:`tissuecli.app.record.record` does for the binary protocol.
 
     Parameters
     ----------
@@ -103,6 +104,14 @@ def record_text(
     InputError
         For ``--columns`` or ``--units`` that do not fit the lines.
     """
+    if duration_s is not None and not duration_s > 0:
+        raise InputError("--duration must be a positive number of seconds")
+    check_name(session, "session")
+    stop = stop if stop is not None else StopFlag()
+    out = Path(out)
+    check_outputs([Output(out, "--out", appends=True)])
+    check_new_session(out, session)
+    _check_not_stopped(stop, url)
     if calibration is not None and {"force", "position"} & parse_units(units).given:
         raise InputError(
             "--calibration turns counts into N and m; give --units for time only "
@@ -115,10 +124,7 @@ def record_text(
     try:
         link.discard_input()
         first = read_lines(link, count=SNIFF_LINES, within_s=SNIFF_S)
-        if stop:
-            raise DeviceError(
-                f"stopped by signal before recording from {url} began; nothing was recorded"
-            )
+        _check_not_stopped(stop, url)
         if not first:
             raise DeviceError(
                 f"{url} printed no line within {SNIFF_S:g} s; is the logger running and "

@@ -76,7 +76,7 @@ def _text_options(
         return {}
     options = reading(columns, units, jaw_length, None)
     del options["rate_hz"]
-    return {"protocol": "text", **options}
+    return options
 
 
 def _text_summary(result: Any) -> str:
@@ -215,10 +215,13 @@ def record(
 
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     status = None if quiet else _status_line(name, identify)
+    text = _text_options(protocol, columns, units, jaw_length)
+    if protocol == "text":
+        from ..app.record_text import record_text as run
     if live is not None:
         from ..app.record import record_live
 
-        run = partial(record_live, live, on_url=_show_url)
+        run = partial(record_live, live, on_url=_show_url, recorder=run)
     try:
         result = run(
             port,
@@ -231,7 +234,7 @@ def record(
             calibration=read_calibration(calibration) if calibration else None,
             baudrate=baud or (115200 if protocol == "text" else 921600),
             stop=stop,
-            **_text_options(protocol, columns, units, jaw_length),
+            **text,
             on_status=status,
             identify=identify,
             forgetting_s=forgetting,
