@@ -16,7 +16,7 @@ void tc_forceps_init(tc_forceps *f, const char *info_json, tc_calibration cal,
 
 static void send_info(const char *json, tc_write_fn write, void *ctx)
 {
-    uint8_t frame[TC_MAX_FRAME];
+    uint8_t frame[TC_INFO_MAX + TC_INFO_MAX / 254 + 6];
     size_t n = tc_info_frame(json, frame, sizeof frame);
     if (n)
         write(ctx, frame, n);

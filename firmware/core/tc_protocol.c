@@ -54,18 +54,69 @@ long tc_cobs_decode(const uint8_t *in, size_t n, uint8_t *out)
     return (long)o;
 }
 
+/* COBS encoding one byte at a time, so a frame is built without a copy of its body */
+typedef struct {
+    uint8_t *out;
+    size_t code_at, o;
+    uint8_t code;
+} cobs_state;
+
+static void cobs_begin(cobs_state *c, uint8_t *out)
+{
+    c->out = out;
+    c->code_at = 0;
+    c->o = 1;
+    c->code = 1;
+}
+
+static void cobs_put(cobs_state *c, uint8_t byte)
+{
+    if (byte == 0) {
+        c->out[c->code_at] = c->code;
+        c->code_at = c->o++;
+        c->code = 1;
+        return;
+    }
+    c->out[c->o++] = byte;
+    if (++c->code == 0xFF) {
+        c->out[c->code_at] = c->code;
+        c->code_at = c->o++;
+        c->code = 1;
+    }
+}
+
+static size_t cobs_end(cobs_state *c)
+{
+    c->out[c->code_at] = c->code;
+    c->out[c->o++] = 0x00; /* the delimiter */
+    return c->o;
+}
+
+/* payload = type byte, then body: framed with its CRC (big-endian) */
+static size_t frame_of(uint8_t type, const uint8_t *body, size_t n, uint8_t *out)
+{
+    cobs_state c;
+    uint16_t crc = tc_crc16(&type, 1);
+    /* continue the CRC over the body: CRC-16/CCITT-FALSE is a running register */
+    for (size_t i = 0; i < n; i++) {
+        crc ^= (uint16_t)((uint16_t)body[i] << 8);
+        for (int b = 0; b < 8; b++)
+            crc = (crc & 0x8000u) ? (uint16_t)((crc << 1) ^ 0x1021u) : (uint16_t)(crc << 1);
+    }
+    cobs_begin(&c, out);
+    cobs_put(&c, type);
+    for (size_t i = 0; i < n; i++)
+        cobs_put(&c, body[i]);
+    cobs_put(&c, (uint8_t)(crc >> 8));
+    cobs_put(&c, (uint8_t)crc);
+    return cobs_end(&c);
+}
+
 size_t tc_frame(const uint8_t *payload, size_t n, uint8_t *out)
 {
-    uint8_t body[TC_MAX_FRAME];
-    if (n + 2 > sizeof body)
+    if (n == 0)
         return 0;
-    memcpy(body, payload, n);
-    uint16_t crc = tc_crc16(payload, n);
-    body[n] = (uint8_t)(crc >> 8); /* CRC big-endian, fields little-endian */
-    body[n + 1] = (uint8_t)crc;
-    size_t len = tc_cobs_encode(body, n + 2, out);
-    out[len++] = 0x00;
-    return len;
+    return frame_of(payload[0], payload + 1, n - 1, out);
 }
 
 static void put_u32(uint8_t *p, uint32_t v)
@@ -134,19 +185,17 @@ size_t tc_set_voltage_frame(uint32_t seq, float volts, uint8_t out[TC_SET_VOLTAG
 
 size_t tc_command_frame(uint8_t code, uint8_t out[TC_COMMAND_FRAME])
 {
-    uint8_t p[2] = {TC_COMMAND, code};
-    return tc_frame(p, sizeof p, out);
+    return frame_of(TC_COMMAND, &code, 1, out);
 }
 
 size_t tc_info_frame(const char *json, uint8_t *out, size_t cap)
 {
-    uint8_t p[TC_MAX_FRAME];
     size_t n = strlen(json);
-    if (n + 1 + 2 > TC_MAX_FRAME - 8 || n + 1 + 2 + (n + 3) / 254 + 2 > cap)
+    /* type + text + CRC, one COBS code per 254 bytes, the delimiter */
+    size_t need = n + 3 + (n + 3) / 254 + 2;
+    if (need > cap || need > TC_MAX_FRAME)
         return 0;
-    p[0] = TC_INFO;
-    memcpy(p + 1, json, n);
-    return tc_frame(p, n + 1, out);
+    return frame_of(TC_INFO, (const uint8_t *)json, n, out);
 }
 
 int tc_decode_frame(const uint8_t *frame, size_t n, uint8_t *scratch, tc_message *m)
@@ -215,7 +264,7 @@ int tc_decoder_feed(tc_decoder *d, uint8_t byte, tc_message *m)
     if (byte != 0x00) {
         if (d->skipping)
             return 0;
-        if (d->len >= TC_MAX_FRAME) {
+        if (d->len >= TC_RX_MAX) {
             /* overlong: counted once, dropped until the next delimiter */
             d->bad++;
             d->len = 0;
@@ -233,7 +282,7 @@ int tc_decoder_feed(tc_decoder *d, uint8_t byte, tc_message *m)
     d->len = 0;
     if (n == 0)
         return 0; /* back-to-back delimiters: an idle line */
-    if (tc_decode_frame(d->buf, n, d->body, m) != 0) {
+    if (tc_decode_frame(d->buf, n, d->buf, m) != 0) {
         d->bad++;
         return 0;
     }

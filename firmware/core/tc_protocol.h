@@ -19,6 +19,19 @@ extern "C" {
 #define TC_PROTOCOL_VERSION 1
 /* a run longer than this without a 0x00 is garbage (docs/protocol.md, section 3) */
 #define TC_MAX_FRAME 1024
+/* the longest frame a receiver keeps: a device receives only Commands and SetVoltage
+   (13 bytes), so a small board keeps little; longer runs count as bad frames */
+#ifndef TC_RX_MAX
+#if defined(__AVR__)
+#define TC_RX_MAX 64
+#else
+#define TC_RX_MAX TC_MAX_FRAME
+#endif
+#endif
+/* the longest Info JSON text a device sends (keep it below 1000, section 3) */
+#ifndef TC_INFO_MAX
+#define TC_INFO_MAX 512
+#endif
 
 /* message types (section 5) */
 enum {
@@ -81,15 +94,15 @@ typedef struct {
     size_t info_len;
 } tc_message;
 
-/* Decode one frame (delimiter removed) into m; scratch needs n bytes and holds an Info's
-   text afterwards. 0 if good, -1 for bad COBS, CRC, type or length (section 10). */
+/* Decode one frame (delimiter removed) into m; scratch needs n bytes (it may be the
+   frame itself: decoding never overtakes its input) and holds an Info's text
+   afterwards. 0 if good, -1 for bad COBS, CRC, type or length (section 10). */
 int tc_decode_frame(const uint8_t *frame, size_t n, uint8_t *scratch, tc_message *m);
 
 /* A byte stream to messages: corrupt frames dropped and counted, resynchronised at the
    next 0x00, however the stream is cut (section 10). */
 typedef struct {
-    uint8_t buf[TC_MAX_FRAME];
-    uint8_t body[TC_MAX_FRAME];
+    uint8_t buf[TC_RX_MAX]; /* a frame's bytes, decoded in place */
     size_t len;
     uint8_t skipping; /* inside an overlong run: drop bytes until the next delimiter */
     uint32_t good, bad;
