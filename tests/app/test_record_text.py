@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tissuecli import formats
 from tissuecli.app.record_text import record_text as record
@@ -138,3 +140,32 @@ def test_the_command_line_records_text_and_says_what_it_counted(forceps, tmp_pat
         "record", "--port", str(sim.link), "--out", str(tmp_path / "u.h5"), "--units", "mm",
     )  # fmt: skip
     assert_clean_error(bad, "--units is for --protocol text")
+
+
+_JUNK = st.one_of(
+    st.text(max_size=40),
+    st.sampled_from(["", "# note", "t_us,force_N,closure_mm", "1,2", "1,2,3,4", "x,1,2"]),
+    st.builds(lambda t: f"{t},0.5,1.5", st.integers(-(2**33), 2**33)),
+    st.builds(
+        lambda f, x: f"7,{f!r},{x!r}",
+        st.floats(allow_nan=False, width=64),
+        st.floats(allow_nan=False, width=64),
+    ),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_JUNK, max_size=60))
+def test_every_line_is_a_sample_malformed_ignored_or_a_rejected_stamp(lines):
+    """Whatever a logger prints, each line is accounted for exactly once, and nothing
+    but those counts comes of a bad line."""
+    from tissuecli.app.record_text import _Lines
+    from tissuecli.hw.text import Line, sniff_dialect
+
+    head = ["t_us,force_N,closure_mm"] + [f"{1000 * i},0.5,1.5" for i in range(10)]
+    reader = _Lines(sniff_dialect(head), "test", None, None, None, None, head)
+    got = [Line(text, i + 1, float(i)) for i, text in enumerate(lines)]
+    (t, force, position, host), bad = reader.take(got)
+    assert t.size + reader.malformed + reader.ignored + reader.stamps.rejected == len(lines)
+    assert np.all(np.isfinite(force)) and np.all(np.isfinite(position))
+    assert np.all(np.diff(t) >= 0)

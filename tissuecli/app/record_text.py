@@ -364,12 +364,34 @@ class _Lines:
             force_col = self.order.index("force")
             pos_col = self.order.index("position")
             raw = block.values.copy()
-        stamps, force, position, _ = self.reading.convert(block)
+        stamps, force, position, keep = self._convert(block)
+        self.numbers = self.numbers[keep]
         if self.calibration is not None:
+            raw = raw[keep]
             force = self.calibration.force.to_si(raw[:, force_col])
             position = self.calibration.position.to_si(raw[:, pos_col])
-        t = stamps if self.stamped else np.array(slots)
-        return (t, force, position, np.array(host)), bad
+        t = stamps if self.stamped else np.array(slots)[keep]
+        return (t, force, position, np.array(host)[keep]), bad
+
+    def _convert(self, block: Block) -> tuple[Any, Any, Any, NDArray[np.bool_]]:
+        """The block in SI, and which rows were kept: a row whose value is beyond any
+        grasp or jaw (a garbled digit) is malformed, not the end of the recording."""
+        keep = np.ones(block.lines.size, dtype=bool)
+        try:
+            stamps, force, position, _ = self.reading.convert(block)
+            return stamps, force, position, keep
+        except InputError:
+            pass
+        for i in range(block.lines.size):
+            try:
+                self.reading.convert(Block(block.values[i : i + 1], block.lines[i : i + 1]))
+            except InputError:
+                keep[i] = False
+                self._malformed += 1
+                self.bad_lines.append(int(block.lines[i]))
+        kept = Block(block.values[keep], block.lines[keep])
+        stamps, force, position, _ = self.reading.convert(kept)
+        return stamps, force, position, keep
 
 
 SampleTable = tuple[
