@@ -169,3 +169,25 @@ def test_every_line_is_a_sample_malformed_ignored_or_a_rejected_stamp(lines):
     assert t.size + reader.malformed + reader.ignored + reader.stamps.rejected == len(lines)
     assert np.all(np.isfinite(force)) and np.all(np.isfinite(position))
     assert np.all(np.diff(t) >= 0)
+
+
+def test_columns_units_and_jaw_length_are_the_imports():
+    """`--columns`, `--units` and `--jaw-length` read text lines as `import` reads files:
+    an angle between the jaws becomes the closure at the tips, grams-force newtons."""
+    from tissuecli.app.record_text import _Lines
+    from tissuecli.hw.text import Line, sniff_dialect
+
+    head = [f"ms:{i} F:{10 * i} ang:{i}" for i in range(20)]
+    reader = _Lines(
+        sniff_dialect(head), "test", "time=ms,force=F,position=ang",
+        "time=ms,force=gf,position=deg", 0.02, None, head,
+    )  # fmt: skip
+    (t, force, position, _), bad = reader.take([Line(x, i, 0.0) for i, x in enumerate(head)])
+    assert bad == 0 and reader.reading.report.columns == {
+        "time": "ms", "force": "F", "position": "ang",
+    }  # fmt: skip
+    np.testing.assert_allclose(t, np.arange(20) * 1e-3)
+    np.testing.assert_allclose(force, np.arange(20) * 10 * 9.80665e-3)
+    np.testing.assert_allclose(position, -2 * 0.02 * np.sin(np.radians(np.arange(20)) / 2))
+    with pytest.raises(InputError, match="jaw-length"):
+        _Lines(sniff_dialect(head), "test", "position=ang", "position=deg", None, None, head)
