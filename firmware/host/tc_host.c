@@ -67,11 +67,22 @@ static double now_s(void)
 
 static void sleep_until(double t)
 {
+#if defined(__APPLE__)
+    /* no clock_nanosleep: a relative sleep to the deadline */
+    double d = t - now_s();
+    if (d > 0) {
+        struct timespec ts;
+        ts.tv_sec = (time_t)d;
+        ts.tv_nsec = (long)((d - (double)ts.tv_sec) * 1e9);
+        nanosleep(&ts, NULL);
+    }
+#else
     struct timespec ts;
     ts.tv_sec = (time_t)t;
     ts.tv_nsec = (long)((t - (double)ts.tv_sec) * 1e9);
     while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL) == EINTR && !stop_flag) {
     }
+#endif
 }
 
 /* The simulated forceps' ADC: a squeeze every 2 s, 12-bit signed counts. */
