@@ -50,16 +50,6 @@ class Line:
     host_s: float
 
 
-@dataclass(frozen=True)
-class Row:
-    """One sample read from one or more lines: values by column name (in the line's own
-    units), the number of its (last) line and when that line arrived (host monotonic, s)."""
-
-    values: dict[str, float]
-    number: int
-    host_s: float
-
-
 def _number(text: str) -> float | None:
     """A field as a finite float, or None."""
     try:
@@ -629,7 +619,6 @@ __all__ = [
     "Line",
     "LineDialect",
     "MalformedLine",
-    "Row",
     "SerialPlotter",
     "StampChecker",
     "Teleplot",
