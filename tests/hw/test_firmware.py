@@ -297,3 +297,17 @@ def test_the_arduino_sketches_build_against_the_arduino_api(host_build, tmp_path
         assert all(dialect.read(line) for line in lines[1:200])
     else:
         assert printed == b""  # frames only after START, which nobody sent
+
+
+def test_play_closes_its_loop_over_the_c_display(host_build):
+    """`play` identifies the C display, answers its Encoder frames and stops it; every
+    frame decodes, and any watchdog cut the host's scheduling caused is reported."""
+    from tissuecli.app.play import play
+    from tissuecli.core.tissue import DEFAULT_TISSUE
+
+    with device(host_build, "display", "1000", "3.0") as (path, _):
+        result = play(DEFAULT_TISSUE, path, 1.0, realtime=False, idle_timeout_s=1.0)
+    assert result["frames"] > 0 and result["frames_bad"] == 0
+    assert result["commands_sent"] > 0
+    if result["watchdog_frames"]:
+        assert any("watchdog" in fault for fault in result["faults"])
