@@ -164,3 +164,17 @@ def test_a_text_link_reads_lines_drops_the_first_partial_one_and_counts_junk():
         link.close()
         os.close(master)
         os.close(slave)
+
+
+def test_teleplot_without_stamps_begins_rows_where_arrivals_say():
+    # the sniff began mid-row (a closure first); the rows arrive a period apart
+    lines = [(">pos:1", 0.0)] + [
+        (f">{name}:{k}", 0.01 * k) for k in range(1, 6) for name in ("force", "pos")
+    ]
+    d = sniff_dialect([text for text, _ in lines])
+    assert d.names == ["pos", "force"]  # the guess from the text alone
+    d.align(lines)
+    d.select(["force", "pos"])
+    rows, bad = _read_all(d, [text for text, _ in lines])
+    assert bad == 0 and rows[0] == {"force": 1.0, "pos": 1.0}
+    assert all(r["force"] == r["pos"] for r in rows)

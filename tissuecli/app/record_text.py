@@ -45,6 +45,7 @@ from ..hw.text import (
     LineDialect,
     MalformedLine,
     StampChecker,
+    Teleplot,
     TextLink,
     read_lines,
     sniff_dialect,
@@ -141,6 +142,8 @@ def record_text(
             raise DeviceError(
                 f"{url}: {exc}; is it a text logger (else leave out --protocol text)"
             ) from None
+        if isinstance(dialect, Teleplot):
+            dialect.align([(ln.text, ln.host_s) for ln in first])
         reader = _Lines(
             dialect, url, columns, units, jaw_length_m, calibration, [ln.text for ln in first]
         )

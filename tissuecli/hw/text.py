@@ -342,6 +342,31 @@ class Teleplot(LineDialect):
         wanted = set(names)
         self._order = [n for n in self.names if n in wanted and n != TELEPLOT_TIME]
 
+    def align(self, lines: Sequence[tuple[str, float]]) -> None:
+        """Without stamps, which variable begins a row is a guess from where the first
+        lines began; a logger prints a row at once and then waits a period, so take the
+        order whose rows are least often split between two arrivals (``(text, host
+        time)`` of the first lines)."""
+        if TELEPLOT_TIME in self.names or len(self._order) < 2:
+            return
+        seen = [(m.group(1), t) for m, t in ((self._match(x), t) for x, t in lines) if m]
+        seen = [(n, t) for n, t in seen if n in self._order]
+
+        def splits(first: str) -> int:
+            count, start = 0, None
+            for name, t in seen:
+                if name == first:
+                    start = t
+                elif start is not None and t != start:
+                    count += 1
+                    start = None  # count each row once
+            return count
+
+        order = self._order
+        best = min(range(len(order)), key=lambda i: (splits(order[i]), i))
+        self._order = order[best:] + order[:best]
+        self.names = [n for n in self.names if n not in order] + self._order
+
     def reset(self) -> None:
         self._pending, self._stamp, self._broken, self._started = {}, None, True, False
         self.dropped = self.incomplete = 0
