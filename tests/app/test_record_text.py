@@ -191,3 +191,34 @@ def test_columns_units_and_jaw_length_are_the_imports():
     np.testing.assert_allclose(position, -2 * 0.02 * np.sin(np.radians(np.arange(20)) / 2))
     with pytest.raises(InputError, match="jaw-length"):
         _Lines(sniff_dialect(head), "test", "position=ang", "position=deg", None, None, head)
+
+
+def test_a_signal_stops_cleanly_and_kill_9_leaves_what_was_flushed(forceps, tmp_path):
+    """The same crash-safe writer as frames: Ctrl-C closes the session complete; a
+    killed recorder leaves a readable file with every flushed row."""
+    import signal
+
+    import h5py
+
+    from ..conftest import popen
+    from .test_record import _wait_for_rows
+
+    sim = _text(forceps, "--rate", "1000")
+    out = tmp_path / "t.h5"
+    args = ("record", "--port", str(sim.link), "--protocol", "text", "--out", str(out))
+    proc = popen(*args, "--session", "live", "--no-identify")
+    _wait_for_rows(out, 500)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    s = formats.read_session(out, "live")
+    assert s.meta["complete"] and "signal" in s.meta["stop_reason"]
+    assert s.meta["frames_good"] == len(s) and np.all(np.diff(s.time) > 0)
+    proc = popen(*args, "--session", "crash", "--no-identify")
+    _wait_for_rows(out, len(s) + 1500)
+    proc.kill()
+    proc.communicate(timeout=10)
+    with h5py.File(out, "r"):
+        pass
+    crashed = formats.read_session(out, "crash")
+    assert len(crashed) >= 1000 and not crashed.meta["complete"]
