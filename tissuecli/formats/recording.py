@@ -420,7 +420,7 @@ def _choose_columns(
             if not matches:
                 raise InputError(
                     f"--columns {quantity}={column[:40]!r}: no such column in {path}; it has "
-                    + ", ".join(repr(n) for n in names[:12])
+                    + _listed(names)
                 )
             index = matches[0]
         chosen[quantity] = index
@@ -454,10 +454,17 @@ def _choose_columns(
         hint = " (or --rate HZ if the file has no time column)" if "time" in missing else ""
         raise InputError(
             f"{path}: no column for {' and '.join(missing)} among "
-            + ", ".join(repr(n) for n in names[:12])
+            + _listed(names)
             + f"; name them with --columns {missing[0]}=NAME{hint}"
         )
     return chosen
+
+
+def _listed(names: list[str]) -> str:
+    """Column names for a one-line message: the first eight, each cut to 40 characters
+    (another program's dataset paths can be long)."""
+    shown = [repr(n if len(n) <= 40 else "..." + n[-37:]) for n in names[:8]]
+    return ", ".join(shown) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
 
 
 def _unit(
