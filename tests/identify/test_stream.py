@@ -58,3 +58,26 @@ def test_streamed_sums_give_the_full_fit(long_session: Session) -> None:
     assert np.allclose(a.sd, b.sd, rtol=0.1)
     assert fit.n_eff_ == pytest.approx(full.n_eff_, rel=0.2)
     assert np.isfinite(fit.best_.ln_evidence)
+
+
+@pytest.mark.slow
+def test_a_hundred_million_samples_fit_within_two_gigabytes() -> None:
+    """The stored-session benchmark: 1e8 samples written block by block, then
+    ``tissuecli fit`` in a child process, whose peak memory must stay under 2 GB."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).parents[2] / "benchmarks" / "long_session.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--samples", "1e8", "--stored"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    found = re.search(r"exit (\d+) in [\d.]+ s; child peak memory (\d+) MB", done.stdout)
+    assert found, done.stdout + done.stderr
+    assert int(found[1]) == 0, done.stdout
+    assert int(found[2]) < 2048, done.stdout
+    assert "streamed block by block" in done.stdout

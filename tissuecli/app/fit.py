@@ -126,7 +126,7 @@ def _streamed(
     session is short enough, or the options ask for what only the full fit gives (the
     pseudoinverse, a time window, held-out samples, the sampler)."""
     plain = (
-        not reading
+        not any(v is not None for v in (reading or {}).values())
         and options.get("method", "bayes") == "bayes"
         and not options.get("hold_out")
         and options.get("start_s") is None

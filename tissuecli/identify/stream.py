@@ -134,8 +134,11 @@ class StreamedFit:
             for k, v in t.shape.items()
             if k.startswith("tau")
         ]
-        warm = half + int(np.ceil(MEMORY_WARMUP * max(taus, default=0.0) / dt))
         step = max(self.block_samples, 4 * kin0.window)
+        # a law with memory needs its history; past two blocks of it the read would
+        # outgrow the memory the blocks are there to bound, and the branch is slower
+        # than the pilot can tell apart from a spring anyway
+        warm = half + min(int(np.ceil(MEMORY_WARMUP * max(taus, default=0.0) / dt)), 2 * step)
         starts = list(range(0, rows, step))
         progress.stage("summing the session block by block", len(starts))
         t_first: float | None = None
