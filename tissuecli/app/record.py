@@ -181,7 +181,8 @@ def record(
         "forceps",
         baudrate=baudrate,
         require_info=calibration is None,
-        no_info_hint="; for a forceps that streams without identifying, give --calibration FILE",
+        no_info_hint="; for a forceps that streams without identifying, give --calibration FILE"
+        "; for a logger that prints lines of text, --protocol text",
         uses_calibration=calibration is None,
     )
     try:
