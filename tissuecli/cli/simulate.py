@@ -165,6 +165,11 @@ def simulate_forceps(
     if protocol == "text":
         from ..app.simulate import simulate_text_logger
 
+        if corrupt or drop:
+            raise click.UsageError(
+                "--corrupt and --drop are for frames; a text logger breaks lines with --broken"
+            )
+
         def announce(port: Any, tissue: Any) -> None:
             _announce(
                 port,
