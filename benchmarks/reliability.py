@@ -454,10 +454,11 @@ def session_digest(path: Path, name: str) -> str:
     return h.hexdigest()
 
 
-def one_line(step: Step, *needles: str) -> bool:
-    """Exit 1 and a last line 'Error: ...' holding every needle, no line too long."""
+def one_line(step: Step, *needles: str, code: int = 1) -> bool:
+    """Exit ``code`` (1 unless a fault's or a signal's) and a last line 'Error: ...'
+    holding every needle, no line too long."""
     return (
-        step.code == 1
+        step.code == code
         and step.message.startswith("Error: ")
         and all(n in step.message for n in needles)
     )
@@ -1210,7 +1211,7 @@ def _(ctx: Ctx) -> None:
         time.sleep(0.05)
         proc.send_signal(signal.SIGINT)
         s = ctx.finish(proc, t0, expect=130)
-    ctx.check("one line: nothing was recorded", one_line(s, "nothing was recorded"))
+    ctx.check("one line: nothing was recorded", one_line(s, "nothing was recorded", code=130))
     ctx.check("no file, no empty session", not (ctx.root / "grasp.h5").exists())
 
 
@@ -1368,7 +1369,7 @@ def _(ctx: Ctx) -> None:
         display.stop(signal.SIGKILL)
         s = ctx.finish(proc, t0, expect=7)
     (ctx.root / "display").unlink(missing_ok=True)  # a killed simulator cannot remove it
-    ctx.check("one line: the display lost, 0 V sent", one_line(s, "0 V was sent"))
+    ctx.check("one line: the display lost, 0 V sent", one_line(s, "0 V was sent", code=7))
     ctx.check(
         "the line names what was written", "summary s.json and log plays.h5 written" in s.message
     )
