@@ -109,9 +109,7 @@ def check_plots(
     from ..report import PLOT_FORMATS, PLOT_NAMES
 
     if plot_format not in PLOT_FORMATS:
-        raise InputError(
-            f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}"
-        )
+        raise InputError(f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}")
     names = [f"{name}.{plot_format}" for name in PLOT_NAMES]
     check_directory_outputs(directory, names, "--plots", force=force)
 
@@ -160,7 +158,11 @@ def grasp_lines(outcome: FitOutcome) -> list[str]:
     lines = [
         f"{len(contact.grasps)} grasp(s) against a free-jaw baseline of "
         f"{contact.baseline_n:.4g} N; fitted: "
-        + (", ".join(map(str, sorted(fitted))) if fitted else "every sample (--grasps none)")
+        + (
+            ", ".join(map(str, sorted(fitted)))
+            if fitted
+            else "every sample" + (" (--grasps none)" if outcome.grasps == "none" else "")
+        )
     ]
     for i, g in enumerate(contact.grasps[:LISTED_GRASPS], 1):
         mark = "*" if i in fitted else " "

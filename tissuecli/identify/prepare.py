@@ -4,7 +4,7 @@ frames and clipped samples as holes, and differentiated without looking through 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -146,14 +146,54 @@ def prepare(
     trusted = valid & present
     contact = find_contact(session)
     chosen = _chosen_grasps(contact, grasps)
-    if not contact.all_contact and grasps != "none":
-        if not contact.grasps:
-            raise FitError(
-                f"no grasp stands above the free-jaw force of {contact.baseline_n:.4g} N; "
-                "fit every sample with --grasps none"
+    by_grasp = not contact.all_contact and grasps != "none"
+    if by_grasp and not contact.grasps:
+        warnings.append(
+            f"no grasp stands above the free-jaw force of {contact.baseline_n:.4g} N: "
+            "fitted every sample, as with --grasps none"
+        )
+        contact = replace(contact, kept_to_grasps=False)
+        by_grasp = False
+    # what to fit, from the most careful choice to every sample: detection that finds
+    # too little to fit falls back to fitting more, with a note, never to a refusal
+    stages: list[tuple[NDArray[np.bool_], bool, str]] = []
+    if by_grasp:
+        stages.append((valid & chosen, True, ""))
+    if grasps == "all" or not by_grasp:
+        stages.append(
+            (
+                valid.copy(),
+                False,
+                "the grasps found leave too few filtered samples to fit: fitted every "
+                "sample, contact or not"
+                if by_grasp
+                else "",
             )
-        valid &= chosen
-    kin = diff(session.time, session.position, session.force, valid)
+        )
+        if clipped and not lost:
+            stages.append(
+                (
+                    np.ones_like(valid),
+                    False,
+                    "too few filtered samples have a window free of clipped samples: fitted "
+                    "every sample, clipped ones included",
+                )
+            )
+        elif lost:
+            stages.append(
+                (
+                    present | bridged,
+                    False,
+                    "too few filtered samples have a window free of lost or clipped "
+                    "samples: fitted every sample that arrived, clipped ones included",
+                )
+            )
+    kin, kept, note = _differentiate(diff, session, stages)
+    if by_grasp and not kept:
+        contact = replace(contact, kept_to_grasps=False)
+    by_grasp = kept
+    if note:
+        warnings.append(note)
     if lost:
         gaps = int(np.count_nonzero(np.diff(present.astype(np.int8)) == 1))
         short = int(np.count_nonzero(bridged))
@@ -172,7 +212,7 @@ def prepare(
             "one; grasp more gently or widen the sensor range"
         )
     # filtered samples inside the fitted grasps, had nothing been lost or clipped
-    fitted = chosen if not contact.all_contact and grasps != "none" else np.ones_like(valid)
+    fitted = chosen if by_grasp else np.ones_like(valid)
     full = int(np.count_nonzero(convolve_valid((~fitted).astype(float), np.ones(kin.window)) < 0.5))
     if (lost or clipped) and 0 < kin.time.size < full:
         warnings.append(
@@ -181,6 +221,24 @@ def prepare(
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
     return Prepared(session, kin, warnings, contact, measured, trusted)
+
+
+def _differentiate(
+    diff: Differentiator,
+    session: Session,
+    stages: list[tuple[NDArray[np.bool_], bool, str]],
+) -> tuple[Kinematics, bool, str]:
+    """Differentiate with the first of ``stages`` (mask of samples to trust, whether it
+    keeps to the grasps, note) that leaves enough filtered samples; the last (most
+    lenient) one's error if none does."""
+    error: FitError | None = None
+    for mask, by_grasp, note in stages:
+        try:
+            return diff(session.time, session.position, session.force, mask), by_grasp, note
+        except FitError as e:
+            error = e
+    assert error is not None
+    raise error
 
 
 def _short_runs(mask: NDArray[np.bool_], longest: int) -> NDArray[np.bool_]:
