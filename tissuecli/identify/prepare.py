@@ -79,7 +79,11 @@ class Prepared:
 
 
 def prepare(
-    session: Session, diff: Differentiator, grasps: str | Sequence[int] = "all"
+    session: Session,
+    diff: Differentiator,
+    grasps: str | Sequence[int] = "all",
+    *,
+    refuse_constant: bool = True,
 ) -> Prepared:
     """Validate a session, put it on its sample grid, check that it can identify anything,
     and differentiate it without looking through holes.
@@ -99,6 +103,9 @@ def prepare(
     (:func:`~tissuecli.identify.contact.find_contact`), only filtered samples whose
     whole window lies inside a chosen grasp are fitted: ``grasps="all"`` (every
     grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers.
+
+    ``refuse_constant=False`` lets jaws that never move through (to predict a hold: a
+    law with memory has a force to give there, though nothing can be identified).
 
     Returns
     -------
@@ -131,12 +138,12 @@ def prepare(
         if np.all(valid)
         else (u[valid] for u in (session.position, session.force))
     )
-    if np.ptp(x) <= 0 or np.std(x) < 1e-9:
+    if refuse_constant and (np.ptp(x) <= 0 or np.std(x) < 1e-9):
         raise FitError(
             "jaw position is constant: nothing to identify; the jaws must move "
             "while the forceps records"
         )
-    if np.ptp(f) <= 0:
+    if refuse_constant and np.ptp(f) <= 0:
         raise FitError("force is constant: check the force sensor and its calibration")
     present = valid.copy()
     bridged = _short_runs(~present, BRIDGE_SAMPLES)
