@@ -58,3 +58,20 @@ def test_a_table_of_epoch_stamps_imports_without_units(tmp_path: Path, scale, un
     assert session.time[0] == 0.0
     assert session.rate_hz == pytest.approx(80.0, rel=1e-3)
     assert session.duration_s == pytest.approx(1999 / 80.0, abs=5e-3)
+
+
+def test_host_stamps_since_1970_map_the_device_clock_as_well_as_small_ones() -> None:
+    """A live recording stamps arrivals with the PC's epoch clock: the map from device
+    time is fitted on centred sums, so 1.7e9 s costs it nothing."""
+    from tissuecli.core.clock import fit_clock_map
+
+    device = np.arange(0.0, 300.0, 1e-3)
+    latency = np.random.default_rng(0).exponential(2e-4, device.size) + 1e-4
+    maps = [
+        fit_clock_map(device, base + 3.0 + device * (1 + 200e-6) + latency)
+        for base in (0.0, EPOCH_S)
+    ]
+    small, epoch = maps
+    assert small is not None and epoch is not None
+    assert abs(epoch.drift_ppm - small.drift_ppm) < 0.1 * small.drift_uncertainty_ppm
+    assert abs((epoch.offset_s - EPOCH_S) - small.offset_s) < 1e-5
