@@ -151,3 +151,18 @@ def test_the_prediction_is_as_close_to_the_true_force_as_a_smoother_of_the_measu
     filtered = predict_band(fitted, s, filtered=True).predicted[after]
     known = np.isfinite(filtered)
     assert np.sqrt(np.mean((filtered[known] - truth[after][known]) ** 2)) > 2 * floor
+
+
+def test_a_hold_at_constant_position_is_predicted_not_refused() -> None:
+    """Jaws held still after a squeeze: nothing to identify, but a law with memory has
+    a force to give, the relaxation, and predict gives it, filtered or not."""
+    t = np.arange(4000) / 1000.0
+    x = np.where(t < 1.0, 4e-3 * np.sin(np.pi * np.minimum(t, 1.0) / 2) ** 2, 4e-3)
+    truth = SLS.force(x, np.gradient(x, t), np.gradient(np.gradient(x, t), t), dt=1e-3)
+    held = t >= 1.5
+    hold = Session(t[held], truth[held], x[held], name="hold")
+    assert np.ptp(hold.position) == 0.0  # the premise
+    for filtered in (False, True):
+        pred = predict_band(SLS, hold, filtered=filtered)
+        # filtered, the fit's wide filter trims both edges of the hold
+        assert pred.count > (0.5 if filtered else 0.9) * len(hold)
