@@ -14,6 +14,7 @@ Savitzky-Golay kinematics lands at 0.5-1.4 times it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -253,7 +254,7 @@ def _ends(
     return out[0], out[1], out[2]
 
 
-def _samples_on(session: Session, grid: Session):  # noqa: ANN202
+def _samples_on(session: Session, grid: Session) -> Callable[[Array], Array]:
     """A map from values on ``grid`` to values at ``session``'s samples: by sample
     number where the stamps follow a clock, else by time (NaN stays NaN)."""
     if len(grid) == len(session) and np.array_equal(grid.time, session.time):
