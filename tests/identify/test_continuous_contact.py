@@ -9,16 +9,16 @@ damping term) and dips below that level while the jaws open, which free jaws nev
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tissuecli.core.session import Session
-from tissuecli.core.terms import Law
-from tissuecli.core.tissue import DEFAULT_TISSUE, Tissue
+from tissuecli.core.tissue import DEFAULT_TISSUE
 from tissuecli.identify import BayesianFit, fit_session
 from tissuecli.identify.contact import find_contact
 from tissuecli.identify.derivatives import Gaussian
@@ -26,49 +26,13 @@ from tissuecli.identify.prepare import prepare
 from tissuecli.sim.families import FAMILIES
 from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, random_session, synthesize
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
-def noisy_contact(
-    seed: int,
-    *,
-    rate_hz: float | None = None,
-    noise_fraction: float | None = None,
-    duration_s: float | None = None,
-) -> Session:
-    """A paper-form ``x^3`` session in contact throughout (the closure never reaches 0),
-    8-bit ADC, 250-2000 Hz, force noise up to 10 % of the force's range, the force
-    sensor's range a little wider than the force; unset arguments drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    rate = float(rng.uniform(250, 2000)) if rate_hz is None else rate_hz
-    speed = str(rng.choice(["xdot", "xdot|xdot|"]))
-    law = Law.of(["x^3", speed, "xddot"])
-    damping = 10 ** rng.uniform(-0.5, 1) if speed == "xdot" else 10 ** rng.uniform(0.5, 2)
-    tissue = Tissue(law, 10 ** rng.uniform(6, 7.5), damping, 10 ** rng.uniform(-2.5, -1))
-    base = Operator.random(rng)
-    operator = Operator(
-        mean_m=sum(base.amplitudes_m) * rng.uniform(1.0, 1.3),  # the jaws never open
-        amplitudes_m=base.amplitudes_m,
-        frequencies_hz=base.frequencies_hz,
-        phases_rad=base.phases_rad,
-    )
-    duration = float(rng.uniform(4, 20)) if duration_s is None else duration_s
-    clean = ForcepsModel(tissue=tissue, rate_hz=rate, operator=operator, seed=seed)
-    f = clean.truth(np.arange(int(duration * rate)))[3]
-    frac = float(rng.uniform(0.0, 0.1)) if noise_fraction is None else noise_fraction
-    sd = frac * float(np.ptp(f))
-    pad = rng.uniform(0.02, 0.5) * np.ptp(f) + 4 * sd
-    sensors = Sensors(
-        bits=8,
-        force_noise_n=sd,
-        force_range_n=(float(f.min() - pad), float(f.max() + pad)),
-        position_noise_m=10 ** rng.uniform(-6.5, -5),
-    )
-    model = ForcepsModel(tissue=tissue, rate_hz=rate, operator=operator, sensors=sensors, seed=seed)
-    return synthesize(model, duration)[0]
-
+from continuous_contact import noisy_contact  # noqa: E402
 
 # seeds on which the grasp detector, reading the resting force at small closure as free
-# jaws, kept 28-61 % of the samples, the rest "out of contact"
-MISREAD = [2, 33, 58, 89]
+# jaws, kept 6-38 % of the samples, the rest "out of contact"
+MISREAD = [2, 33, 89]
 
 
 @pytest.mark.parametrize("seed", MISREAD)
@@ -80,7 +44,7 @@ def test_noisy_continuous_contact_is_one_contact(seed: int) -> None:
 
 
 def test_detection_reads_continuous_contact_over_many_sessions() -> None:
-    """Over 60 random sessions, none is cut into grasps (4 were before)."""
+    """Over 60 random sessions, none is cut into grasps (7 were before)."""
     cut = [s for s in range(60) if not find_contact(noisy_contact(s)).all_contact]
     assert not cut, cut
 
