@@ -652,8 +652,11 @@ def store_recording(
         reading.report.warnings = unit_warnings(
             summary, position_given=dimension_of(reading.picked["position"][1]) != "angle"
         )
+        counted = reading.meta()  # what the import counted is known only now
         writer.set_attrs(
             import_notes=reading.report.notes,
+            import_samples_lost=counted["import_samples_lost"],
+            import_lines_skipped=counted["import_lines_skipped"],
             **({"import_warnings": reading.report.warnings} if reading.report.warnings else {}),
         )
         writer.close()
