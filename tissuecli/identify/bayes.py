@@ -34,7 +34,7 @@ from .design import (
 )
 from .estimator import Estimator
 from .noise import data_weight, residual_tau
-from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
+from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
 from .shapes import (
     ShapeGrid,
     hermite_nodes,
@@ -109,7 +109,7 @@ class ModelResult:
     probability: float = float("nan")
     posterior: Posterior | None = None
     ln_evidence_sampler: float | None = None
-    status: str = "exact"  # exact | emcee | skipped
+    status: str = "exact"  # exact | emcee | skipped | not evaluated
     reason: str = ""
     cond: float = float("nan")
     cond_scaled: float = float("nan")
@@ -309,8 +309,10 @@ class BayesianFit(Estimator):
         warnings.extend(found)
         del columns
         self._progress.stage("sampling")
-        self._sample_shapes(results)
-        self._sample(results, rng)
+        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
+        self._sample_shapes(ranked)
+        self._sample(ranked, rng)
+        results = self._set_aside(results, warnings)
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
         prob /= prob.sum()
@@ -344,6 +346,26 @@ class BayesianFit(Estimator):
         self.warnings_ = warnings
         return self
 
+    def _set_aside(self, results: list[ModelResult], warnings: list[str]) -> list[ModelResult]:
+        """The laws whose evidence was evaluated; the others go to ``not_evaluated_``
+        with one warning naming them. Should none be evaluated, all are kept with their
+        flag rather than none chosen."""
+        aside = [r for r in results if r.status == NOT_EVALUATED]
+        kept = [r for r in results if r.status != NOT_EVALUATED]
+        self.not_evaluated_ = aside
+        if aside and kept:
+            names = "; ".join(f"{r.name} ({r.reason.removeprefix('not evaluated: ')})"
+                              for r in aside[:3])  # fmt: skip
+            more = f" and {len(aside) - 3} more" if len(aside) > 3 else ""
+            warnings.append(f"not evaluated, so never chosen: {names}{more}")
+            return kept
+        for r in aside:  # nothing better: rank them by the estimate they have
+            r.flags.append(r.reason)
+            r.ln_evidence = r.posterior.ln_evidence if r.posterior is not None else -math.inf
+            if not math.isfinite(r.ln_evidence):
+                r.ln_evidence = -1e300
+        return results
+
     def _position_noise(self, session: Session, trusted: NDArray[np.bool_]) -> float:
         """Position noise SD (m) from the spectrum's flat top over the ``trusted``
         samples, floored by the ADC step.
@@ -369,7 +391,8 @@ class BayesianFit(Estimator):
             corr = None  # noise dominates a column: the correction would be meaningless
         G = fp.gram - corr if corr is not None else fp.gram
         w, n = fit.weight, fit.y.size
-        st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n)
+        rss = fp.rss if corr is None else max(_corrected_rss(fp, corr), 0.0)
+        st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n, w * rss)
         prior = law_prior(model, fit.scales)
         flags = []
         if uncorrected:
@@ -382,7 +405,9 @@ class BayesianFit(Estimator):
     def _exact(self, model: Law, fp: _FirstPass, fit: _Context) -> ModelResult:
         """The closed-form posterior and evidence of one law."""
         st, prior, corr, flags = self._stats(model, fp, fit)
-        post = ExactPosterior(st, prior).bounded(fit.rng, CUT_THRESHOLD)
+        exact = ExactPosterior(st, prior)
+        why = exact.untrusted()
+        post = exact.bounded(fit.rng, CUT_THRESHOLD)
         if corr is not None:
             # the correction rests on an estimated noise level: say when it matters
             shift = post.mean - fp.beta
@@ -393,7 +418,10 @@ class BayesianFit(Estimator):
                     "interval does not include that correction's own uncertainty"
                 )
         self._tick(model.name)
-        return _result(model, post, fp, fit, st, prior, corr, flags)
+        res = _result(model, post, fp, fit, st, prior, corr, flags)
+        if why:
+            _not_evaluated(res, why)
+        return res
 
     def _tick(self, name: str) -> None:
         """One more law scored: the progress counts it against the laws known so far
@@ -501,6 +529,15 @@ class BayesianFit(Estimator):
         ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
         res = self._shaped_result(law, point, post, evaluate, fit)
         res.reason = f"{how} ({ranges})"
+        # the evidence is trusted only if the node it rests on is, and if it stays
+        # below the likelihood's maximum over every shape evaluated
+        why = evaluate(point)[1][5].untrusted()
+        top = max(entry[1][1].max_log_likelihood() for entry in cache.values())
+        if not why and not ln_evidence <= top + CHECK_NATS:
+            why = (
+                f"its ln evidence ({ln_evidence:.4g}) exceeds the likelihood's maximum "
+                f"({top:.4g}): a numerical failure"
+            )
         res.shape_posterior = shape_post
         res.shape_ranges = grid.ranges
         res.least_squares = (ls_law, ls_rms)
@@ -562,6 +599,8 @@ class BayesianFit(Estimator):
                     )
 
             res.sample_shape = sample
+        if why:
+            _not_evaluated(res, why)
         self._tick(law.name)
         return res
 
@@ -938,7 +977,11 @@ class _ShapedPass:
                 bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
             )
         beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
-        rss = max(self.yy - 2.0 * float(beta @ b) + float(beta @ gram @ beta), 0.0)
+        # from the residuals themselves: yy - 2 beta.b + beta.G.beta cancels to zero (or
+        # below) when the law explains all but a millionth of yy, and a zero residual
+        # lets the evidence grow without bound as the noise level goes to zero
+        r = fit.y - self.F @ beta[fixed] - S @ beta[moving]
+        rss = float(r @ r)
         lam = np.linalg.eigvalsh(gram)
         cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
         correction = None
@@ -1025,6 +1068,18 @@ def _result(
     )
 
 
+#: the status of a law whose evidence could not be trusted (never chosen)
+NOT_EVALUATED = "not evaluated"
+
+
+def _not_evaluated(res: ModelResult, why: str) -> None:
+    """Mark a law's evidence as untrusted: it ranks below every evaluated law and is
+    never chosen; its estimate stays in the posterior for the record."""
+    res.status = NOT_EVALUATED
+    res.reason = f"not evaluated: {why}"
+    res.ln_evidence = -math.inf
+
+
 def _bic(res: ModelResult, n: int) -> float:
     """Schwarz's criterion of a law's least-squares fit over ``n`` samples; its shape
     parameters count as parameters."""
@@ -1060,8 +1115,15 @@ def _correctable(fp: _FirstPass, corr: Array) -> bool:
     G = fp.gram - corr
     if np.any(np.linalg.eigvalsh(G) <= 0):
         return False
-    beta = np.linalg.lstsq(G, fp.b, rcond=None)[0]
-    return bool(fp.yy - beta @ fp.b > 0.1 * fp.rss)
+    return _corrected_rss(fp, corr) > 0.1 * fp.rss
+
+
+def _corrected_rss(fp: _FirstPass, corr: Array) -> float:
+    """The residual sum of squares of the errors-in-variables corrected fit, N^2:
+    ``rss - beta_c^T C beta`` (``yy - beta_c^T b`` cancels to rounding when the law
+    explains all but a millionth of ``yy``)."""
+    beta_c = np.linalg.lstsq(fp.gram - corr, fp.b, rcond=None)[0]
+    return fp.rss - float(beta_c @ corr @ fp.beta)
 
 
 def _first_pass(
