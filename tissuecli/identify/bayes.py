@@ -33,7 +33,8 @@ from .design import (
     term_noise_path,
 )
 from .estimator import Estimator
-from .noise import data_weight, residual_tau
+from .identifiable import Design, examine
+from .noise import data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
 from .shapes import (
     ShapeGrid,
@@ -66,6 +67,10 @@ MAX_GRID_SHAPES = 2
 #: each further relaxation branch needs the resolvable range of time constants to
 #: span this factor more (k branches: BRANCH_SPREAD**k)
 BRANCH_SPREAD = 4.0
+
+#: the data weight the best law's residuals support may fall this far below the
+#: filter's before the laws are scored again at it
+WEIGHT_SLACK = 2.0
 
 #: draws of the shape's chain whose conditional posteriors make the coefficients' one
 SHAPE_MIXTURE = 8
@@ -246,6 +251,14 @@ class BayesianFit(Estimator):
         # one pass per law keeps only its sufficient statistics; the terms' columns are
         # computed once and shared by every law that has them
         columns: dict[str, Array] = {}
+        # what the recording can tell apart, before any evidence: the default search
+        # never compares laws that differ only by a column the design leaves empty
+        design_ = examine(kin, session.position, sigma_x, columns)
+        self.design_ = design_
+        if design_.summary:
+            warnings.append(design_.summary)
+        if self.forms in (None, "all", "linear"):
+            models = design_.reduce(models)
         paths: dict[str, tuple[Array, Array]] = {}  # and their noise paths
         linear = [m for m in models if not m.shape_names]
         shaped = [m for m in models if m.shape_names]
@@ -256,10 +269,8 @@ class BayesianFit(Estimator):
             nodes = shape_grid(m0, kin).nodes
             firsts = {m0.name: _first_pass(m0.bind(nodes[len(nodes) // 2]), kin, x_full, y,
                                            sigma_x, columns)}  # fmt: skip
-        # residual correlation from the best-fitting law: smoothing makes neighbouring
-        # residuals alike, and treating them as independent would overstate certainty
-        # (the best by BIC: the law with the most terms always leaves the least residual,
-        # and which of two near-equal big laws that is would hang on rounding)
+        # the least-squares fit that explains the data best (by BIC): a warning if it
+        # lies far outside the priors
         n_rows = y.size
         best_name = min(
             firsts,
@@ -271,41 +282,32 @@ class BayesianFit(Estimator):
         best_ls = next((m for m in linear if m.name == best_name), None)
         if best_ls is not None:
             warnings.extend(_prior_conflict(best_ls, firsts[best_name].beta, scales))
-            A = design(best_ls, kin, x_full, sigma_x, columns)
-        else:
-            m0 = shaped[0]
-            A = design(m0.bind(shape_grid(m0, kin).nodes[0]), kin, x_full, sigma_x)
-            A = A[:, : firsts[best_name].beta.size]
-        residual = y - A @ firsts[best_name].beta
-        tau = residual_tau(residual)
-        # bridged stand-ins are not measurements: each fitted sample counts for less
-        weight = data_weight(A, residual, tau) * ready.measured_fraction
-        del A
+        # How much one sample counts: the filter that smooths the force makes white
+        # noise correlated over (sum g)^2 / sum g^2 samples, and a likelihood tempered by
+        # that is the likelihood of the prewhitened residuals to second order. It does
+        # not depend on any law's misfit: weighting by a misfitting law's residual
+        # correlation (as once done) shrank a 10,000-sample session to 13-27 samples and
+        # let every law tie. Bridged stand-ins are not measurements: each counts less.
+        tau_filter = filter_tau(kin.kernels[0])
+        tau = tau_filter
+        weight = ready.measured_fraction / tau_filter
 
         fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
         self._scored = 0
         self._known = len(linear) + len(shaped)
         self._progress.stage("structure search", self._known)
         results, found = self._candidates(linear, shaped, firsts, fit)
-        # The weight came from the best linear law's residuals. Where a law with shape
-        # parameters fits markedly better (by BIC), a linear law's misfit is what made
-        # the residuals correlated: they would shrink the data and hide the better law,
-        # so the better law's residuals set the weight and the laws are scored again.
-        ref = min(results, key=lambda r: _bic(r, y.size))
-        if ref.least_squares is not None:
-            law = ref.least_squares[0]
-            A = design(law, kin, x_full, sigma_x, columns)
-            beta = _first_pass(law, kin, x_full, y, sigma_x, columns).beta
-            residual_ref = y - A @ beta
-            tau_ref = residual_tau(residual_ref)
-            weight_ref = data_weight(A, residual_ref, tau_ref) * ready.measured_fraction
-            del A
-            if weight_ref > 1.5 * weight:
-                tau, weight = tau_ref, weight_ref
-                fit = replace(fit, weight=weight)
-                self._progress.stage("structure search, scored again", self._known)
-                self._scored = 0
-                results, found = self._candidates(linear, shaped, firsts, fit)
+        # The chosen law's residuals check that assumption: correlated beyond the filter
+        # (coloured sensor noise, or no candidate fits), or coefficients more variable
+        # across blocks than the tempered likelihood says (noise in the regressors), the
+        # data count for less, and every law is scored again at that weight.
+        tau_best, weight_best = self._residual_weight(results, fit, ready.measured_fraction)
+        if weight_best < weight / WEIGHT_SLACK:
+            tau, weight = tau_best, weight_best
+            fit = replace(fit, weight=weight)
+            self._progress.stage("structure search, scored again", self._known)
+            self._scored = 0
+            results, found = self._candidates(linear, shaped, firsts, fit)
         warnings.extend(found)
         del columns
         self._progress.stage("sampling")
@@ -319,7 +321,9 @@ class BayesianFit(Estimator):
         for r, p in zip(results, prob, strict=True):
             r.probability = float(p)
             r.flags.extend(_identifiability(r))
-        results.sort(key=lambda r: -r.ln_evidence)
+        if self.forms in (None, "all", "linear"):
+            results = self._drop_unidentified(results, fit)
+        results.sort(key=lambda r: (-r.probability, -r.ln_evidence))
         best = results[0]
         warnings.extend(f"{best.name}: {f}" for f in best.flags)
         span = float(np.ptp(y))
@@ -345,6 +349,60 @@ class BayesianFit(Estimator):
         self.expected_residual_sd_ = _expected_residual_sd(best, sigma_x, y.size)
         self.warnings_ = warnings
         return self
+
+    def _drop_unidentified(self, results: list[ModelResult], fit: _Context) -> list[ModelResult]:
+        """Never keep a term the fit itself reports as not identified: while the most
+        probable law has such terms, its probability passes to the law without them
+        (scored if the search had not), which is then chosen. A term the data do not
+        pin down cannot be what made its law probable."""
+        by_name = {r.name: r for r in results}
+        for _ in range(4):
+            best = max(results, key=lambda r: (r.probability, r.ln_evidence))
+            bad = _unidentified(best)
+            if not bad or best.status == NOT_EVALUATED:
+                break
+            terms = (best.family or best.model).terms
+            names = [t.name for j, t in enumerate(terms) if j not in bad]
+            if not any(n in ("x", "x^3", "contact") for n in names):
+                break
+            if "contact*xdot" in names and "contact" not in names:
+                names.remove("contact*xdot")
+            law = Law.of(names)
+            smaller = by_name.get(law.name)
+            if smaller is None:
+                if law.shape_names:
+                    smaller = self._exact_shaped(law, fit)
+                else:
+                    fp = _first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
+                                     fit.columns, fit.paths)  # fmt: skip
+                    smaller = self._exact(law, fp, fit)
+                if smaller.status == NOT_EVALUATED:
+                    break
+                smaller.probability = 0.0
+                smaller.flags.extend(_identifiability(smaller))
+                results.append(smaller)
+                by_name[smaller.name] = smaller
+            symbols = ", ".join(terms[j].symbol for j in sorted(bad))
+            smaller.probability += best.probability
+            best.probability = 0.0
+            best.flags.append(
+                f"not chosen: {symbols} not identified; its probability counts for {smaller.name}"
+            )
+        return results
+
+    def _residual_weight(
+        self, results: list[ModelResult], fit: _Context, measured: float
+    ) -> tuple[float, float]:
+        """The residual autocorrelation time (samples) of the law with the most evidence
+        and the data weight its residuals support (:func:`data_weight`)."""
+        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
+        top = max(ranked, key=lambda r: r.ln_evidence)
+        law = top.least_squares[0] if top.least_squares is not None else top.model
+        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        beta = lstsq_scaled_cond(A, fit.y)[0]
+        residual = fit.y - A @ beta
+        tau = residual_tau(residual)
+        return tau, data_weight(A, residual, tau) * measured
 
     def _set_aside(self, results: list[ModelResult], warnings: list[str]) -> list[ModelResult]:
         """The laws whose evidence was evaluated; the others go to ``not_evaluated_``
@@ -727,7 +785,12 @@ class BayesianFit(Estimator):
             return res
 
         keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
-        contact = prune(score(["contact", "contact*xdot", *keep]))
+        # contact damping is (x - x0)^n xdot: at one speed it is the contact itself
+        design_: Design | None = getattr(self, "design_", None)
+        speed = design_ is None or (
+            "xdot" not in design_.unexcited and design_.representative("xdot") == "xdot"
+        )
+        contact = prune(score(["contact", *(["contact*xdot"] if speed else []), *keep]))
         base = contact if contact.ln_evidence > best.ln_evidence else best
         if not resolvable(fit.kin):
             lo, hi = tau_range(fit.kin)
@@ -954,7 +1017,8 @@ class _ShapedPass:
         self.speed = raw_speed(kin, x)
         if sx > 0:
             paths = [term_noise_path(terms[j], kin, x, fit.paths) for j in self.fixed]
-            self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), -1)
+            width = kin.kernels[0].size
+            self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
 
@@ -1162,6 +1226,16 @@ def _first_pass(
         cond_scaled=cond_scaled,
         correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
     )
+
+
+def _unidentified(r: ModelResult) -> set[int]:
+    """Indices of the terms whose coefficient :func:`_identifiability` calls not
+    identified."""
+    out = set()
+    for j, t in enumerate(r.model.terms):
+        if any(f.startswith(f"{t.symbol} not identified") for f in r.flags):
+            out.add(j)
+    return out
 
 
 def _identifiability(r: ModelResult) -> list[str]:
