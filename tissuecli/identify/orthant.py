@@ -160,15 +160,21 @@ def tail_log_probability(mean: Array, cov: Array) -> float:
             break
         active[drop] = False
         active[add] = True
-    a = np.flatnonzero(active)
+    a, f = np.flatnonzero(active), np.flatnonzero(~active)
     saa = cov[np.ix_(a, a)]
     g = np.maximum(-np.linalg.solve(saa, mean[a]), 1e-300)
     sign, logdet = np.linalg.slogdet(saa)
+    # the free coordinates, given the held ones at zero: their own chance of >= 0
+    gain = np.linalg.solve(saa, cov[np.ix_(a, f)])
+    cond_mean = mean[f] - gain.T @ mean[a]
+    cond_var = np.diag(cov[np.ix_(f, f)] - cov[np.ix_(f, a)] @ gain)
+    free = float(np.sum(log_normal_cdf(cond_mean / np.sqrt(np.maximum(cond_var, 1e-300)))))
     return float(
         -0.5 * mean[a] @ np.linalg.solve(saa, mean[a])
         - 0.5 * a.size * math.log(2 * math.pi)
         - 0.5 * logdet
         - np.sum(np.log(g))
+        + free
     )
 
 
