@@ -8,7 +8,7 @@ import numpy as np
 from tissuecli.core.session import Session
 from tissuecli.core.terms import Law
 from tissuecli.identify import BayesianFit
-from tissuecli.identify.bayes import linear_laws
+from tissuecli.identify.bayes import linear_laws, session_scales
 from tissuecli.identify.identifiable import Design, examine
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
@@ -17,7 +17,8 @@ from .protocols import constant_speed, relaxation
 
 def _design(session: Session) -> Design:
     ready = BayesianFit(grasps="none").prepare(session)
-    return examine(ready.kinematics, ready.session.position)
+    kin = ready.kinematics
+    return examine(kin, ready.session.position, scales=session_scales(kin))
 
 
 def test_constant_speed_is_one_column_and_no_acceleration():

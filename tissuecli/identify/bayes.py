@@ -10,6 +10,7 @@ It works on arrays; reading and writing files is the caller's business.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -253,7 +254,7 @@ class BayesianFit(Estimator):
         columns: dict[str, Array] = {}
         # what the recording can tell apart, before any evidence: the default search
         # never compares laws that differ only by a column the design leaves empty
-        design_ = examine(kin, session.position, sigma_x, columns)
+        design_ = examine(kin, session.position, sigma_x, columns, scales=scales)
         self.design_ = design_
         if design_.summary:
             warnings.append(design_.summary)
@@ -352,10 +353,15 @@ class BayesianFit(Estimator):
 
     def _drop_unidentified(self, results: list[ModelResult], fit: _Context) -> list[ModelResult]:
         """Never keep a term the fit itself reports as not identified: while the most
-        probable law has such terms, its probability passes to the law without them
-        (scored if the search had not), which is then chosen. A term the data do not
-        pin down cannot be what made its law probable."""
+        probable law has such terms, its probability passes to the best (by evidence)
+        of its sub-laws whose terms are all identified, the law without the unidentified
+        terms among them (scored if the search had not). A term the data do not pin
+        down cannot be what made its law probable."""
         by_name = {r.name: r for r in results}
+
+        def names_of(r: ModelResult) -> list[str]:
+            return [t.name for t in (r.family or r.model).terms]
+
         for _ in range(4):
             best = max(results, key=lambda r: (r.probability, r.ln_evidence))
             bad = _unidentified(best)
@@ -363,25 +369,30 @@ class BayesianFit(Estimator):
                 break
             terms = (best.family or best.model).terms
             names = [t.name for j, t in enumerate(terms) if j not in bad]
-            if not any(n in ("x", "x^3", "contact") for n in names):
-                break
             if "contact*xdot" in names and "contact" not in names:
                 names.remove("contact*xdot")
-            law = Law.of(names)
-            smaller = by_name.get(law.name)
-            if smaller is None:
-                if law.shape_names:
-                    smaller = self._exact_shaped(law, fit)
-                else:
-                    fp = _first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
-                                     fit.columns, fit.paths)  # fmt: skip
-                    smaller = self._exact(law, fp, fit)
-                if smaller.status == NOT_EVALUATED:
-                    break
-                smaller.probability = 0.0
-                smaller.flags.extend(_identifiability(smaller))
-                results.append(smaller)
-                by_name[smaller.name] = smaller
+            if any(n in ("x", "x^3", "contact") for n in names):
+                law = Law.of(names)
+                if law.name not in by_name:
+                    if law.shape_names:
+                        new = self._exact_shaped(law, fit)
+                    else:
+                        fp = _first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
+                                         fit.columns, fit.paths)  # fmt: skip
+                        new = self._exact(law, fp, fit)
+                    new.probability = 0.0
+                    new.flags.extend(_identifiability(new))
+                    results.append(new)
+                    by_name[new.name] = new
+            mine = Counter(names_of(best))
+            subs = [
+                r for r in results
+                if r is not best and r.status != NOT_EVALUATED and not _unidentified(r)
+                and not Counter(names_of(r)) - mine
+            ]  # fmt: skip
+            if not subs:
+                break
+            smaller = max(subs, key=lambda r: r.ln_evidence)
             symbols = ", ".join(terms[j].symbol for j in sorted(bad))
             smaller.probability += best.probability
             best.probability = 0.0

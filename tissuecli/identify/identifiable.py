@@ -19,9 +19,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.terms import Law, Term
+from ..core.terms import Law, MotionScales, Term
 from .derivatives import Kinematics
 from .design import term_column, term_noise_path
+from .noise import filter_tau
 
 Array = NDArray[np.float64]
 
@@ -34,10 +35,13 @@ PREFERENCE = ("x", "offset", "xdot", "x^3", "xdot|xdot|", "sign(xdot)", "xddot")
 #: noise alone puts into it (the noise's mean square is a chi-square over the
 #: samples; 4 is far beyond its spread on any fitted session)
 NOISE_RATIO = 4.0
-#: two sets of columns are one when all but this fraction of a column's mean square is
-#: the other's (R^2 above 0.999999: at the prior's largest coefficients a smaller share
-#: is still a force well above the noise of a session)
-COLLINEAR = 1e-6
+#: a column noise alone may merge with others must be at least this much theirs
+MOSTLY = 0.01
+#: a column is one with others when what is its own, times the largest coefficient
+#: its prior allows, moves the force by less than this many noise SDs over the session
+DETECT_SDS = 3.0
+#: and in any case when all but this fraction of its sum of squares is theirs (rounding)
+COLLINEAR = 1e-12
 #: a variable is not excited when it changes by less than this fraction of the next
 #: lower derivative's RMS over one sample (an acceleration of rounding at constant speed)
 ROUNDING = 1e-6
@@ -74,6 +78,8 @@ class Design:
     gram: Array = field(repr=False)
     noise: Array = field(repr=False)
     n: int = 0
+    #: the smallest sum of squares of its own a column needs to be told apart, by term
+    floor: Array = field(default_factory=lambda: np.zeros(0), repr=False)
     unexcited: list[str] = field(default_factory=list)
     groups: list[list[str]] = field(default_factory=list)
     summary: str = ""
@@ -91,14 +97,22 @@ class Design:
         idx = [self.names.index(t.name) for t in law.terms if t.name in self.names]
         for k, j in enumerate(idx):
             others = idx[:k] + idx[k + 1 :]
-            if others and _residual(self.gram, j, others) <= self._floor(j):
+            if others and self.merged(j, others):
                 return self.names[j]
         return None
 
-    def _floor(self, j: int) -> float:
-        """Below this residual sum of squares column ``j`` adds nothing distinguishable:
-        what noise puts into it, or a :data:`COLLINEAR` share of its own."""
-        return max(NOISE_RATIO * self.noise[j] * self.n, COLLINEAR * self.gram[j, j])
+    def merged(self, j: int, others: Sequence[int]) -> bool:
+        """Whether column ``j`` adds nothing distinguishable to ``others``: what is its
+        own no coefficient its prior allows makes visible above the force noise, or is
+        rounding, or (for a column almost wholly theirs) is what position noise puts
+        into it. Noise counts only against a column almost wholly theirs: an estimate
+        of position noise that is too high (a coarse ADC's steps) must not merge
+        columns that are plainly their own."""
+        own = _residual(self.gram, j, others)
+        seen = float(self.floor[j]) if self.floor.size else 0.0
+        if own <= max(seen, COLLINEAR * self.gram[j, j]):
+            return True
+        return own <= MOSTLY * self.gram[j, j] and own <= NOISE_RATIO * self.noise[j] * self.n
 
     def reduce(self, laws: Sequence[Law]) -> list[Law]:
         """The candidate laws the recording can tell apart: unexcited terms taken out,
@@ -122,6 +136,7 @@ def examine(
     sigma_x: float = 0.0,
     columns: dict[str, Array] | None = None,
     names: Sequence[str] = PREFERENCE,
+    scales: MotionScales | None = None,
 ) -> Design:
     """Examine the candidate terms' columns on one recording.
 
@@ -138,6 +153,11 @@ def examine(
         (filled in for the fit to reuse).
     names : sequence of str
         The terms to examine, in the order merged groups keep them.
+    scales : MotionScales, optional
+        The priors' yardsticks: a column is told apart from others only if what is its
+        own, at the largest coefficient its prior allows, moves the force by more than
+        :data:`DETECT_SDS` noise SDs over the session's effective samples. Without them
+        only rounding merges columns.
 
     Returns
     -------
@@ -153,6 +173,18 @@ def examine(
             k, slope = term_noise_path(t, kin, x_full)
             noise[j] = sigma_x**2 * float(k @ k) * float(np.mean(slope**2))
     design = Design(list(names), gram, noise, n)
+    if scales is not None and n > len(terms):
+        # the force noise from the fit of every column at once, and the samples it
+        # counts for through the smoothing filter
+        y = kin.force
+        d = np.linalg.norm(cols, axis=0)
+        d[d == 0] = 1.0
+        beta = np.linalg.lstsq(cols / d, y, rcond=None)[0] / d
+        r = y - cols @ beta
+        var = float(r @ r) / n
+        weight = 1.0 / filter_tau(kin.kernels[0])
+        prior = np.array([scales.force / t.typical(scales) for t in terms])
+        design.floor = DETECT_SDS**2 * var / (weight * np.maximum(prior, 1e-300) ** 2)
     rms = {t.variable: float(np.sqrt(gram[j, j] / max(n, 1))) for j, t in enumerate(terms)}
     dt = float(np.median(np.diff(kin.time))) if kin.time.size > 1 else 1.0
     below = {"a": "v", "v": "x"}
@@ -167,7 +199,7 @@ def examine(
     # them that carry it
     kept: list[int] = []
     for j in live:
-        if kept and _residual(gram, j, kept) <= design._floor(j):
+        if kept and design.merged(j, kept):
             partners = _partners(gram, j, kept)
             group = next((g for g in design.groups if names[partners[0]] in g), None)
             if group is None:
