@@ -9,6 +9,7 @@ It works on arrays; reading and writing files is the caller's business.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -120,6 +121,9 @@ class ModelResult:
     cond: float = float("nan")
     cond_scaled: float = float("nan")
     residual_rms: float = float("nan")
+    #: blocked cross-validation: RMS of the force each of CV_BLOCKS contiguous blocks
+    #: leaves to the law fitted (least squares) to the others, N
+    cv_rms: float = float("nan")
     flags: list[str] = field(default_factory=list)
     gram: Array = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # A^T A
     correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
@@ -326,6 +330,7 @@ class BayesianFit(Estimator):
             results = self._drop_unidentified(results, fit)
         results.sort(key=lambda r: (-r.probability, -r.ln_evidence))
         best = results[0]
+        warnings.extend(_predictive_guard(results, fit))
         warnings.extend(f"{best.name}: {f}" for f in best.flags)
         span = float(np.ptp(y))
         if best.posterior.sigma_mean < NOISE_FREE * span:  # type: ignore[union-attr]
@@ -877,6 +882,13 @@ class BayesianFit(Estimator):
             )
             if self.sampler == "emcee":
                 res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)  # type: ignore[arg-type]
+                gap = res.ln_evidence_sampler - res.ln_evidence
+                if not abs(gap) <= CHECK_NATS:  # two estimates of one evidence
+                    res.flags.append(
+                        f"the sampler's ln evidence (stepping-stone) differs from the closed "
+                        f"form's by {gap:+.1f} nats (more than {CHECK_NATS:g}): one of them "
+                        "is wrong; compare the law with its neighbours before trusting it"
+                    )
             if not res.posterior.diagnostics.get("converged", True):
                 res.flags.append("chain shorter than 50 autocorrelation times")
 
@@ -1237,6 +1249,65 @@ def _first_pass(
         cond_scaled=cond_scaled,
         correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
     )
+
+
+#: contiguous blocks of the blocked cross-validation reported beside the evidence
+CV_BLOCKS = 5
+#: a law predicting held-out blocks this much better than the chosen one is reported
+CV_MARGIN = 1.1
+
+
+def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
+    """RMS of what each of ``blocks`` contiguous blocks leaves to the least-squares fit
+    of the others (N): a prediction score of a law on data its coefficients never saw,
+    from the Gram matrix of each block, formed once.
+
+    Parameters
+    ----------
+    A : ndarray, shape (m, p)
+        The law's design matrix at the fitted samples.
+    y : ndarray, shape (m,)
+        The filtered force, N.
+    """
+    m = y.size
+    if m < 2 * blocks * max(A.shape[1], 1):
+        return float("nan")
+    edges = np.linspace(0, m, blocks + 1).astype(int)
+    d = np.linalg.norm(A, axis=0)
+    d[d == 0] = 1.0
+    As = A / d
+    parts = [(As[a:b].T @ As[a:b], As[a:b].T @ y[a:b]) for a, b in itertools.pairwise(edges)]
+    G = sum(g for g, _ in parts)
+    c = sum(v for _, v in parts)
+    ss = 0.0
+    for (a, b), (g, v) in zip(itertools.pairwise(edges), parts, strict=True):
+        beta = np.linalg.lstsq(G - g, c - v, rcond=1e-12)[0]
+        r = y[a:b] - As[a:b] @ beta
+        ss += float(r @ r)
+    return math.sqrt(ss / m)
+
+
+def _predictive_guard(results: list[ModelResult], fit: _Context) -> list[str]:
+    """Score each evaluated law by blocked cross-validation (``cv_rms``) and say when a
+    law predicts the held-out blocks clearly better than the chosen one: evidence and
+    prediction then disagree, and the choice rests on the priors."""
+    for r in results:
+        if r.status == NOT_EVALUATED:
+            continue
+        A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        r.cv_rms = blocked_cv_rms(A, fit.y)
+    best = results[0]
+    scored = [r for r in results if math.isfinite(r.cv_rms)]
+    if not scored or not math.isfinite(best.cv_rms):
+        return []
+    top = min(scored, key=lambda r: r.cv_rms)
+    if top is best or best.cv_rms <= CV_MARGIN * top.cv_rms:
+        return []
+    return [
+        f"{top.name} predicts held-out blocks better than the chosen {best.name} "
+        f"(blocked cross-validation RMS {top.cv_rms:.3g} N against {best.cv_rms:.3g} N): "
+        "evidence and prediction disagree"
+    ]
 
 
 def _unidentified(r: ModelResult) -> set[int]:
