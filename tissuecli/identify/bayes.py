@@ -287,27 +287,41 @@ class BayesianFit(Estimator):
         best_ls = next((m for m in linear if m.name == best_name), None)
         if best_ls is not None:
             warnings.extend(_prior_conflict(best_ls, firsts[best_name].beta, scales))
-        # How much one sample counts: the filter that smooths the force makes white
-        # noise correlated over (sum g)^2 / sum g^2 samples, and a likelihood tempered by
-        # that is the likelihood of the prewhitened residuals to second order. It does
-        # not depend on any law's misfit: weighting by a misfitting law's residual
-        # correlation (as once done) shrank a 10,000-sample session to 13-27 samples and
-        # let every law tie. Bridged stand-ins are not measurements: each counts less.
+        # How much one sample counts. The filter that smooths the force makes white
+        # noise correlated over tau_g = (sum g)^2 / sum g^2 samples: a likelihood
+        # tempered by 1 / tau_g is that of the prewhitened residuals to second order,
+        # whatever any law's misfit. The best-fitting linear law's residuals (their
+        # correlation time, and a batch-means check for noise in the regressors) refine
+        # it, unless they give less than half of it: then a linear law's misfit is what
+        # correlates them (relaxation it cannot follow), and taken as the weight it
+        # shrank a 10,000-sample session to 13-27 samples and let every law tie; the
+        # filter's weight stands, and the chosen law's residuals check it after the
+        # search. Bridged stand-ins are not measurements: each counts less.
         tau_filter = filter_tau(kin.kernels[0])
-        tau = tau_filter
-        weight = ready.measured_fraction / tau_filter
+        measured = ready.measured_fraction
+        weight_filter = measured / tau_filter
+        A = design(best_ls, kin, x_full, sigma_x, columns) if best_ls is not None else None
+        tau, weight = tau_filter, weight_filter
+        if A is not None:
+            residual = y - A @ firsts[best_name].beta
+            tau_ls = residual_tau(residual)
+            weight_ls = data_weight(A, residual, tau_ls) * measured
+            if weight_ls >= weight_filter / WEIGHT_SLACK:
+                tau, weight = tau_ls, weight_ls
+        del A
+        collapsed = weight == weight_filter
 
         fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
         self._scored = 0
         self._known = len(linear) + len(shaped)
         self._progress.stage("structure search", self._known)
         results, found = self._candidates(linear, shaped, firsts, fit)
-        # The chosen law's residuals check that assumption: correlated beyond the filter
-        # (coloured sensor noise, or no candidate fits), or coefficients more variable
-        # across blocks than the tempered likelihood says (noise in the regressors), the
-        # data count for less, and every law is scored again at that weight.
-        tau_best, weight_best = self._residual_weight(results, fit, ready.measured_fraction)
-        if weight_best < weight / WEIGHT_SLACK:
+        # The chosen law's residuals check the weight: correlated beyond it (coloured
+        # sensor noise, or no candidate fits), or coefficients more variable across
+        # blocks than the tempered likelihood says (noise in the regressors), the data
+        # count for less, and every law is scored again at that weight.
+        tau_best, weight_best = self._residual_weight(results, fit, measured)
+        if weight_best < weight / WEIGHT_SLACK or (collapsed and weight_best < weight):
             tau, weight = tau_best, weight_best
             fit = replace(fit, weight=weight)
             self._progress.stage("structure search, scored again", self._known)
