@@ -119,14 +119,23 @@ class Design:
         merged terms replaced by their representative, laws whose columns are then
         collinear dropped, duplicates dropped (the first kept)."""
         out: dict[str, Law] = {}
+        # every candidate has a damping term; where damping is one column with others
+        # (an offset at constant speed), the law without that column is a candidate too:
+        # a spring alone must not be made to carry the offset its damping became
+        damping = self.representative("xdot")
+        shared = damping != "xdot" or any("xdot" in g for g in self.groups)
         for law in laws:
             names = [t.name for t in law.terms if t.name not in self.unexcited]
             names = list(dict.fromkeys(self.representative(n) for n in names))
-            if not any(n in ("x", "x^3") for n in names):
-                continue
-            reduced = Law.of(names)
-            if self.collinear(reduced) is None:
-                out.setdefault(reduced.name, reduced)
+            variants = [names]
+            if shared and damping in names:
+                variants.append([n for n in names if n != damping])
+            for variant in variants:
+                if not any(n in ("x", "x^3") for n in variant):
+                    continue
+                reduced = Law.of(variant)
+                if self.collinear(reduced) is None:
+                    out.setdefault(reduced.name, reduced)
         return list(out.values()) or list(laws)
 
 
