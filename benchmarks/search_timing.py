@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "identify"))
 
-from protocols import constant_speed, relaxation  # noqa: E402
+from lab_protocols import constant_speed, relaxation  # noqa: E402
 
 from tissuecli.identify import BayesianFit  # noqa: E402
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize  # noqa: E402

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "identify"))
 
-from protocols import constant_speed, relaxation  # noqa: E402
+from lab_protocols import constant_speed, relaxation  # noqa: E402
 
 from tissuecli.core.terms import Law  # noqa: E402
 from tissuecli.core.tissue import Tissue  # noqa: E402

@@ -14,7 +14,7 @@ from tissuecli.identify import BayesianFit
 from tissuecli.identify.orthant import orthant_log_probability, tail_log_probability
 from tissuecli.identify.posterior import ExactPosterior, Prior, SufficientStats
 
-from .protocols import constant_speed, relaxation
+from .lab_protocols import constant_speed, relaxation
 
 #: no evidence of Gaussian data may exceed this many nats per sample in magnitude (a
 #: sample's log density is -ln(sigma sqrt(2 pi e)): 20 nats is a residual of 1e-9 of

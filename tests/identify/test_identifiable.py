@@ -12,7 +12,7 @@ from tissuecli.identify.bayes import linear_laws, session_scales
 from tissuecli.identify.identifiable import Design, examine
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
-from .protocols import constant_speed, relaxation
+from .lab_protocols import constant_speed, relaxation
 
 
 def _design(session: Session) -> Design:
