@@ -149,7 +149,6 @@ def test_ramp_and_hold_of_a_standard_linear_solid_holds_every_bound():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="constant-speed ramps break the evidence (ln Z ~1e20)")
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**31), name=st.sampled_from(list(prot.PROTOCOLS)))
 def test_no_protocol_gives_an_impossible_evidence(seed, name):
