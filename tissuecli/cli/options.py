@@ -71,9 +71,10 @@ def units_option(help: str) -> Decorator:
     return click.option("--units", default=None, help=help)
 
 
-def recording_options() -> Decorator:
+def recording_options(rate: bool = True) -> Decorator:
     """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
-    logger's recording (``import``, and ``fit`` of a recording directly)."""
+    logger's recording (``import``, and ``fit`` of a recording directly; ``record
+    --protocol text`` without ``--rate``)."""
 
     def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
         for option in reversed(
@@ -103,7 +104,7 @@ def recording_options() -> Decorator:
                     default=None,
                     help="Sample rate in Hz, for files without a time column.",
                 ),
-            ]
+            ][: None if rate else -1]
         ):
             fn = option(fn)
         return fn
