@@ -161,3 +161,86 @@ def test_fit_command_warns_about_a_crashed_recording(tmp_path: Path):
     assert "warning: the recording lost 4 frame(s)" in result.output
     data = json.loads(out.read_text())["data"]
     assert data["complete"] is False and data["frames_lost"] == 4
+
+
+# --------------------------------------------------------------------------- adaptive logging
+
+
+class _RampHold:
+    """Raised-cosine ramps of ``ramp_s`` to each level, each held ``hold_s``: a tensile
+    or relaxation test."""
+
+    def __init__(self, levels: list[float], ramp_s: float, hold_s: float) -> None:
+        self.levels, self.ramp_s, self.hold_s = np.asarray(levels), ramp_s, hold_s
+
+    def ramping(self, t: np.ndarray) -> np.ndarray:
+        return np.mod(t, self.ramp_s + self.hold_s) < self.ramp_s
+
+    def kinematics(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t = np.asarray(t, float)
+        i = np.minimum((t // (self.ramp_s + self.hold_s)).astype(int), self.levels.size - 1)
+        u, r = t - i * (self.ramp_s + self.hold_s), self.ramp_s
+        start = np.concatenate([[0.5e-3], self.levels[:-1]])[i]
+        d = self.levels[i] - start
+        phase = np.pi * np.minimum(u, r) / r
+        on = u < r
+        x = start + d * (1 - np.cos(phase)) / 2
+        v = np.where(on, d * np.pi / (2 * r) * np.sin(phase), 0.0)
+        a = np.where(on, d * np.pi**2 / (2 * r**2) * np.cos(phase), 0.0)
+        return x, v, a
+
+
+def _adaptive(hold_s: float, jitter_s: float, seed: int) -> Session:
+    """A relaxing tissue logged every 10 ms while the jaws move and every 100 ms while
+    they hold, as event-driven loggers do; stamps jittered by up to ``jitter_s``."""
+    from tissuecli.sim.families import FAMILIES
+    from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
+
+    op = _RampHold([2e-3, 4e-3, 6e-3, 3e-3], 1.0, hold_s)
+    model = ForcepsModel(
+        tissue=FAMILIES["one branch"], operator=op, seed=seed, sensors=Sensors(bits=12)
+    )
+    s, _ = synthesize(model, 4 * (1.0 + hold_s))
+    keep, last = [], -1.0
+    for i, ti in enumerate(s.time):
+        if ti - last >= (0.01 if op.ramping(ti) else 0.1) - 1e-9:
+            keep.append(i)
+            last = ti
+    k = np.array(keep)
+    t = s.time[k] + np.random.default_rng(seed).uniform(0, jitter_s, k.size)
+    return Session(np.round(t, 4), s.force[k], s.position[k], name="adaptive")
+
+
+@pytest.mark.parametrize(
+    ("hold_s", "jitter_s"),
+    [(4.0, 0.0), (10.0, 1e-3)],  # ramps or holds the most samples; a clock or PC stamps
+)
+def test_slowly_logged_holds_are_resampled_not_dropped(hold_s: float, jitter_s: float) -> None:
+    """Half the samples, and all the relaxation, were left out as gaps; now the holds
+    are fitted, and the posterior is honest (every coefficient within 4 SDs)."""
+    session = _adaptive(hold_s, jitter_s, seed=1)
+    out = fit_session(session, forms="x+maxwell+xdot+xddot", hold_out=0.3)
+    est = out.bayes
+    t = est.kinematics_.time
+    covered = np.ptp(t) / np.ptp(session.time)
+    assert covered > 0.65, covered  # 70 % fitted, less the filter's edges
+    holes = 1.0 - t.size / (np.ptp(t) / np.median(np.diff(t)) + 1)
+    assert holes < 0.02, holes  # the filtered samples run through the holds
+    assert any("logged slowly" in w for w in out.warnings), out.warnings
+    post = est.best_.posterior
+    z = np.abs(post.mean - np.array([300.0, 150.0 + 50.0, 2.0, 0.05])) / post.sd
+    assert np.all(z <= 4.0), (post.mean, post.sd)
+    assert out.validation is not None and out.validation.r2_held_out > 0.99
+
+
+def test_a_burst_of_lost_frames_is_still_a_gap() -> None:
+    """Lost frames are a hole, whatever their number; only a rhythm of slow steps is a
+    stretch logged slowly."""
+    from tissuecli.identify.prepare import on_grid, slow_steps
+
+    assert not slow_steps(np.array([1, 1, 40, 1, 1, 2, 1, 1.0])).any()
+    assert slow_steps(np.array([1, 1, 10, 10, 10, 11, 1, 1.0]))[2:6].all()
+    t = NOISY.time.copy()
+    t[2000:] += 0.5
+    grid = on_grid(Session(t, NOISY.force, NOISY.position))
+    assert grid is not None and not grid.slow.any() and (~grid.measured).sum() == 500

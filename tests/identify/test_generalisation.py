@@ -72,12 +72,6 @@ def test_the_reference_intervals_cover_at_their_nominal_rate():
     assert lo <= sum(inside) <= hi, (sum(inside), n)
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="quantised noisy continuous contact is refused: 'no grasp stands above the "
-    "free-jaw force', or 'only N filtered samples have a window free of lost, clipped or "
-    "out-of-contact samples'",
-)
 def test_noisy_quantised_continuous_contact_is_never_refused():
     """8 bits, 10 % noise, an x^3 law near zero at small closure, continuous contact."""
     for seed in range(4):
@@ -89,8 +83,8 @@ def test_noisy_quantised_continuous_contact_is_never_refused():
 
 @pytest.mark.xfail(
     strict=False,
-    reason="predict gives the filtered force and starts relaxation from rest at the "
-    "held-out part: held-out error 2-20x the Savitzky-Golay noise floor",
+    reason="friction: held-out error 2.1x the Savitzky-Golay noise floor (the law on "
+    "Savitzky-Golay speed blurs the force's step at each turn); one branch is at 0.65x",
 )
 def test_held_out_prediction_comes_within_half_again_the_noise_floor():
     for seed, family in ((3, "one branch"), (4, "friction")):

@@ -222,7 +222,11 @@ def grasp_lines(outcome: FitOutcome) -> list[str]:
     lines = [
         f"{len(contact.grasps)} grasp(s) against a free-jaw baseline of "
         f"{contact.baseline_n:.4g} N; fitted: "
-        + (", ".join(map(str, sorted(fitted))) if fitted else "every sample (--grasps none)")
+        + (
+            ", ".join(map(str, sorted(fitted)))
+            if fitted
+            else "every sample" + (" (--grasps none)" if outcome.grasps == "none" else "")
+        )
     ]
     for i, g in enumerate(contact.grasps[:LISTED_GRASPS], 1):
         mark = "*" if i in fitted else " "

@@ -15,7 +15,13 @@ from .options import file_argument, force_option, reading, recording_options, se
     "--out",
     required=True,
     type=click.Path(dir_okay=False),
-    help="CSV to write: time,force_pred,force_lo,force_hi,force (s, N).",
+    help="CSV to write: time,force_pred,force_lo,force_hi,force (s, N), a row per sample.",
+)
+@click.option(
+    "--filtered",
+    is_flag=True,
+    help="Predict the force filtered as in a fit, and filter the measured force alike "
+    "[default: the force itself, against the force as measured].",
 )
 @session_option("Session of DATA to predict [default: the only one].")
 @recording_options()
@@ -24,6 +30,7 @@ def predict(
     params: str,
     data: str,
     out: str,
+    filtered: bool,
     session: str | None,
     columns: str | None,
     units: str | None,
@@ -35,8 +42,11 @@ def predict(
     band: validate a law on a grasp it was not fitted to.
 
     PARAMS is a parameter file from `fit --out`; DATA a session of a tissuecli HDF5
-    file or any recording `import` reads. A law with memory (relaxation) starts from
-    rest at DATA's first sample.
+    file or any recording `import` reads. One row per sample of DATA: the law applied
+    to the best estimate of that sample's closure, speed and acceleration
+    (Savitzky-Golay), beside the force as measured; nan where a sample cannot be
+    predicted (inside a gap). A law with memory (relaxation) starts from rest at
+    DATA's first sample.
 
     \b
     Examples:
@@ -54,10 +64,12 @@ def predict(
         session=session,
         force=force,
         reading=reading(columns, units, jaw_length, rate),
+        filtered=filtered,
     )
+    what = "filtered force" if filtered else "force"
     click.echo(
-        f"predicted {pred.time.size} samples: error {pred.rms_n:.4g} N RMS against a force "
-        f"SD of {float(pred.force.std()):.4g} N (R^2 {pred.r2:.3f}); "
-        f"{100 * pred.inside:.1f} % of the measured force inside the 95 % band"
+        f"predicted {pred.count} of {pred.time.size} samples: error {pred.rms_n:.4g} N RMS "
+        f"against a {what} SD of {pred.force_sd_n:.4g} N (R^2 {pred.r2:.3f}); "
+        f"{100 * pred.inside:.1f} % of the measured {what} inside the 95 % band"
     )
     click.echo(f"prediction written to {out}")

@@ -131,6 +131,13 @@ def sample_clock(
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         raise InputError(f"time is not a finite number at line {where[bad[0]]}")
+    origin = float(t[0])
+    if origin != 0.0:
+        # the clock is fitted on times from the first stamp (epoch stamps, 1.7e9 s,
+        # would leave the line's sums a few digits), and given back on the stamps' own
+        numbers, clock, base = sample_clock(t - origin, where)
+        clock = t if numbers is None else clock + origin
+        return numbers, clock, base
     # every step, or an even sample of a million of them on a long recording
     stride = max(1, (n - 1) // BLOCK)
     sampled = t[stride::stride] - t[: n - stride : stride] if stride > 1 else np.diff(t)
@@ -195,23 +202,34 @@ BLOCK = 1 << 20
 
 def resolution(t: Array) -> float:
     """The coarsest decimal step (1, 2 or 5 times a power of ten, from 1 ns to 1 s) that
-    every stamp is a whole multiple of: the logger clock's resolution (0 for stamps that
-    are not quantised)."""
+    every stamp's distance from the first is a whole multiple of: the logger clock's
+    resolution (0 for stamps that are not quantised).
+
+    Distances from the first stamp, so that a PC's epoch stamps (1.7e9 s since 1970)
+    are judged by their steps: a tolerance relative to the stamps themselves took every
+    millisecond stamp there for a whole second. What float stamps that large cannot
+    hold (a few ulps, 1e-6 s at 1.7e9 s) is tolerated, no more.
+    """
+    if t.size == 0:
+        return 0.0
+    origin = float(t[0])
     head = t[:4096]
     for exponent in range(0, -10, -1):
         for mantissa in (5, 2, 1):
             q = mantissa * 10.0**exponent
             # the first stamps rule most steps out cheaply; the winner is checked on all
-            if _multiples(head, q) and all(
-                _multiples(t[i : i + BLOCK], q) for i in range(head.size, t.size, BLOCK)
+            if _multiples(head, q, origin) and all(
+                _multiples(t[i : i + BLOCK], q, origin) for i in range(head.size, t.size, BLOCK)
             ):
                 return q
     return 0.0
 
 
-def _multiples(t: Array, q: float) -> bool:
-    units = t / q
-    tolerance = 1e-6 * np.maximum(1.0, np.abs(units)) * 1e-3 + 1e-9
+def _multiples(t: Array, q: float, origin: float = 0.0) -> bool:
+    units = (t - origin) / q
+    # rounding of decimal stamps and unit factors, and the ulps of large stamps
+    ulps = 3.0 * np.finfo(np.float64).eps * (abs(origin) + np.abs(t - origin)) / q
+    tolerance = 1e-9 * np.maximum(1.0, np.abs(units)) + 1e-9 + ulps
     return bool(np.all(np.abs(units - np.rint(units)) <= tolerance))
 
 

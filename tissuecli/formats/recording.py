@@ -129,6 +129,7 @@ class Reading:
     clock: Clock | None = None
     rows: int = 0
     lost: int = 0  # samples missing from the recording's own clock (set by time_base)
+    time_assumed: bool = False  # the time column's unit was assumed, not read or given
 
     @property
     def stamped(self) -> bool:
@@ -167,6 +168,8 @@ class Reading:
                         "is not a clock time like the others; repair the time column"
                     )
             else:
+                if self.time_assumed:
+                    unit = self._epoch_unit(values["time"], index, unit)
                 stamps = values["time"] * ColumnUnits(time=unit).factor("time")
         else:
             stamps = (self.rows + np.arange(lines.size)) / float(self.rate_hz or 1.0)
@@ -187,6 +190,18 @@ class Reading:
                 )
         self.rows += lines.size
         return stamps, force, position, lines
+
+    def _epoch_unit(self, values: NDArray[np.float64], index: int, unit: str) -> str:
+        """The unit of a time column whose unit nothing said, from its first block: a
+        PC clock's stamps since 1970 in s, ms, us or ns (:func:`epoch_unit`), else the
+        unit assumed. Decided once, for the whole column."""
+        self.time_assumed = False
+        found = epoch_unit(values)
+        if found is None:
+            return unit
+        self.picked["time"] = (index, found)
+        self.report.units["time"] = f"{found} (PC clock stamps since 1970)"
+        return found
 
     def fraction(self) -> float:
         """How much of the file has been read, 0 to 1."""
@@ -314,7 +329,9 @@ def reading_of(
                 f"{quantity} in {path} is {what} ({unit}); give the jaws' hinge-to-tip "
                 "length with --jaw-length, e.g. --jaw-length 20mm"
             )
-    return Reading(path, source, report, picked, opening, jaw_length_m, rate_hz, clock)
+    reading = Reading(path, source, report, picked, opening, jaw_length_m, rate_hz, clock)
+    reading.time_assumed = "time" in picked and report.units["time"].endswith("(SI, assumed)")
+    return reading
 
 
 def read_recording(
@@ -458,6 +475,26 @@ def _choose_columns(
             + f"; name them with --columns {missing[0]}=NAME{hint}"
         )
     return chosen
+
+
+#: first stamps of a PC clock since 1970 (2001 to 2286), by unit
+EPOCHS = {"s": 1e9, "ms": 1e12, "us": 1e15, "ns": 1e18}
+
+
+def epoch_unit(values: NDArray[np.float64]) -> str | None:
+    """The unit of time stamps counted from 1970 by a PC clock (``time.time()``,
+    ``Date.now()``, ...), told by their size: 1e9-1e10 in s, 1e12-1e13 in ms, 1e15-1e16
+    in us, 1e18-1e19 in ns, with a median step below a minute in that unit; None for
+    stamps of any other size (a logger's own seconds or milliseconds since power-up)."""
+    finite = values[np.isfinite(values)]
+    if finite.size < 2:
+        return None
+    first = float(finite[0])
+    for unit, low in EPOCHS.items():
+        if low <= first < 10 * low:
+            step = float(np.median(np.diff(finite))) * ColumnUnits(time=unit).factor("time")
+            return unit if 0 < step < 60.0 else None
+    return None
 
 
 def _listed(names: list[str]) -> str:
@@ -615,8 +652,11 @@ def store_recording(
         reading.report.warnings = unit_warnings(
             summary, position_given=dimension_of(reading.picked["position"][1]) != "angle"
         )
+        counted = reading.meta()  # what the import counted is known only now
         writer.set_attrs(
             import_notes=reading.report.notes,
+            import_samples_lost=counted["import_samples_lost"],
+            import_lines_skipped=counted["import_lines_skipped"],
             **({"import_warnings": reading.report.warnings} if reading.report.warnings else {}),
         )
         writer.close()

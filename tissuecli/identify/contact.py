@@ -9,6 +9,16 @@ the smoothed force stands above the baseline by more than 6 noise SDs (entering)
 until it falls below 3 (leaving). Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
+
+Free jaws read the sensor's offset whatever the jaws do; tissue answers the closure
+*and its speed*. A soft law such as ``K x^3`` is near zero at small closure, so a
+stretch at the lowest force can be tissue in contact, told apart by two signs: its
+force follows the closure or the closure speed (the damping term), beyond what the
+smoothed noise explains; or the force falls well below that level elsewhere for more
+than :data:`BELOW_FRACTION` of the session (free jaws read the lowest level there
+is; damping pulls a grasped tissue's force below it while the jaws open). Either way
+the stretch is not free jaw motion. The regressions run on the smoothed force taken
+every smoothing width, whose noise is then nearly independent.
 """
 
 from __future__ import annotations
@@ -34,6 +44,11 @@ MIN_FREE_FRACTION = 0.05
 #: a stretch whose force follows the closure with more than this fraction of the
 #: session's overall force-closure slope, significantly, is contact resting low
 FOLLOW_FRACTION = 0.02
+#: a free-jaw level the smoothed force falls below (by ENTER_SD of its noise) for more
+#: than this fraction of the session is no free-jaw level: the force there is tissue's
+BELOW_FRACTION = 0.005
+#: t statistic above which a stretch's force follows the closure or its speed
+FOLLOW_T = 4.0
 
 
 @dataclass(frozen=True)
@@ -68,6 +83,9 @@ class Contact:
         SD of the force noise, N.
     all_contact : bool
         The session has no free stretch: it is one contact from start to end.
+    kept_to_grasps : bool
+        The fit kept to the grasps found; False where they left too few samples to fit
+        and every sample was fitted instead (set by the fit, not by detection).
     """
 
     grasps: tuple[Grasp, ...]
@@ -75,6 +93,7 @@ class Contact:
     baseline_n: float
     noise_n: float
     all_contact: bool
+    kept_to_grasps: bool = True
 
     def describe(self) -> str:
         if self.all_contact:
@@ -95,9 +114,10 @@ def find_contact(session: Session) -> Contact:
     n = f.size
     dt = float(np.median(np.diff(session.time))) if n > 1 else 1.0
     noise = _noise_sd(f)
-    smooth = _moving_mean(f, max(1, int(round(SMOOTH_S / dt))))
-    closure = _moving_mean(session.position, max(1, int(round(SMOOTH_S / dt))))
-    baseline, free = _baseline(smooth, closure, noise, dt)
+    width = max(1, int(round(SMOOTH_S / dt)))
+    smooth = _moving_mean(f, width)
+    closure = _moving_mean(session.position, width)
+    baseline, free = _baseline(smooth, closure, noise, dt, width)
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -148,24 +168,69 @@ def _moving_mean(f: Array, width: int) -> Array:
     return np.convolve(padded, kernel, mode="valid")
 
 
-def _baseline(smooth: Array, closure: Array, noise: float, dt: float) -> tuple[float, float]:
+def _baseline(
+    smooth: Array, closure: Array, noise: float, dt: float, width: int = 1
+) -> tuple[float, float]:
     """The lowest level the smoothed force rests at for long stretches (free jaws), and
-    the fraction of the session spent within a few noise SDs of it."""
+    the fraction of the session spent within a few noise SDs of it (0 when there is no
+    such level: the session is in contact throughout).
+
+    ``width`` is the moving mean's width in samples: the smoothed noise has SD
+    ``noise / sqrt(width)`` and is nearly independent ``width`` samples apart.
+    """
     floor = float(np.percentile(smooth, 2))
     band = max(ENTER_SD * noise, 1e-12 * max(abs(floor), 1.0))
     near = smooth <= floor + band
-    overall = _slope(closure, smooth)[0]
+    step = max(width, 1)
+    speed = np.gradient(closure, dt)
+    overall = _follow(closure[::step], speed[::step], smooth[::step])
     long_free = np.zeros_like(near)
     for start, stop in _runs(near):
         if (stop - start) * dt < MIN_GRASP_S:
             continue
-        slope, se = _slope(closure[start:stop], smooth[start:stop])
-        if slope > max(FOLLOW_FRACTION * overall, 4.0 * se):
-            continue  # the force follows the closure: a grasp at its loosest
+        cut = slice(start, stop, step)
+        if _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
+            continue  # the force follows the closure or its speed: a grasp at its loosest
         long_free[start:stop] = True
     if not np.any(long_free):
         return floor, 0.0
-    return float(np.median(smooth[long_free])), float(np.mean(long_free))
+    level = float(np.median(smooth[long_free]))
+    # free jaws read the lowest level there is: a force well below it for long is tissue
+    below = smooth < level - ENTER_SD * noise / np.sqrt(step)
+    if np.mean(below) > BELOW_FRACTION:
+        return level, 0.0
+    return level, float(np.mean(long_free))
+
+
+def _follow(x: Array, v: Array, y: Array) -> list[tuple[float, float]]:
+    """Least-squares slopes of ``y`` on closure ``x`` and speed ``v`` together, each with
+    its standard error (inf for a column without spread, or too few samples)."""
+    cols = [u - u.mean() for u in (x, v)]
+    usable = [j for j, c in enumerate(cols) if float(c @ c) > 0]
+    out = [(0.0, float("inf"))] * 2
+    if not usable or y.size < len(usable) + 3:
+        return out
+    A = np.column_stack([cols[j] for j in usable])
+    scale = np.linalg.norm(A, axis=0)
+    yc = y - y.mean()
+    coef, _, rank, sv = np.linalg.lstsq(A / scale, yc, rcond=None)
+    if rank < len(usable):
+        return [_slope(x, y), (0.0, float("inf"))]
+    resid = yc - (A / scale) @ coef
+    s2 = float(resid @ resid) / (y.size - len(usable) - 1)
+    cov = s2 * np.linalg.inv((A / scale).T @ (A / scale))
+    for k, j in enumerate(usable):
+        out[j] = (float(coef[k] / scale[k]), float(np.sqrt(cov[k, k]) / scale[k]))
+    return out
+
+
+def _follows(stretch: list[tuple[float, float]], overall: list[tuple[float, float]]) -> bool:
+    """Whether a stretch's force follows the closure or its speed significantly, the
+    same way as the whole session's does and by more than :data:`FOLLOW_FRACTION` of it."""
+    for (slope, se), (whole, _) in zip(stretch, overall, strict=True):
+        if whole > 0 and slope > max(FOLLOW_FRACTION * whole, FOLLOW_T * se):
+            return True
+    return False
 
 
 def _slope(x: Array, y: Array) -> tuple[float, float]:

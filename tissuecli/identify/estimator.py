@@ -142,11 +142,45 @@ class Estimator:
         if not hasattr(self, "kinematics_"):
             raise FitError(f"this {type(self).__name__} is not fitted yet: call fit(session) first")
 
-    def predict(self, session: Session | None = None) -> Array:
-        """Filtered force (N) the fitted law predicts: at the fitted samples
-        (``kinematics_.time``), or at the samples of another ``session`` that this
-        estimator would fit (``self.prepare(session).kinematics.time``); shape (m,)."""
+    def predict(self, session: Session | None = None, *, filtered: bool = False) -> Array:
+        """The force (N) the fitted law predicts.
+
+        Without ``session``: the filtered force at the fitted samples
+        (``kinematics_.time``), shape (m,), as the fit saw it.
+
+        For another ``session``: one value per sample of it, shape (n,), a prediction
+        of the force itself, the law on the best estimate of each sample's kinematics
+        (:func:`~tissuecli.identify.predict.predict_band`), NaN where it cannot (inside
+        a gap). A session that continues the fitted one (its first sample within
+        three periods after the fitted last, as a held-out end is) is predicted with
+        the fitted part as its history, so a law with memory enters it with the state
+        it has there rather than from rest. ``filtered=True`` gives instead the
+        filtered force at the samples this estimator would fit
+        (``self.prepare(session).kinematics.time``), shape (m,).
+        """
         self._fitted()
+        if session is None or filtered:
+            return self._predict_filtered(session)
+        from ..core.tissue import Tissue
+        from .predict import predict_band
+
+        law, coef = self._coefficients()
+        tissue = Tissue(law, *coef)
+        before = self.session_
+        dt = float(np.median(np.diff(before.time)))
+        lead = float(session.time[0] - before.time[-1])
+        if 0.0 < lead <= 3.0 * dt:
+            whole = session.replace(
+                np.concatenate([before.time, session.time]),
+                np.concatenate([before.force, session.force]),
+                np.concatenate([before.position, session.position]),
+            )
+            return predict_band(tissue, whole).predicted[len(before) :]
+        return predict_band(tissue, session).predicted
+
+    def _predict_filtered(self, session: Session | None = None) -> Array:
+        """Filtered force (N) at the fitted samples, or at the samples of another
+        ``session`` this estimator would fit; shape (m,)."""
         if session is None:
             kin, position = self.kinematics_, self.session_.position
         else:
@@ -160,7 +194,7 @@ class Estimator:
         session or another: 1 is perfect, 0 no better than the force's mean."""
         self._fitted()
         kin = self.kinematics_ if session is None else self.prepare(session).kinematics
-        resid = kin.force - self.predict(session)
+        resid = kin.force - self._predict_filtered(session)
         total = kin.force - np.mean(kin.force)
         return 1.0 - float(resid @ resid) / max(float(total @ total), 1e-300)
 

@@ -14,6 +14,7 @@ from ..core.progress import Progress, as_progress
 from ..core.session import Session
 from .bayes import BayesianFit
 from .contact import Contact
+from .design import design
 from .estimator import Estimator
 from .pinv import WindowedPinv
 
@@ -54,25 +55,48 @@ class HeldOut:
         )
 
 
-def held_out(est: Estimator, rest: Session, split_s: float) -> HeldOut:
-    """Score a fitted estimator on ``rest``, samples it did not see (after ``split_s``)."""
+#: fewest filtered samples a held-out part is scored on
+MIN_HELD_OUT = 10
+
+
+def held_out(est: Estimator, whole: Session, split_s: float) -> HeldOut:
+    """Score a fitted estimator on the samples of ``whole`` after ``split_s``, which it
+    did not see.
+
+    The law runs over the whole session, fitted part and held-out part together, so a
+    law with memory (relaxation) enters the held-out part with the history it has there:
+    a hold at constant position is then predicted (the force relaxes), not refused.
+    Scored are the filtered samples whose filter window lies wholly after the split,
+    so no fitted sample reaches the score.
+    """
     try:
-        kin = est.prepare(rest).kinematics
+        ready = est.prepare(whole)
     except FitError as e:
         reason = str(e).split(";")[0]
         raise FitError(
             f"the held-out part after {split_s:.3f} s cannot be scored ({reason}); hold out "
             "a larger fraction with --hold-out"
         ) from None
-    predicted = est.predict(rest)
-    resid = kin.force - predicted
+    kin = ready.kinematics
+    law, coef = est._coefficients()
+    predicted = design(law, kin, ready.session.position, est._position_noise_sd()) @ coef
+    dt = float(np.median(np.diff(ready.session.time)))
+    after = kin.time >= split_s + (kin.window // 2 - 0.5) * dt
+    if np.count_nonzero(after) < MIN_HELD_OUT:
+        raise FitError(
+            f"the held-out part after {split_s:.3f} s cannot be scored (it leaves "
+            f"{np.count_nonzero(after)} filtered samples, {MIN_HELD_OUT} needed); hold out "
+            "a larger fraction with --hold-out"
+        )
+    y, resid = kin.force[after], kin.force[after] - predicted[after]
+    total = y - np.mean(y)
     return HeldOut(
         split_s=split_s,
         r2_fitted=est.score(),
-        r2_held_out=est.score(rest),
+        r2_held_out=1.0 - float(resid @ resid) / max(float(total @ total), 1e-300),
         rms_n=float(np.sqrt(np.mean(resid**2))),
-        force_sd_n=float(np.std(kin.force)),
-        samples=int(kin.force.size),
+        force_sd_n=float(np.std(y)),
+        samples=int(y.size),
     )
 
 
@@ -182,7 +206,7 @@ class FitOutcome:
         """Numbers (from 1) of the grasps the fit used; empty for a session in contact
         throughout or fitted with ``grasps="none"``."""
         contact = self.contact
-        if contact.all_contact or self.grasps == "none":
+        if contact.all_contact or self.grasps == "none" or not contact.kept_to_grasps:
             return []
         if self.grasps == "all":
             return list(range(1, len(contact.grasps) + 1))
@@ -291,6 +315,7 @@ def fit_session(
             raise FitError(f"--hold-out {hold_out:g}: give a fraction between 0 and 1, e.g. 0.3")
         t = part.time
         i = int(np.searchsorted(t, t[0] + (1.0 - hold_out) * (t[-1] - t[0])))
+        whole = part
         part, rest = (
             part.replace(t[:i], part.force[:i], part.position[:i]),
             part.replace(t[i:], part.force[i:], part.position[i:]),
@@ -318,5 +343,5 @@ def fit_session(
     assert fitted is not None
     if rest is not None:
         as_progress(progress).stage("scoring the held-out part")
-    validation = held_out(fitted, rest, float(rest.time[0])) if rest is not None else None
+    validation = held_out(fitted, whole, float(rest.time[0])) if rest is not None else None
     return FitOutcome(session, est, pinv, grasps, validation)

@@ -4,7 +4,7 @@ frames and clipped samples as holes, and differentiated without looking through 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,7 +79,11 @@ class Prepared:
 
 
 def prepare(
-    session: Session, diff: Differentiator, grasps: str | Sequence[int] = "all"
+    session: Session,
+    diff: Differentiator,
+    grasps: str | Sequence[int] = "all",
+    *,
+    refuse_constant: bool = True,
 ) -> Prepared:
     """Validate a session, put it on its sample grid, check that it can identify anything,
     and differentiate it without looking through holes.
@@ -100,6 +104,9 @@ def prepare(
     whole window lies inside a chosen grasp are fitted: ``grasps="all"`` (every
     grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers.
 
+    ``refuse_constant=False`` lets jaws that never move through (to predict a hold: a
+    law with memory has a force to give there, though nothing can be identified).
+
     Returns
     -------
     Prepared
@@ -110,8 +117,9 @@ def prepare(
         raise FitError(f"session has {n} samples; at least {MIN_SAMPLES} are needed to fit")
     warnings: list[str] = unit_warnings(session)
     grid = on_grid(session)
-    if grid is not None and grid[2]:
-        warnings.append(grid[2])
+    if grid is not None and grid.note:
+        warnings.append(grid.note)
+    slow = np.zeros(0, bool)
     if grid is None:
         session, stretch = longest_gapless(session)
         warnings += stretch
@@ -123,22 +131,24 @@ def prepare(
         valid = np.ones(len(session), bool)
         lost = 0
     else:
-        session, valid, _ = grid
-        lost = int(np.count_nonzero(~valid))
+        session, valid, slow = grid.session, grid.measured.copy(), grid.slow
+        lost = int(np.count_nonzero(~valid & ~slow))
     x, f = (
         (session.position, session.force)
-        if not lost
+        if np.all(valid)
         else (u[valid] for u in (session.position, session.force))
     )
-    if np.ptp(x) <= 0 or np.std(x) < 1e-9:
+    if refuse_constant and (np.ptp(x) <= 0 or np.std(x) < 1e-9):
         raise FitError(
             "jaw position is constant: nothing to identify; the jaws must move "
             "while the forceps records"
         )
-    if np.ptp(f) <= 0:
+    if refuse_constant and np.ptp(f) <= 0:
         raise FitError("force is constant: check the force sensor and its calibration")
     present = valid.copy()
     bridged = _short_runs(~present, BRIDGE_SAMPLES)
+    if slow.size:
+        bridged |= slow
     valid |= bridged
     clipped = adc_ends(session)
     for _, mask in clipped:
@@ -146,17 +156,58 @@ def prepare(
     trusted = valid & present
     contact = find_contact(session)
     chosen = _chosen_grasps(contact, grasps)
-    if not contact.all_contact and grasps != "none":
-        if not contact.grasps:
-            raise FitError(
-                f"no grasp stands above the free-jaw force of {contact.baseline_n:.4g} N; "
-                "fit every sample with --grasps none"
+    by_grasp = not contact.all_contact and grasps != "none"
+    if by_grasp and not contact.grasps:
+        warnings.append(
+            f"no grasp stands above the free-jaw force of {contact.baseline_n:.4g} N: "
+            "fitted every sample, as with --grasps none"
+        )
+        contact = replace(contact, kept_to_grasps=False)
+        by_grasp = False
+    # what to fit, from the most careful choice to every sample: detection that finds
+    # too little to fit falls back to fitting more, with a note, never to a refusal
+    stages: list[tuple[NDArray[np.bool_], bool, str]] = []
+    if by_grasp:
+        stages.append((valid & chosen, True, ""))
+    if grasps == "all" or not by_grasp:
+        stages.append(
+            (
+                valid.copy(),
+                False,
+                "the grasps found leave too few filtered samples to fit: fitted every "
+                "sample, contact or not"
+                if by_grasp
+                else "",
             )
-        valid &= chosen
-    kin = diff(session.time, session.position, session.force, valid)
+        )
+        if clipped and not lost:
+            stages.append(
+                (
+                    np.ones_like(valid),
+                    False,
+                    "too few filtered samples have a window free of clipped samples: fitted "
+                    "every sample, clipped ones included",
+                )
+            )
+        elif lost:
+            stages.append(
+                (
+                    present | bridged,
+                    False,
+                    "too few filtered samples have a window free of lost or clipped "
+                    "samples: fitted every sample that arrived, clipped ones included",
+                )
+            )
+    kin, kept, note = _differentiate(diff, session, stages)
+    if by_grasp and not kept:
+        contact = replace(contact, kept_to_grasps=False)
+    by_grasp = kept
+    if note:
+        warnings.append(note)
     if lost:
-        gaps = int(np.count_nonzero(np.diff(present.astype(np.int8)) == 1))
-        short = int(np.count_nonzero(bridged))
+        arrived = present | slow if slow.size else present
+        gaps = int(np.count_nonzero(np.diff(arrived.astype(np.int8)) == 1))
+        short = int(np.count_nonzero(bridged & ~arrived))
         bridge_note = (
             f"; the {short} sample(s) missing in runs of at most {BRIDGE_SAMPLES} are "
             "bridged by linear interpolation, the fit leaving out the filtered samples "
@@ -172,7 +223,7 @@ def prepare(
             "one; grasp more gently or widen the sensor range"
         )
     # filtered samples inside the fitted grasps, had nothing been lost or clipped
-    fitted = chosen if not contact.all_contact and grasps != "none" else np.ones_like(valid)
+    fitted = chosen if by_grasp else np.ones_like(valid)
     full = int(np.count_nonzero(convolve_valid((~fitted).astype(float), np.ones(kin.window)) < 0.5))
     if (lost or clipped) and 0 < kin.time.size < full:
         warnings.append(
@@ -181,6 +232,24 @@ def prepare(
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
     return Prepared(session, kin, warnings, contact, measured, trusted)
+
+
+def _differentiate(
+    diff: Differentiator,
+    session: Session,
+    stages: list[tuple[NDArray[np.bool_], bool, str]],
+) -> tuple[Kinematics, bool, str]:
+    """Differentiate with the first of ``stages`` (mask of samples to trust, whether it
+    keeps to the grasps, note) that leaves enough filtered samples; the last (most
+    lenient) one's error if none does."""
+    error: FitError | None = None
+    for mask, by_grasp, note in stages:
+        try:
+            return diff(session.time, session.position, session.force, mask), by_grasp, note
+        except FitError as e:
+            error = e
+    assert error is not None
+    raise error
 
 
 def _short_runs(mask: NDArray[np.bool_], longest: int) -> NDArray[np.bool_]:
@@ -216,61 +285,142 @@ def _chosen_grasps(contact: Contact, grasps: str | Sequence[int]) -> NDArray[np.
 SHORT_GAP_PERIODS = 3.0
 #: a grid with more than this many points per recorded sample is not built
 MAX_GRID_PER_SAMPLE = 10
+#: a logger's slow rhythm: at least this many long steps in a row, each within a factor
+#: SLOW_SPREAD of their median, is a stretch logged slowly (an adaptive or event-driven
+#: logger's holds), not lost samples; lost frames come alone or in a burst of one length
+SLOW_RUN = 3
+SLOW_SPREAD = 2.0
 
 
-def on_grid(session: Session) -> tuple[Session, NDArray[np.bool_], str] | None:
-    """The session on a regular sample grid, which grid points hold measurements, and a
-    note on what was done to the time base ("" if nothing).
+@dataclass(frozen=True)
+class Grid:
+    """A session on a regular sample grid (see :func:`on_grid`).
+
+    Attributes
+    ----------
+    session : Session
+        On the grid; grid points without a measurement hold interpolated stand-ins.
+    measured : ndarray of bool, shape (n,)
+        Grid points that hold a measurement.
+    slow : ndarray of bool, shape (n,)
+        Grid points between the samples of a stretch the logger recorded slowly: their
+        linear interpolation is fitted (the signal there changes slowly, or the logger
+        would have logged faster), at the lowered weight of a stand-in.
+    note : str
+        What was done to the time base ("" if nothing).
+    """
+
+    session: Session
+    measured: NDArray[np.bool_]
+    slow: NDArray[np.bool_]
+    note: str
+
+
+def slow_steps(steps: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which steps (in periods, shape (m,)) belong to a stretch logged slowly: runs of at
+    least :data:`SLOW_RUN` steps longer than :data:`SHORT_GAP_PERIODS` periods, each
+    within :data:`SLOW_SPREAD` of the run's median step. A lost burst or a pause is one
+    long step, and stays a hole."""
+    long = steps > 1.5
+    out = np.zeros(steps.size, bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], long.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if b - a < SLOW_RUN:
+            continue
+        run = steps[a:b]
+        middle = float(np.median(run))
+        if middle <= SHORT_GAP_PERIODS:
+            continue  # short steps are bridged anyway
+        alike = (run <= SLOW_SPREAD * middle) & (run >= middle / SLOW_SPREAD)
+        out[a:b] = alike
+    return out
+
+
+def _slow_note(steps_s: NDArray[np.float64], slow: NDArray[np.bool_], dt: float) -> str:
+    runs = int(np.count_nonzero(np.diff(np.concatenate([[0], slow.astype(np.int8)])) == 1))
+    return (
+        f"{runs} stretch(es) logged slowly (every {1e3 * float(np.median(steps_s[slow])):.4g} "
+        f"ms against {1e3 * dt:.4g} ms elsewhere) resampled onto the grid by linear "
+        "interpolation and fitted"
+    )
+
+
+def on_grid(session: Session) -> Grid | None:
+    """The session on a regular sample grid.
 
     Stamps that follow a regular clock (:func:`~tissuecli.core.timebase.sample_clock`:
     quantised or jittered stamps, lost samples) are put on it; lost samples get
-    interpolated stand-ins and ``False``. Irregular stamps are resampled onto a grid
-    at their median step: a grid point between samples at most
+    interpolated stand-ins and are not measured. Irregular stamps are resampled onto a
+    grid at their median step (at their fast step when a logger alternates two rates
+    and that grid stays small): a grid point between samples at most
     :data:`SHORT_GAP_PERIODS` periods apart is interpolated, one inside a longer gap
-    is a hole. None when the grid would be more than :data:`MAX_GRID_PER_SAMPLE`
-    times the samples.
+    is a hole. Either way, stretches a logger recorded slowly (:func:`slow_steps`:
+    adaptive or event-driven logging, slow during holds) are resampled, not holes.
+    None when the grid would be more than :data:`MAX_GRID_PER_SAMPLE` times the samples.
     """
     t = session.time
+    n = len(session)
     numbers, clock, base = sample_clock(t)
     if numbers is not None:
         if np.all(np.diff(numbers) == 1):
             exact = base.residual_max_s <= 1e-6 / base.rate_hz
             if exact:
-                return session, np.ones(len(session), bool), ""
+                return Grid(session, np.ones(n, bool), np.zeros(n, bool), "")
             note = f"time stamps put back on their clock: {base.describe()}"
-            return (
+            return Grid(
                 session.replace(clock, session.force, session.position),
-                np.ones(len(session), bool),
+                np.ones(n, bool),
+                np.zeros(n, bool),
                 note,
             )
         if numbers[-1] + 1 > MAX_GRID_PER_SAMPLE * numbers.size:
             return None
         grid = np.arange(numbers[-1] + 1)
-        valid = np.zeros(grid.size, bool)
-        valid[numbers] = True
+        measured = np.zeros(grid.size, bool)
+        measured[numbers] = True
         filled = session.replace(
             *(np.interp(grid, numbers, u) for u in (clock, session.force, session.position))
         )
-        note = "" if base.residual_max_s <= 1e-6 / base.rate_hz else base.describe()
-        return filled, valid, note
+        steps = np.diff(numbers).astype(float)
+        slow_step = slow_steps(steps)
+        slow = np.zeros(grid.size, bool)
+        for i in np.flatnonzero(slow_step):
+            slow[numbers[i] + 1 : numbers[i + 1]] = True
+        notes = [] if base.residual_max_s <= 1e-6 / base.rate_hz else [base.describe()]
+        if np.any(slow_step):
+            notes.append(_slow_note(steps / base.rate_hz, slow_step, 1.0 / base.rate_hz))
+        return Grid(filled, measured, slow, "; ".join(notes))
+    steps = np.diff(t)
     dt = 1.0 / base.rate_hz
+    fast = float(np.percentile(steps, 10))
+    if 0 < fast < dt / SHORT_GAP_PERIODS:
+        # two rhythms (fast ramps, slow holds): the median step would undersample the
+        # ramps; the fast step keeps them, if that grid is not too large
+        if (t[-1] - t[0]) / fast + 1 <= MAX_GRID_PER_SAMPLE * n:
+            fast_steps = steps[steps <= 1.5 * fast]
+            dt = float(np.mean(fast_steps))
     size = int(np.floor((t[-1] - t[0]) / dt)) + 1
     if size > MAX_GRID_PER_SAMPLE * t.size:
         return None
     grid_t = t[0] + dt * np.arange(size)
     after = np.clip(np.searchsorted(t, grid_t, side="right"), 1, t.size - 1)
     span = t[after] - t[after - 1]
-    valid = span <= SHORT_GAP_PERIODS * dt
+    slow_step = slow_steps(steps / dt)
+    slow = slow_step[after - 1] & (span > SHORT_GAP_PERIODS * dt)
+    valid = (span <= SHORT_GAP_PERIODS * dt) | slow
     resampled = session.replace(
         grid_t, np.interp(grid_t, t, session.force), np.interp(grid_t, t, session.position)
     )
     holes = int(np.count_nonzero(~valid))
     note = (
-        f"irregular time stamps resampled onto a {base.rate_hz:.6g} Hz grid by linear "
+        f"irregular time stamps resampled onto a {1.0 / dt:.6g} Hz grid by linear "
         f"interpolation across steps up to {SHORT_GAP_PERIODS:g} periods"
+        + (f"; {_slow_note(steps, slow_step, dt)}" if np.any(slow_step) else "")
         + (f"; {holes} grid point(s) inside longer gaps are holes" if holes else "")
     )
-    return resampled, valid, note
+    # resampled points are stand-ins, but the grid is the session's own here: only
+    # the slowly logged stretches count as bridged
+    return Grid(resampled, valid & ~slow, slow, note)
 
 
 def adc_ends(session: Session) -> list[tuple[str, NDArray[np.bool_]]]:
