@@ -171,6 +171,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
                 "cond": r.cond,
                 "cond_scaled": r.cond_scaled,
                 "residual_rms_N": r.residual_rms,
+                "cv_rms_N": r.cv_rms,
                 "sampler": (r.posterior.diagnostics if r.posterior else {}),
             }
             for r in est.results_

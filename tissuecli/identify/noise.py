@@ -14,6 +14,14 @@ def residual_tau(r: Array) -> float:
     return max(1.0, integrated_time(r, c=5.0))
 
 
+def filter_tau(kernel: Array) -> float:
+    """Integrated autocorrelation time (samples) of white noise through an FIR filter:
+    ``(sum g)^2 / sum g^2``, the sum of its autocorrelation over every lag."""
+    g = np.asarray(kernel, dtype=float)
+    energy = float(g @ g)
+    return max(1.0, float(g.sum()) ** 2 / energy) if energy > 0 else 1.0
+
+
 def integrated_time(x: Array, c: float = 5.0) -> float:
     """Integrated autocorrelation time of a series (samples), with Sokal's automatic window.
 

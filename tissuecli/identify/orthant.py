@@ -30,6 +30,10 @@ FIRST_POINTS, MAX_POINTS = 1 << 10, 1 << 16
 #: target: 3 standard errors below this absolute error and this fraction of the mass
 #: (the evidence needs ln P to 1e-3; the sampling rule, P near 1, needs 1e-5 absolute)
 ABS_TOL, REL_TOL = 1e-5, 1e-3
+#: standardised limits beyond which the lattice works in logarithms
+LINEAR_LIMIT = 8.0
+#: ln of the smallest mass the direct products are trusted to carry
+LINEAR_FLOOR = 600.0
 _PRIMES = (2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71)
 
 
@@ -50,11 +54,40 @@ def normal_ppf(p: Array) -> Array:
     return ndtri(np.clip(np.asarray(p, dtype=float), 1e-300, 1.0 - 1e-16))
 
 
+def log_normal_cdf(z: Array) -> Array:
+    """``ln Phi(z)`` to double precision far into the lower tail (SciPy's ``log_ndtr``)."""
+    from scipy.special import log_ndtr
+
+    return log_ndtr(np.asarray(z, dtype=float))
+
+
+def normal_ppf_log(log_p: Array) -> Array:
+    """``Phi^-1(exp(log_p))`` for ``log_p`` down to -1e300 (SciPy's ``ndtri_exp``): the
+    quantile of a probability too small for a double."""
+    from scipy.special import ndtri_exp
+
+    return ndtri_exp(np.minimum(np.asarray(log_p, dtype=float), -1e-16))
+
+
 def orthant_probability(mean: Array, cov: Array) -> float:
     """``P(X >= 0)`` for ``X ~ N(mean, cov)``, shapes (p,) and (p, p).
 
     A singular ``cov`` (a parameter the data fix exactly) is regularised by 1e-12 of
-    its diagonal.
+    its diagonal. Below 1e-300 the answer is 0; :func:`orthant_log_probability` gives
+    its logarithm.
+    """
+    return math.exp(orthant_log_probability(mean, cov)[0])
+
+
+def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
+    """``ln P(X >= 0)`` for ``X ~ N(mean, cov)`` and its relative error (3 standard
+    errors over the random shifts, as a fraction of P).
+
+    Computed in logarithms throughout (each factor by ``ln Phi``, each quantile from
+    a log probability), so a mass of 1e-400 keeps its relative accuracy instead of
+    becoming 0. The error says whether the estimate can be trusted: far in the tail
+    the product of factors varies over the lattice by orders of magnitude and the
+    mean over its points is carried by a few of them.
     """
     mean = np.asarray(mean, dtype=float)
     cov = np.asarray(cov, dtype=float)
@@ -63,8 +96,12 @@ def orthant_probability(mean: Array, cov: Array) -> float:
     h = mean / sd
     corr = cov / np.outer(sd, sd) + 1e-12 * np.eye(mean.size)
     if mean.size == 1:
-        return float(normal_cdf(h)[0])
+        return float(log_normal_cdf(h)[0]), 0.0
     chol, h = _prioritised_cholesky(corr, h)
+    # the direct products while every factor stays far from underflow (half the cost);
+    # in logarithms beyond
+    log_space = bool(np.min(h) < -LINEAR_LIMIT)
+    sov = _sov_log if log_space else _sov_linear
     rng = np.random.default_rng(20261123)  # fixed shifts: the same answer every time
     root = np.sqrt(np.array(_PRIMES[: h.size - 1], dtype=float))
     points = FIRST_POINTS
@@ -72,27 +109,98 @@ def orthant_probability(mean: Array, cov: Array) -> float:
         k = np.arange(1, points + 1)[:, None]
         lattice = (k * root) % 1.0
         estimates = np.array(
-            [_sov(chol, h, lattice, rng.random(h.size - 1)) for _ in range(SHIFTS)]
+            [sov(chol, h, lattice, rng.random(h.size - 1)) for _ in range(SHIFTS)]
         )
-        value = float(np.mean(estimates))
-        error = 3 * float(np.std(estimates, ddof=1)) / math.sqrt(SHIFTS)
-        if error <= min(ABS_TOL, REL_TOL * value) or points >= MAX_POINTS:
-            return value
+        top = float(np.max(estimates))
+        if not log_space and not (np.all(np.isfinite(estimates)) and top > -LINEAR_FLOOR):
+            log_space, sov = True, _sov_log  # a product underflowed: again in logarithms
+            continue
+        if not math.isfinite(top):
+            return top, math.inf
+        ratio = np.exp(estimates - top)
+        value = top + math.log(float(np.mean(ratio)))
+        rel = 3 * float(np.std(ratio, ddof=1)) / math.sqrt(SHIFTS) / float(np.mean(ratio))
+        # 3 SEs below ABS_TOL absolute and REL_TOL of the mass (compared in logarithms:
+        # a mass of 1e-400 has no absolute error a double can hold)
+        small = rel == 0 or value + math.log(rel) <= math.log(ABS_TOL)
+        if (small and rel <= REL_TOL) or points >= MAX_POINTS:
+            return value, rel
         points *= 4
 
 
-def _sov(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
-    """One randomised-lattice estimate of ``P(L Z <= h)``, Z standard normal."""
-    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)  # the baker's transform periodises
+def _sov_linear(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
+    """:func:`_sov_log` by direct products, for limits no factor can underflow at."""
+    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)
     e = np.full(w.shape[0], normal_cdf(np.array([h[0] / chol[0, 0]]))[0])
     f = e.copy()
     y = np.zeros((w.shape[0], h.size - 1))
     for i in range(1, h.size):
-        # draw variable i-1 below its limit, then the limit of variable i given the draws
         y[:, i - 1] = normal_ppf(w[:, i - 1] * e)
         e = normal_cdf((h[i] - y[:, :i] @ chol[i, :i]) / chol[i, i])
         f *= e
-    return float(np.mean(f))
+    mean = float(np.mean(f))
+    return math.log(mean) if mean > 0 else -math.inf
+
+
+def _sov_log(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
+    """One randomised-lattice estimate of ``ln P(L Z <= h)``, Z standard normal."""
+    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)  # the baker's transform periodises
+    with np.errstate(divide="ignore"):
+        log_w = np.log(w)
+    log_e = np.full(w.shape[0], log_normal_cdf(np.array([h[0] / chol[0, 0]]))[0])
+    log_f = log_e.copy()
+    y = np.zeros((w.shape[0], h.size - 1))
+    for i in range(1, h.size):
+        # draw variable i-1 below its limit, then the limit of variable i given the draws
+        y[:, i - 1] = normal_ppf_log(log_w[:, i - 1] + log_e)
+        log_e = log_normal_cdf((h[i] - y[:, :i] @ chol[i, :i]) / chol[i, i])
+        log_f += log_e
+    top = float(np.max(log_f))
+    if not math.isfinite(top):
+        return top
+    return top + math.log(float(np.mean(np.exp(log_f - top))))
+
+
+def tail_log_probability(mean: Array, cov: Array) -> float:
+    """Laplace's estimate of ``ln P(X >= 0)`` for a mass deep in the tail: the Gaussian's
+    log density at the nearest point of the orthant (in the metric of ``cov``) plus the
+    exponential tail beyond each bound that holds there (the multivariate Mills ratio).
+    Independent of the lattice, it checks :func:`orthant_log_probability` where that is
+    carried by a few points; exact in one dimension as the mass goes to zero.
+    """
+    mean = np.asarray(mean, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    p = mean.size
+    active = mean < 0
+    for _ in range(p + 1):  # active set: bounds held at zero, the rest conditioned
+        a, f = np.flatnonzero(active), np.flatnonzero(~active)
+        if a.size == 0:
+            return 0.0
+        saa = cov[np.ix_(a, a)]
+        g = -np.linalg.solve(saa, mean[a])  # slope of -ln density into the orthant
+        cond = mean[f] - cov[np.ix_(f, a)] @ np.linalg.solve(saa, mean[a])
+        drop = a[g <= 0]
+        add = f[cond < 0]
+        if drop.size == 0 and add.size == 0:
+            break
+        active[drop] = False
+        active[add] = True
+    a, f = np.flatnonzero(active), np.flatnonzero(~active)
+    saa = cov[np.ix_(a, a)]
+    g = np.maximum(-np.linalg.solve(saa, mean[a]), 1e-300)
+    sign, logdet = np.linalg.slogdet(saa)
+    # the free coordinates, given the held ones at zero: their own chance of >= 0
+    gain = np.linalg.solve(saa, cov[np.ix_(a, f)])
+    cond_mean = mean[f] - gain.T @ mean[a]
+    cond_var = np.diag(cov[np.ix_(f, f)] - cov[np.ix_(f, a)] @ gain)
+    free = float(np.sum(log_normal_cdf(cond_mean / np.sqrt(np.maximum(cond_var, 1e-300)))))
+    return float(
+        -0.5 * mean[a] @ np.linalg.solve(saa, mean[a])
+        - 0.5 * a.size * math.log(2 * math.pi)
+        - 0.5 * logdet
+        - np.sum(np.log(g))
+        + free
+    )
 
 
 def _prioritised_cholesky(corr: Array, h: Array) -> tuple[Array, Array]:

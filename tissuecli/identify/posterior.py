@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import FitError
-from .orthant import normal_cdf, orthant_probability
+from .orthant import normal_cdf, orthant_log_probability, tail_log_probability
 
 Array = NDArray[np.float64]
 
@@ -77,12 +77,19 @@ class SufficientStats:
         ``w y^T y``.
     n : float
         ``w n``: the effective number of independent observations.
+    rss : float, optional
+        ``w`` times the least-squares residual sum of squares, computed from the
+        residuals themselves. ``yy - b^T G^-1 b`` loses it to cancellation when the
+        fit explains all but a millionth of ``yy`` on ill-conditioned columns (a ramp
+        at constant speed); without it the evidence would grow without bound as the
+        noise level goes to zero.
     """
 
     G: Array
     b: Array
     yy: float
     n: float
+    rss: float | None = None
 
     @classmethod
     def from_data(
@@ -91,12 +98,44 @@ class SufficientStats:
         G = A.T @ A
         if correction is not None:
             G = G - correction
-        return cls(weight * G, weight * (A.T @ y), float(weight * (y @ y)), weight * y.size)
+        d = np.linalg.norm(A, axis=0)
+        d[d == 0] = 1.0
+        beta = np.linalg.lstsq(A / d, y, rcond=None)[0] / d
+        r = y - A @ beta
+        rss = float(r @ r)
+        if correction is not None:  # the corrected fit's residual, without cancellation
+            beta_c = np.linalg.lstsq(G, A.T @ y, rcond=None)[0]
+            rss = max(rss - float(beta_c @ correction @ beta), 0.0)
+        return cls(
+            weight * G,
+            weight * (A.T @ y),
+            float(weight * (y @ y)),
+            weight * y.size,
+            weight * rss,
+        )
 
     def scaled(self) -> tuple[SufficientStats, Array]:
         """Statistics of unit-norm columns, and the column norms ``d`` (beta = gamma / d)."""
         d = np.sqrt(np.clip(np.diag(self.G), 1e-300, None))
-        return SufficientStats(self.G / np.outer(d, d), self.b / d, self.yy, self.n), d
+        return SufficientStats(self.G / np.outer(d, d), self.b / d, self.yy, self.n, self.rss), d
+
+    def least_squares_rss(self) -> float:
+        """The least-squares residual sum of squares (``w`` times), >= 0: the given one,
+        else ``yy - b^T G^+ b`` floored at zero."""
+        if self.rss is not None:
+            return max(float(self.rss), 0.0)
+        d = np.sqrt(np.clip(np.diag(self.G), 1e-300, None))
+        gamma = np.linalg.lstsq(self.G / np.outer(d, d), self.b / d, rcond=None)[0]
+        return max(self.yy - float(gamma @ (self.b / d)), 0.0)
+
+    def max_log_likelihood(self) -> float:
+        """ln of the likelihood's maximum over (beta, sigma): an upper bound on any
+        evidence of these data (a proper prior averages the likelihood)."""
+        rss = self.least_squares_rss()
+        if not self.n > 0:
+            return 0.0
+        var = max(rss / self.n, 1e-300)
+        return float(-0.5 * self.n * (np.log(2 * np.pi * var) + 1.0))
 
     def log_likelihood(self, beta: Array, sigma: Array) -> Array:
         """ln p(y | beta, sigma) for beta of shape (k, p) and sigma (k,)."""
@@ -141,6 +180,8 @@ class ExactPosterior:
     def __init__(self, stats: SufficientStats, prior: Prior, nodes: int = 401) -> None:
         self.stats, self.prior = stats, prior
         self._inside: float | None = None
+        self._inside_error = 0.0
+        self._tail: float | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
@@ -152,6 +193,14 @@ class ExactPosterior:
         null = self.lam <= 1e-13 * max(float(self.lam.max()), 1e-300)
         self.c = np.where(null, 0.0, self.Q.T @ (self.ws * s.b))
         self.s = s
+        # the least-squares residual, never from yy - sum c^2 / lam (cancellation: a
+        # fit that explains all but 1e-7 of yy on columns of condition 1e8 left it
+        # negative, and the evidence grew as 1 / sigma^2 to 1e21)
+        self._lam_safe = np.where(null, 1.0, self.lam)
+        if s.rss is not None:
+            self.rss0 = max(float(s.rss), 0.0)
+        else:
+            self.rss0 = max(s.yy - float(np.sum(self.c**2 / self._lam_safe)), 0.0)
         lo, hi = np.log(prior.sigma_lo), np.log(prior.sigma_hi)
         # the least-squares noise level may lie outside the prior's range (a noise-free
         # session, where rounding leaves a residual of 1e-150 N, or none at all): the
@@ -182,18 +231,17 @@ class ExactPosterior:
             )
 
     def _rss_ls(self) -> float:
-        s = self.s
-        beta = np.linalg.lstsq(s.G, s.b, rcond=None)[0]
-        return float(max(s.yy - beta @ s.b, 1e-300 * s.yy + 1e-300))
+        return float(max(self.rss0, 1e-300 * self.s.yy + 1e-300))
 
     def _ln_z_given_sigma(self, sigma: Array) -> Array:
         s2 = sigma[:, None] ** 2
-        lam, c = self.lam[None, :], self.c[None, :]
+        lam, c = self._lam_safe[None, :], self.c[None, :]
+        # yy - c^T (lam + s2)^-1 c = rss0 + sum c^2 s2 / (lam (lam + s2)): every term >= 0
+        quad = self.rss0 + np.sum(c**2 / (lam * (lam + s2)), axis=1) * s2[:, 0]
         return (
             -self.s.n * (np.log(sigma) + 0.5 * LN_2PI)
-            - 0.5 * self.s.yy / sigma**2
-            + 0.5 * np.sum(c**2 / (s2 * (lam + s2)), axis=1)
-            - 0.5 * np.sum(np.log1p(lam / s2), axis=1)
+            - 0.5 * quad / sigma**2
+            - 0.5 * np.sum(np.log1p(self.lam[None, :] / s2), axis=1)
         )
 
     def conditional(self, sigma: float) -> tuple[Array, Array]:
@@ -208,36 +256,91 @@ class ExactPosterior:
         """Weights (m,), means (m, p), covariances (m, p, p) and node indices (m,) of the
         significant quadrature nodes."""
         idx = np.flatnonzero(self.weights > 1e-12 * self.weights.max())
+        w = self.weights[idx]
+        if idx.size > MIXTURE_NODES:
+            # the conditional posteriors change smoothly with sigma: neighbouring nodes
+            # pooled into one (at their weighted centre) change no moment or quantile
+            # beyond rounding, and each summary costs a tenth
+            bins = np.array_split(np.arange(idx.size), MIXTURE_NODES)
+            centre = [int(round(float(np.average(b, weights=w[b] + 1e-300)))) for b in bins]
+            w = np.array([w[b].sum() for b in bins])
+            idx = idx[centre]
         parts = [self.conditional(float(np.exp(self.u[i]))) for i in idx]
-        w = self.weights[idx] / self.weights[idx].sum()
+        w = w / w.sum()
         return w, np.array([m for m, _ in parts]), np.array([c for _, c in parts]), idx
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
         posterior is narrow). Computed once: the evidence, the summary and the exact
         draws all need it, and the lattice is the costly part of a posterior."""
+        return math.exp(self.ln_orthant_mass())
+
+    def ln_orthant_mass(self) -> float:
+        """ln of :meth:`orthant_mass`, computed in logarithms (a mass of 1e-400 is not 0)."""
         if self._inside is None:
-            self._inside = self._orthant_mass()
+            self._inside, self._inside_error, self._tail = self._orthant_mass()
         return self._inside
 
-    def _orthant_mass(self) -> float:
+    def _modal(self) -> tuple[Array, Array]:
         mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
         on = self.prior.bounded
+        return mu[on], cov[np.ix_(on, on)]
+
+    def _orthant_mass(self) -> tuple[float, float, float | None]:
+        on = self.prior.bounded
         if not np.any(on):
-            return 1.0
-        mu, cov = mu[on], cov[np.ix_(on, on)]
+            return 0.0, 0.0, None
+        mu, cov = self._modal()
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         if np.all(mu > 6 * sd):
-            return 1.0
-        return orthant_probability(mu, cov)
+            return 0.0, 0.0, None
+        ln_p, error = orthant_log_probability(mu, cov)
+        # where the bound keeps little, Laplace's tail estimate checks the lattice
+        tail = tail_log_probability(mu, cov) if ln_p < math.log(MIN_ACCEPTANCE) else None
+        return ln_p, error, tail
+
+    def untrusted(self) -> str:
+        """Why this law's evidence cannot be trusted, or "" if it can.
+
+        The closed form times the orthant mass is exact only while the bounds cut a
+        modest share of the posterior: where they keep less than ``exp(-TAIL_NATS)``
+        the data put a passive coefficient many SDs below zero, the noise level's
+        posterior moves with the cut, and the mass at the modal noise level no longer
+        corrects the evidence (that is how a law came to an ln evidence of 1e21).
+        """
+        ln_p = self.ln_orthant_mass()
+        if not math.isfinite(ln_p):
+            return "the positivity bounds keep none of the closed-form posterior"
+        if ln_p < -TAIL_NATS:
+            return (
+                f"the positivity bounds keep e^{ln_p:.0f} of the closed-form posterior: the "
+                "data put a passive coefficient far below zero"
+            )
+        if self._inside_error > 0.5:
+            return (
+                f"the mass inside the positivity bounds (e^{ln_p:.1f}) is known only to "
+                f"{100 * self._inside_error:.0f} %"
+            )
+        if self._tail is not None and abs(self._tail - ln_p) > CHECK_NATS:
+            return (
+                f"the truncation correction (ln {ln_p:.1f} by lattice, ln {self._tail:.1f} by "
+                f"Laplace's tail estimate) disagrees by more than {CHECK_NATS:g} nats"
+            )
+        ln_z = self.ln_evidence()
+        top = self.stats.max_log_likelihood()
+        if not math.isfinite(ln_z) or ln_z > top + CHECK_NATS:
+            return (
+                f"its ln evidence ({ln_z:.4g}) exceeds the likelihood's maximum ({top:.4g}): "
+                "a numerical failure"
+            )
+        return ""
 
     def ln_evidence(self) -> float:
         """ln p(y): the closed form over the whole space times the prior's normalisation
         and the posterior mass inside the positivity bounds."""
-        inside = self.orthant_mass()
         return float(
             self.ln_z_untruncated
-            + np.log(max(inside, 1e-300))
+            + self.ln_orthant_mass()
             + int(np.sum(self.prior.bounded)) * np.log(2)
         )
 
@@ -314,9 +417,15 @@ class ExactPosterior:
         have, total = 0, 0
         batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
         while have < draws and total < 20 * batch:
-            pick = rng.choice(w.size, size=batch, p=w)
+            counts = rng.multinomial(batch, w)
+            pick = np.repeat(np.arange(w.size), counts)
             z = rng.standard_normal((batch, mus.shape[1]))
-            beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], z)
+            beta = np.empty_like(z)
+            start = 0
+            for i, k in enumerate(counts):  # node by node: one small product each
+                if k:
+                    beta[start : start + k] = mus[i] + z[start : start + k] @ chol[i].T
+                    start += k
             ok = np.all(beta[:, bounded] >= 0, axis=1)
             kept.append(np.column_stack([beta[ok], np.exp(self.u[idx])[pick[ok]]]))
             have += int(ok.sum())
@@ -341,9 +450,19 @@ class ExactPosterior:
         )
 
 
+#: most nodes of sigma's quadrature a posterior's summary mixes
+MIXTURE_NODES = 32
+
 #: the least share of the posterior the positivity bound may keep for exact rejection
 #: draws (below it a Markov chain is cheaper)
 MIN_ACCEPTANCE = 0.02
+
+#: the positivity bounds may cut all but exp(-TAIL_NATS) of a closed-form posterior
+#: before its evidence is "not evaluated"
+TAIL_NATS = 20.0
+#: two estimates of one evidence (or of its truncation) that disagree by more than this
+#: many nats are flagged
+CHECK_NATS = 3.0
 
 
 def logsumexp(a: Array) -> float:

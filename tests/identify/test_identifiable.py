@@ -1,0 +1,74 @@
+"""Identifiability before evidence: columns a recording leaves empty or shares between
+terms are named, merged or left out before the structure search."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tissuecli.core.session import Session
+from tissuecli.core.terms import Law
+from tissuecli.identify import BayesianFit
+from tissuecli.identify.bayes import linear_laws, session_scales
+from tissuecli.identify.identifiable import Design, examine
+from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
+
+from .lab_protocols import constant_speed, relaxation
+
+
+def _design(session: Session) -> Design:
+    ready = BayesianFit(grasps="none").prepare(session)
+    kin = ready.kinematics
+    return examine(kin, ready.session.position, scales=session_scales(kin))
+
+
+def test_constant_speed_is_one_column_and_no_acceleration():
+    s, _ = constant_speed(0, damping=2.0, offset=0.1)
+    d = _design(s)
+    assert d.unexcited == ["xddot"]
+    assert sorted(d.groups[0]) == sorted(["offset", "xdot", "xdot|xdot|", "sign(xdot)"])
+    assert d.summary == (
+        "constant speed: S, S2, friction and the offset are one column; M not excited"
+    )
+    reduced = {law.name for law in d.reduce(linear_laws())}
+    assert reduced == {"x+offset", "x^3+offset", "x+x^3+offset", "x", "x^3", "x+x^3"}
+
+
+def test_ramp_and_hold_shares_one_column_between_the_speed_terms():
+    """Ramps at one speed and holds: xdot, xdot|xdot| and sign(xdot) are one step
+    function; the offset and the stiffness stay apart."""
+    s, _ = relaxation(0)
+    d = _design(s)
+    assert sorted(d.groups[0]) == sorted(["xdot", "xdot|xdot|", "sign(xdot)"])
+    assert "offset" not in {n for g in d.groups for n in g}
+    assert d.summary.startswith("one speed wherever it moves:")
+
+
+def test_a_rich_session_keeps_every_column():
+    s, _ = synthesize(ForcepsModel(seed=4, sensors=Sensors(bits=16)), 10.0)
+    d = _design(s)
+    assert d.unexcited == [] and d.groups == [] and d.summary == ""
+    assert len(d.reduce(linear_laws())) == len(linear_laws())
+
+
+def test_a_single_sine_makes_inertia_a_spring_beside_an_offset():
+    """x = x0 + a sin(w t): xddot = -w^2 (x - x0), so a law with x, xddot and an offset
+    has no unique coefficients; without the offset it has."""
+    t = np.arange(8000) / 1000.0
+    x = 2e-3 + 1e-3 * np.sin(2 * np.pi * 2.0 * t)
+    rng = np.random.default_rng(0)
+    f = 300 * x + 0.05 * np.gradient(np.gradient(x, t), t) + rng.normal(0, 1e-3, t.size)
+    d = _design(Session(t, f, x))
+    assert d.collinear(Law.of(["x", "xddot", "offset"])) is not None
+    assert d.collinear(Law.of(["x", "xdot"])) is None
+
+
+def test_default_search_never_compares_what_the_design_cannot_tell_apart():
+    """At constant speed no law with two of the speed terms and the offset, and no
+    inertia, is scored."""
+    s, _ = constant_speed(2, offset=0.05)
+    est = BayesianFit(grasps="none").fit(s)
+    shared = {"xdot", "xdot|xdot|", "sign(xdot)", "offset", "contact*xdot"}
+    for r in [*est.results_, *est.not_evaluated_]:
+        names = {t.name for t in (r.family or r.model).terms}
+        assert "xddot" not in names, r.name
+        assert len(names & shared) <= 1, r.name
