@@ -54,6 +54,10 @@ class _Sums:
     yy: float = 0.0
     n: int = 0
     correction: Array | None = None
+    #: R of the QR factorisation of [A | y] so far, updated block by block: its last
+    #: diagonal element is the least-squares residual's norm, free of the cancellation
+    #: that ``yy - b^T G^-1 b`` suffers on nearly collinear columns
+    R: Array | None = None
 
     @classmethod
     def empty(cls, law: Law, corrected: bool) -> _Sums:
@@ -61,6 +65,29 @@ class _Sums:
         return cls(
             law, np.zeros((p, p)), np.zeros(p), correction=np.zeros((p, p)) if corrected else None
         )
+
+    def add(self, A: Array, y: Array) -> None:
+        """Add a block's columns (m, p) and filtered forces (m,)."""
+        self.G += A.T @ A
+        self.b += A.T @ y
+        self.yy += float(y @ y)
+        self.n += int(y.size)
+        block = np.column_stack([A, y])
+        stacked = block if self.R is None else np.vstack([self.R, block])
+        self.R = np.linalg.qr(stacked, mode="r")
+
+    def rss(self) -> float:
+        """The least-squares residual sum of squares, with the noise correction's share
+        taken off as :meth:`SufficientStats.from_data` does."""
+        assert self.R is not None
+        p = len(self.law.terms)
+        R = self.R
+        rss = float(R[p, p] ** 2) if R.shape[0] > p else 0.0
+        if self.correction is not None:
+            beta = np.linalg.lstsq(R[:p, :p], R[:p, p], rcond=None)[0]
+            beta_c = np.linalg.lstsq(self.G - self.correction, self.b, rcond=None)[0]
+            rss = max(rss - float(beta_c @ self.correction @ beta), 0.0)
+        return rss
 
 
 @dataclass
@@ -188,11 +215,7 @@ class StreamedFit:
         y = kin.force[counted]
         columns: dict[str, Array] = {}
         for s in sums:
-            A = design(s.law, kin, gx, sigma_x, columns)[counted]
-            s.G += A.T @ A
-            s.b += A.T @ y
-            s.yy += float(y @ y)
-            s.n += int(y.size)
+            s.add(design(s.law, kin, gx, sigma_x, columns)[counted], y)
             if s.correction is not None:
                 # the noise correction is a sum over samples too; each block's share
                 # scales with the samples it counts
@@ -203,15 +226,22 @@ class StreamedFit:
     def _score(self, sums: list[_Sums], pilot: BayesianFit, weight: float) -> None:
         rng = np.random.default_rng(pilot.seed)
         results = []
+        self.not_evaluated_: list[tuple[str, str]] = []
         for s in sums:
             if s.n <= len(s.law.terms):
                 continue
             G = s.G - s.correction if s.correction is not None else s.G
-            st = SufficientStats(weight * G, weight * s.b, weight * s.yy, weight * s.n)
+            rss = s.rss()
+            st = SufficientStats(
+                weight * G, weight * s.b, weight * s.yy, weight * s.n, weight * rss
+            )
             prior = law_prior(s.law, pilot.scales_)
-            post = ExactPosterior(st, prior).bounded(rng, CUT_THRESHOLD)
-            beta = np.linalg.lstsq(s.G, s.b, rcond=None)[0]
-            rss = max(s.yy - 2 * float(s.b @ beta) + float(beta @ s.G @ beta), 0.0)
+            exact = ExactPosterior(st, prior)
+            why = exact.untrusted()
+            if why:  # as in the full fit: named, never chosen
+                self.not_evaluated_.append((s.law.name, why))
+                continue
+            post = exact.bounded(rng, CUT_THRESHOLD)
             results.append(
                 ModelResult(
                     model=s.law,
@@ -234,9 +264,12 @@ class StreamedFit:
         prob /= prob.sum()
         for r, p in zip(results, prob, strict=True):
             r.probability = float(p)
-        results.sort(key=lambda r: -r.ln_evidence)
+        results.sort(key=lambda r: (-r.probability, -r.ln_evidence))
         self.results_ = results
         self.best_ = results[0]
         self.n_samples_ = max(s.n for s in sums)
         self.n_eff_ = weight * self.n_samples_
-        self.warnings_ = list(pilot.warnings_)
+        self.warnings_ = list(pilot.warnings_) + [
+            f"{name}: not evaluated over the whole session, so never chosen: {why}"
+            for name, why in self.not_evaluated_
+        ]
