@@ -4,12 +4,15 @@ The convention (docs/architecture.md, "Docs that match the code"):
 
 - A ```` ```console ```` block is run: each ``$ `` line is a shell command (a line ending
   in ``\\`` continues it), and the lines up to the next ``$ `` line are what it prints
-  (stdout and stderr together). A line ``...`` alone stands for any number of lines.
+  on stdout (and on stderr too with ``stderr`` in the block's ``output`` mark, or when
+  the command fails: an ``Error:`` line). A line ``...`` alone stands for any number of
+  lines.
 - A ```` ```text ```` block right after a ```` ```python ```` block is what that Python
   block prints (docs/api.md runs its blocks in order in one namespace).
 - HTML comments right above a fence mark it:
-  ``<!-- output: tol=5% vary=REGEX slow -->`` numbers within 5 % (default 2 %), numbers
-  on lines matching REGEX not compared (timings), run only with ``-m slow``;
+  ``<!-- output: tol=5% vary=REGEX slow stderr -->`` numbers within 5 % (default 2 %),
+  numbers on lines matching REGEX not compared (timings), run only with ``-m slow``,
+  stderr quoted too;
   ``<!-- not-run: REASON -->`` shown, never run (a device, a long run, a file that is
   not in the repository), counted and listed by the test;
   ``<!-- file: NAME read=KIND -->`` the block is an example file: written as NAME into
@@ -44,7 +47,7 @@ NUMBER = re.compile(r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?")
 #: lines of a bare block that are commands: a program, a continuation, a comment
 COMMAND = re.compile(
     r"^\s*(tissuecli|python3?|pip|sqlite3|git|apt-get|sudo|export|cd|TISSUECLI_\w+=|"
-    r"PYTHONPATH=|taskset|ulimit|chrt|#|\.{3}$|\[)"
+    r"PYTHONPATH=|taskset|curl|ulimit|chrt|#|\.{3}$|\[)"
 )
 
 
@@ -99,15 +102,15 @@ def blocks(doc: Path) -> list[Block]:
 def options(block: Block) -> dict[str, object]:
     """The ``output`` mark read: ``tol`` (relative), ``vary`` (a regex) and ``slow``."""
     spec = block.marks.get("output", "")
-    out: dict[str, object] = {"tol": DEFAULT_TOL, "vary": None, "slow": False}
+    out: dict[str, object] = {"tol": DEFAULT_TOL, "vary": None, "slow": False, "stderr": False}
     for token in shlex.split(spec):
         key, _, value = token.partition("=")
         if key == "tol":
             out["tol"] = float(value.rstrip("%")) / (100.0 if value.endswith("%") else 1.0)
         elif key == "vary":
             out["vary"] = re.compile(value)
-        elif key == "slow":
-            out["slow"] = True
+        elif key in ("slow", "stderr"):
+            out[key] = True
         else:
             raise ValueError(f"{block.where}: unknown output option {key!r}")
     return out
@@ -198,18 +201,25 @@ def environment(work: Path) -> dict[str, str]:
     return env
 
 
-def run(command: str, work: Path, env: dict[str, str], timeout: float = 900.0) -> list[str]:
-    """What a documented command prints (stdout and stderr, as a terminal shows them)."""
+def run(
+    command: str, work: Path, env: dict[str, str], stderr: bool = False, timeout: float = 900.0
+) -> list[str]:
+    """What a documented command prints on stdout; with ``stderr``, or if it fails, on
+    stderr as well (stderr after stdout: progress lines are left out otherwise)."""
     done = subprocess.run(
         ["bash", "-c", command],
         cwd=work,
         env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        capture_output=True,
         text=True,
         timeout=timeout,
         stdin=subprocess.DEVNULL,
     )
+    if stderr:
+        return lines_of(done.stdout + done.stderr)
+    if done.returncode:
+        errors = [line for line in lines_of(done.stderr) if line.startswith(("Error", "error"))]
+        return lines_of(done.stdout) + errors
     return lines_of(done.stdout)
 
 

@@ -82,7 +82,7 @@ def _check_page(name: str, work: Path, slow: bool) -> None:
         if opts["slow"] and not (slow or db.UPDATE):
             continue
         for step in db.steps(block):
-            actual = db.run(step.command, work, env)
+            actual = db.run(step.command, work, env, stderr=bool(opts["stderr"]))
             if db.UPDATE:
                 new = db.elide(step.expected, actual)
                 if new != step.expected:
