@@ -1,9 +1,10 @@
-"""Moving sessions between foreign files (CSV, TSV, MATLAB, NumPy) and HDF5 files."""
+"""Moving sessions between foreign files (CSV, TSV, spreadsheets, MATLAB, NumPy, other
+programs' HDF5 and TDMS) and HDF5 files."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from ..formats.sessions import (
     is_session_file,
     read_session,
 )
+from ..formats.sheets import data_sheets, is_workbook
 
 
 def import_recording(
@@ -32,11 +34,13 @@ def import_recording(
     tissue: str = "",
     note: str = "",
     progress: Callable[[float], None] | None = None,
+    sheet: str | None = None,
 ) -> tuple[Imported, ImportReport]:
-    """Read a recording (text table, .mat or .npz; see
+    """Read a recording (text table, spreadsheet, .mat or .npz; see
     :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
     file ``out`` (created if missing; other sessions are never touched), named
-    ``session`` or else after the source file (its name without the extension).
+    ``session`` or else after the sheet read or the source file (its name without the
+    extension).
 
     The recording is read and written block by block, so its length is bounded by the
     disk, not the memory (:func:`tissuecli.formats.recording.store_recording`).
@@ -45,6 +49,9 @@ def import_recording(
     ----------
     progress : callable, optional
         Called after each block with the fraction of the source read (0 to 1).
+    sheet : str, optional
+        The sheet of a spreadsheet; without it the workbook must hold one sheet with
+        data (:func:`import_recordings` stores every sheet).
 
     Returns
     -------
@@ -55,15 +62,56 @@ def import_recording(
     """
     check_outputs([Output(out, "--out", appends=True)], [source])
     if session is None:
-        session = Path(source).stem
+        session = sheet if sheet is not None else Path(source).stem
     check_new_session(out, session)
     reading = open_recording(
-        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
-    )
+        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        sheet=sheet,
+    )  # fmt: skip
     n, duration, rate = store_recording(
         reading, out, session, {"tissue": tissue, "note": note}, progress
     )
     return Imported(session, n, duration, rate), reading.report
+
+
+def import_recordings(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    session: str | None = None,
+    *,
+    sheet: str | None = None,
+    **options: object,
+) -> Iterator[tuple[Imported, ImportReport]]:
+    """Import a recording as :func:`import_recording` does, and every sheet of a
+    workbook with data as a session named after its sheet (unless ``sheet`` picks one).
+    Every session name is checked free before any is written; each sheet is stored as
+    it is read, so a sheet that fails leaves the ones before it imported.
+
+    Yields
+    ------
+    imported, report
+        As :func:`import_recording` returns them, one pair per session.
+    """
+    if sheet is not None or not is_workbook(source):
+        yield import_recording(source, out, session, sheet=sheet, **options)  # type: ignore[arg-type]
+        return
+    sheets = data_sheets(source)
+    if len(sheets) == 1:
+        yield import_recording(source, out, session, sheet=sheets[0], **options)  # type: ignore[arg-type]
+        return
+    if session is not None:
+        raise InputError(
+            f"{source} holds {len(sheets)} sheets with data, each imported as a session named "
+            "after it; leave out --session, or import one with --sheet NAME --session NAME"
+        )
+    check_outputs([Output(out, "--out", appends=True)], [source])
+    for name in sheets:
+        check_new_session(out, name)
+    for name in sheets:
+        try:
+            yield import_recording(source, out, name, sheet=name, **options)  # type: ignore[arg-type]
+        except InputError as exc:
+            raise InputError(f"sheet {name!r}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -106,6 +154,7 @@ def load_session(
     units: str | None = None,
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
+    sheet: str | None = None,
 ) -> tuple[Session, ImportReport | None]:
     """A session from a tissuecli HDF5 file, or read on the fly from another logger's
     recording (as :func:`import_recording` reads it, without storing it).
@@ -129,6 +178,7 @@ def load_session(
                 ("--units", units),
                 ("--jaw-length", jaw_length_m),
                 ("--rate", rate_hz),
+                ("--sheet", sheet),
             )
             if value is not None
         ]
@@ -139,7 +189,9 @@ def load_session(
             )
         return read_session(path, session), None
     name = session if session is not None else Path(path).stem
+    if sheet is not None and session is None:
+        name = sheet  # a sheet is named after itself, as import names it
     return read_recording(
         path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
-        name=name,
+        name=name, sheet=sheet,
     )  # fmt: skip

@@ -137,6 +137,7 @@ def fit(
     units: str | None,
     jaw_length: str | None,
     rate: float | None,
+    sheet: str | None,
     out: str | None,
     report: str | None,
     draws: str | None,
@@ -216,7 +217,7 @@ def fit(
             scheduler=scheduler,
             on_error=on_error or "continue",
             refit=refit,
-            reading=reading(columns, units, jaw_length, rate),
+            reading=reading(columns, units, jaw_length, rate, sheet),
             settings=settings,
         )
         return
@@ -236,7 +237,7 @@ def fit(
         plots=plots,
         plot_format=plot_format or "png",
         force=force,
-        reading=reading(columns, units, jaw_length, rate),
+        reading=reading(columns, units, jaw_length, rate, sheet),
         **settings,
         progress=TerminalProgress.for_terminal(),
     )

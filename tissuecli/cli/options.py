@@ -72,8 +72,8 @@ def units_option(help: str) -> Decorator:
 
 
 def recording_options() -> Decorator:
-    """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
-    logger's recording (``import``, and ``fit`` of a recording directly)."""
+    """``--columns``, ``--units``, ``--jaw-length``, ``--rate`` and ``--sheet``: how to read
+    another logger's recording (``import``, and ``fit`` of a recording directly)."""
 
     def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
         for option in reversed(
@@ -103,6 +103,12 @@ def recording_options() -> Decorator:
                     default=None,
                     help="Sample rate in Hz, for files without a time column.",
                 ),
+                click.option(
+                    "--sheet",
+                    default=None,
+                    help="The sheet of a spreadsheet (.xlsx, .xls, .ods) to read [default: "
+                    "the only sheet with data; import stores each sheet as a session].",
+                ),
             ]
         ):
             fn = option(fn)
@@ -112,7 +118,11 @@ def recording_options() -> Decorator:
 
 
 def reading(
-    columns: str | None, units: str | None, jaw_length: str | None, rate: float | None
+    columns: str | None,
+    units: str | None,
+    jaw_length: str | None,
+    rate: float | None,
+    sheet: str | None = None,
 ) -> dict[str, Any]:
     """The keywords of :func:`tissuecli.app.transfer.import_recording` from
     :func:`recording_options`' values (--jaw-length parsed to metres)."""
@@ -125,6 +135,7 @@ def reading(
         if jaw_length
         else None,
         "rate_hz": rate,
+        **({"sheet": sheet} if sheet is not None else {}),
     }
 
 

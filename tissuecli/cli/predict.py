@@ -29,6 +29,7 @@ def predict(
     units: str | None,
     jaw_length: str | None,
     rate: float | None,
+    sheet: str | None,
     force: bool,
 ) -> None:
     """Predict the force of a session with a fitted tissue, with its 95 % predictive
@@ -53,7 +54,7 @@ def predict(
         out=out,
         session=session,
         force=force,
-        reading=reading(columns, units, jaw_length, rate),
+        reading=reading(columns, units, jaw_length, rate, sheet),
     )
     click.echo(
         f"predicted {pred.time.size} samples: error {pred.rms_n:.4g} N RMS against a force "

@@ -41,6 +41,7 @@ from ..core.units import (
 )
 from .arrays import read_arrays
 from .foreign import Columns, read_hdf5, read_tdms
+from .sheets import is_workbook, read_sheet
 from .tables import Clock, Layout, Table, clock_seconds, sniff_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
@@ -94,11 +95,16 @@ Source = Table | Layout | Columns
 SIBlock = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
 
 
-def open_source(path: str | os.PathLike[str]) -> Source:
+def open_source(path: str | os.PathLike[str], sheet: str | None = None) -> Source:
     """The reader for a recording, chosen by its suffix and its first bytes: .mat and
-    .npz arrays, HDF5 (and NWB), LabVIEW TDMS, else a text table."""
+    .npz arrays, spreadsheets (one sheet: ``sheet``, or the only one with data), HDF5
+    (and NWB), LabVIEW TDMS, else a text table."""
     path = Path(path)
     suffix = path.suffix.lower()
+    if is_workbook(path):
+        return read_sheet(path, sheet)
+    if sheet is not None:
+        raise InputError(f"--sheet {sheet!r}: {path} is not a spreadsheet (.xlsx, .xls, .ods)")
     if suffix in ARRAY_SUFFIXES:
         return read_arrays(path)
     try:
@@ -222,6 +228,7 @@ def open_recording(
     units: str | None = None,
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
+    sheet: str | None = None,
 ) -> Reading:
     """Open a foreign recording: its layout sniffed, its columns and units chosen, nothing
     of its body read yet (see :func:`read_recording` for the parameters).
@@ -232,7 +239,7 @@ def open_recording(
         With one line that names the file, the column or the line at fault.
     """
     path = Path(path)
-    source = open_source(path)
+    source = open_source(path, sheet)
     report = ImportReport()
     chosen = _choose_columns(source, _parse_columns(columns), rate_hz is not None, path)
     units_given = parse_units(units)
@@ -289,13 +296,15 @@ def read_recording(
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
     name: str = "",
+    sheet: str | None = None,
 ) -> tuple[Session, ImportReport]:
     """Read a foreign recording into a session in SI units.
 
     Parameters
     ----------
     path : path
-        A text table (CSV, TSV, ...), a MATLAB .mat or a NumPy .npz file.
+        A text table (CSV, TSV, ...), a spreadsheet, a MATLAB .mat or a NumPy .npz file,
+        another program's HDF5 or a LabVIEW TDMS file.
     columns : str, optional
         ``time=NAME,force=NAME,position=NAME``, names or 1-based indices; any omitted
         are found by header name.
@@ -307,6 +316,9 @@ def read_recording(
         Sample rate for files without a time column, Hz.
     name : str
         The session's name.
+    sheet : str, optional
+        The sheet of a spreadsheet (.xlsx, .xls, .ods) to read; without it the workbook
+        must hold one sheet with data.
 
     Raises
     ------
@@ -314,8 +326,9 @@ def read_recording(
         With one line that names the file, the column or the line at fault.
     """
     reading = open_recording(
-        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
-    )
+        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        sheet=sheet,
+    )  # fmt: skip
     parts = list(reading.blocks())
     reading.finish()
     stamps, force, position = (np.concatenate([p[i] for p in parts]) for i in range(3))
