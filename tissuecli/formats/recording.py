@@ -329,18 +329,35 @@ def read_recording(
         path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
         sheet=sheet,
     )  # fmt: skip
-    parts = list(reading.blocks())
+    # block by block, as import stores it: the columns kept in blocks and joined one at
+    # a time (each list freed as it is joined), the line numbers as runs
+    columns: tuple[list[NDArray[np.float64]], ...] = ([], [], [])
+    lines = LineNumbers()
+    for block in reading.blocks():
+        for kept, values in zip(columns, block[:3], strict=True):
+            kept.append(values)
+        lines.add(block[3])
     reading.finish()
-    stamps, force, position = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    lines = np.concatenate([p[3] for p in parts])
-    del parts
+    stamps, force, position = (_join(kept) for kept in columns)
     time = reading.time_base(stamps, lines)
+    del stamps
     session = Session(time, force, position, name=name, meta=reading.meta())
     session.validate()
     reading.report.warnings = unit_warnings(
         session, position_given=dimension_of(reading.picked["position"][1]) != "angle"
     )
     return session, reading.report
+
+
+def _join(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The blocks as one array, each block freed as it is copied (never two copies)."""
+    out = np.empty(sum(b.size for b in blocks))
+    row = 0
+    while blocks:
+        block = blocks.pop(0)
+        out[row : row + block.size] = block
+        row += block.size
+    return out
 
 
 def _parse_columns(spec: str | None) -> dict[str, str]:
@@ -576,8 +593,11 @@ def store_recording(
         reading.report.warnings = unit_warnings(
             summary, position_given=dimension_of(reading.picked["position"][1]) != "angle"
         )
+        counted = reading.meta()  # what the import counted is known only now
         writer.set_attrs(
             import_notes=reading.report.notes,
+            import_samples_lost=counted["import_samples_lost"],
+            import_lines_skipped=counted["import_lines_skipped"],
             **({"import_warnings": reading.report.warnings} if reading.report.warnings else {}),
         )
         writer.close()
