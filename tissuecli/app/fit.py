@@ -8,12 +8,23 @@ from typing import Any
 
 from ..core.errors import InputError
 from ..core.progress import as_progress
+from ..core.session import Session
 from ..formats.atomic import write_bytes_atomic, write_text_atomic
 from ..formats.draws import structures_path, write_draws
 from ..formats.outputs import Output, check_directory_outputs, check_outputs
 from ..formats.params import write_params
+from ..formats.sessions import is_session_file, read_session, session_rows
 from ..identify.outcome import FitOutcome, fit_session
+from ..identify.stream import StreamedFit
 from .transfer import load_session
+
+#: a stored session longer than this (samples) is fitted from sums streamed block by
+#: block (:class:`~tissuecli.identify.stream.StreamedFit`): the full fit keeps about
+#: 600 bytes a sample, the streamed one a fixed few hundred MB
+STREAM_ABOVE = 2_000_000
+#: the streamed fit's pilot stretch and block, samples
+STREAM_PILOT = 400_000
+STREAM_BLOCK = 500_000
 
 
 def fit_file(
@@ -82,11 +93,13 @@ def fit_file(
         check_plots(plots, plot_format, force=force)
     progress = as_progress(options.get("progress"))
     try:
-        progress.stage(f"reading {os.fspath(path)}")
-        data, read = load_session(path, session, **(reading or {}))
-        if read is not None:
-            data.meta["import_report"] = read.lines()
-        outcome = fit_session(data, **options)
+        outcome = _streamed(path, session, reading, options, progress)
+        if outcome is None:
+            progress.stage(f"reading {os.fspath(path)}")
+            data, read = load_session(path, session, **(reading or {}))
+            if read is not None:
+                data.meta["import_report"] = read.lines()
+            outcome = fit_session(data, **options)
         if out is not None:
             write_params(out, outcome)
         if draws is not None:
@@ -102,6 +115,57 @@ def fit_file(
     return outcome
 
 
+def _streamed(
+    path: str | os.PathLike[str],
+    session: str | None,
+    reading: dict[str, Any] | None,
+    options: dict[str, Any],
+    progress: Any,
+) -> FitOutcome | None:
+    """The fit of a stored session too long to hold, from streamed sums; None where the
+    session is short enough, or the options ask for what only the full fit gives (the
+    pseudoinverse, a time window, held-out samples, the sampler)."""
+    plain = (
+        not any(v is not None for v in (reading or {}).values())
+        and options.get("method", "bayes") == "bayes"
+        and not options.get("hold_out")
+        and options.get("start_s") is None
+        and options.get("end_s") is None
+        and options.get("sampler", "auto") == "auto"
+    )
+    if not plain or not is_session_file(path):
+        return None
+    rows = session_rows(path, session)
+    if rows <= STREAM_ABOVE:
+        return None
+    name = session
+
+    def read(a: int, b: int) -> Session:
+        return read_session(path, name, rows=(a, b))
+
+    bayes = {
+        k: options[k]
+        for k in ("forms", "differentiator", "force_scale", "seed", "grasps")
+        if k in options
+    }
+    bayes["progress"] = progress
+    fit = StreamedFit(STREAM_PILOT, STREAM_BLOCK, bayes=bayes).fit(read, rows, progress)
+    pilot = fit.pilot_
+    a, b = fit.pilot_rows_
+    note = (
+        f"{rows:,} samples: too many to hold, so fitted from sums streamed block by "
+        f"block; the filter, noise, data weight and candidate laws come from samples "
+        f"{a:,} to {b:,} fitted in full, and the plots show those"
+    )
+    if fit.skipped_blocks_:
+        note += f"; {fit.skipped_blocks_} block(s) too irregular to filter were left out"
+    pilot.results_, pilot.best_, pilot.n_eff_ = fit.results_, fit.best_, fit.n_eff_
+    pilot.warnings_ = [note, *fit.warnings_]
+    shown = pilot.session_
+    shown.meta["streamed"] = {"rows": rows, "pilot_rows": [a, b], "summed": fit.n_samples_}
+    return FitOutcome(session=shown, bayes=pilot, pinv=None, grasps=options.get("grasps", "all"))
+
+
 def check_plots(
     directory: str | os.PathLike[str], plot_format: str, *, force: bool = False
 ) -> None:
@@ -109,9 +173,7 @@ def check_plots(
     from ..report import PLOT_FORMATS, PLOT_NAMES
 
     if plot_format not in PLOT_FORMATS:
-        raise InputError(
-            f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}"
-        )
+        raise InputError(f"--plot-format {plot_format}: choose one of {', '.join(PLOT_FORMATS)}")
     names = [f"{name}.{plot_format}" for name in PLOT_NAMES]
     check_directory_outputs(directory, names, "--plots", force=force)
 
@@ -178,9 +240,17 @@ def summary_lines(outcome: FitOutcome) -> list[str]:
     s = outcome.session
     read = s.meta.get("import_report", [])
     lines = ["read as another logger's recording:", *(f"  {line}" for line in read)] if read else []
-    lines.append(
-        f"session {s.name!r}: {len(s)} samples, {s.duration_s:.2f} s at {s.rate_hz:.0f} Hz"
-    )
+    streamed = s.meta.get("streamed")
+    if streamed:
+        a, b = streamed["pilot_rows"]
+        lines.append(
+            f"session {s.name!r}: {streamed['rows']:,} samples at {s.rate_hz:.0f} Hz, "
+            f"fitted from sums streamed block by block (the pilot: samples {a:,} to {b:,})"
+        )
+    else:
+        lines.append(
+            f"session {s.name!r}: {len(s)} samples, {s.duration_s:.2f} s at {s.rate_hz:.0f} Hz"
+        )
     lines.extend(grasp_lines(outcome))
     est = outcome.bayes
     if est is not None:

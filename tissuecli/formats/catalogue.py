@@ -393,7 +393,7 @@ def export(entries: Sequence[Entry], path: str | os.PathLike[str], fmt: str) -> 
         import pyarrow.parquet as pq
     except ImportError:
         raise InputError(
-            "--export parquet needs pyarrow: pip install 'tissuecli[parquet]', or use --export csv"
+            "--export parquet needs pyarrow: pip install pyarrow, or use --export csv"
         ) from None
     columns = {h: [r[i] for r in rows] for i, h in enumerate(header)}
     tmp = f"{os.fspath(path)}.part"

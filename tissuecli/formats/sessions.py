@@ -519,7 +519,24 @@ def is_session_file(path: StrPath) -> bool:
         return True  # damaged: the session reader says how
 
 
-def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -> Session:
+def session_rows(path: StrPath, name: str | None = None) -> int:
+    """How many usable rows a session holds, from its datasets' shapes and attributes
+    (nothing is read but the layout)."""
+    file = os.fspath(path)
+    name = _pick_session(file, name)
+    with opened(file, "r") as f:
+        return _check_session(
+            f, _open_session(f, file, name), f'session "{clip(name)}" in {file}'
+        ).rows
+
+
+def read_session(
+    path: StrPath,
+    name: str | None = None,
+    *,
+    raw: bool = False,
+    rows: tuple[int, int] | None = None,
+) -> Session:
     """Read one session, checked against the documented layout.
 
     Parameters
@@ -533,6 +550,9 @@ def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -
         :data:`SESSION_COLUMNS` (``'raw/counts'`` (n, 2), ``'raw/sequence'``,
         ``'raw/device_clock'``, ``'raw/host_time'``), and the calibration in
         ``meta['calibration']``; empty dicts if the session has no raw data.
+    rows : (int, int), optional
+        Read only rows [start, stop) (clipped to the usable rows), so that a session
+        longer than memory can be read block by block.
 
     Returns
     -------
@@ -556,7 +576,9 @@ def read_session(path: StrPath, name: str | None = None, *, raw: bool = False) -
         checked = _check_session(f, _open_session(f, file, name), where)
         keys = [k for k in checked.datasets if raw or not k.startswith("raw/")]
         try:
-            columns = {key: checked.datasets[key][: checked.rows] for key in keys}
+            a, b = (0, checked.rows) if rows is None else rows
+            a, b = max(0, a), min(b, checked.rows)
+            columns = {key: checked.datasets[key][a:b] for key in keys}
             counts = checked.datasets.get("raw/counts")
             calibration = _read_calibration(counts, checked.warnings) if counts else {}
         except H5_ERRORS as exc:

@@ -1,0 +1,246 @@
+"""A session too long to hold in memory, fitted from sums streamed block by block.
+
+The default fit keeps tens of arrays as long as the session (columns, their noise paths,
+residuals): about 600 bytes a sample. A session of 1e8 samples (28 hours at 1 kHz)
+would need 60 GB. Laws that are linear in their coefficients need only the sums
+``A^T A``, ``A^T F``, ``F^T F`` and the sample count to give their exact posterior and
+evidence, and those sums add over blocks. So :class:`StreamedFit`
+
+1. fits a *pilot*, a contiguous stretch from the middle of the session, with the full
+   :class:`~tissuecli.identify.bayes.BayesianFit`: it chooses the filter, the position
+   noise, the data weight (effective samples per sample, from the residuals'
+   correlation) and the few laws worth scoring;
+2. reads the whole session block by block, each with margins so that every filtered
+   sample sees its full window (and a law with memory its history, ten time constants
+   back), differentiates it with the pilot's very filter and adds each candidate law's
+   sums;
+3. scores the candidates on those sums, exactly as the default fit scores a law.
+
+Memory is set by the block and the pilot, not by the session's length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import FitError
+from ..core.progress import Progress, as_progress
+from ..core.session import Session
+from ..core.terms import Law
+from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
+from .derivatives import Frozen
+from .design import design, eiv_correction
+from .posterior import ExactPosterior, SufficientStats
+
+Array = NDArray[np.float64]
+
+#: a law with memory is warmed up on this many of its longest time constants before a
+#: block's first counted sample (its history's weight falls to e^-10 = 5e-5)
+MEMORY_WARMUP = 10.0
+
+
+@dataclass
+class _Sums:
+    """One candidate law's streamed sums."""
+
+    law: Law
+    G: Array
+    b: Array
+    yy: float = 0.0
+    n: int = 0
+    correction: Array | None = None
+
+    @classmethod
+    def empty(cls, law: Law, corrected: bool) -> _Sums:
+        p = len(law.terms)
+        return cls(
+            law, np.zeros((p, p)), np.zeros(p), correction=np.zeros((p, p)) if corrected else None
+        )
+
+
+@dataclass
+class StreamedFit:
+    """The default fit's answer over a session read block by block.
+
+    Parameters
+    ----------
+    pilot_samples : int
+        Length of the pilot stretch fitted in full (samples).
+    block_samples : int
+        Samples read and differentiated at a time (memory grows with it).
+    candidates : int
+        How many of the pilot's best laws are scored over the whole session.
+    **bayes
+        Hyperparameters of the pilot's :class:`BayesianFit` (forms, seed, ...).
+
+    Attributes
+    ----------
+    pilot_ : BayesianFit
+        The pilot's fit: its filter, noise and data weight were used throughout.
+    pilot_rows_ : tuple of int
+        Rows [start, stop) of the pilot in the session.
+    results_ : list of ModelResult
+        The candidates scored over the whole session, best first.
+    best_ : ModelResult
+    n_samples_ : int
+        Filtered samples summed (each counted once).
+    n_eff_ : float
+        Effective independent samples (the pilot's weight per sample times n_samples_).
+    skipped_blocks_ : int
+        Blocks left out because their samples were too irregular for the filter.
+    warnings_ : list of str
+    """
+
+    pilot_samples: int = 400_000
+    block_samples: int = 500_000
+    candidates: int = 4
+    bayes: dict[str, Any] = field(default_factory=dict)
+
+    def fit(
+        self,
+        read: Callable[[int, int], Session],
+        rows: int,
+        progress: Progress | None = None,
+    ) -> StreamedFit:
+        """Fit a session of ``rows`` rows; ``read(start, stop)`` returns rows
+        [start, stop) of it as a :class:`Session` (SI units)."""
+        progress = as_progress(progress)
+        a = max(0, rows // 2 - self.pilot_samples // 2)
+        b = min(rows, a + self.pilot_samples)
+        progress.stage(f"the pilot: samples {a:,} to {b:,} fitted in full")
+        pilot = BayesianFit(**self.bayes).fit(read(a, b))
+        self.pilot_, self.pilot_rows_ = pilot, (a, b)
+        kin0 = pilot.kinematics_
+        dt = float(np.median(np.diff(kin0.time)))
+        frozen = Frozen(kin0)
+        weight = pilot.n_eff_ / max(kin0.force.size, 1)
+        chosen = [r for r in pilot.results_ if r.posterior is not None and not r.model.shape_names][
+            : self.candidates
+        ]
+        if not chosen:
+            raise FitError("the pilot stretch scored no law; fit a shorter session in full")
+        sums = [_Sums.empty(r.model, r.correction is not None) for r in chosen]
+        half = kin0.window // 2
+        taus = [
+            float(v)
+            for r in chosen
+            for t in r.model.terms
+            if t.memory
+            for k, v in t.shape.items()
+            if k.startswith("tau")
+        ]
+        step = max(self.block_samples, 4 * kin0.window)
+        # a law with memory needs its history; past two blocks of it the read would
+        # outgrow the memory the blocks are there to bound, and the branch is slower
+        # than the pilot can tell apart from a spring anyway
+        warm = half + min(int(np.ceil(MEMORY_WARMUP * max(taus, default=0.0) / dt)), 2 * step)
+        starts = list(range(0, rows, step))
+        progress.stage("summing the session block by block", len(starts))
+        t_first: float | None = None
+        self.skipped_blocks_ = 0
+        for i, s in enumerate(starts):
+            e = min(rows, s + step)
+            block = read(max(0, s - warm), min(rows, e + half))
+            if t_first is None:
+                t_first = float(block.time[0])
+            first = max(0, s - warm)
+            lo = float(block.time[s - first])
+            hi = float(block.time[e - first]) if e < rows else np.inf  # the next block's
+            try:
+                self._add(block, frozen, pilot.sigma_x_, dt, t_first, lo, hi, e >= rows, sums)
+            except FitError:
+                self.skipped_blocks_ += 1
+            progress.advance(i + 1, len(starts))
+        self._score(sums, pilot, weight)
+        return self
+
+    def _add(
+        self,
+        block: Session,
+        frozen: Frozen,
+        sigma_x: float,
+        dt: float,
+        t_first: float,
+        lo: float,
+        hi: float,
+        last: bool,
+        sums: list[_Sums],
+    ) -> None:
+        """Add one block's filtered samples with grid times in [lo, hi) (all to its end
+        for the last block) to every candidate's sums."""
+        t, x, f = block.time, block.position, block.force
+        ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(f)
+        if np.count_nonzero(ok) < 2:
+            raise FitError("block without finite samples")
+        t, x, f = t[ok], x[ok], f[ok]
+        # the whole session's grid, so that blocks meet without a seam
+        k0 = int(np.ceil((t[0] - t_first) / dt - 1e-6))
+        k1 = int(np.floor((t[-1] - t_first) / dt + 1e-6))
+        grid = t_first + dt * np.arange(k0, k1 + 1)
+        after = np.clip(np.searchsorted(t, grid, side="right"), 1, t.size - 1)
+        valid = (t[after] - t[after - 1]) <= 2.0 * dt + 1e-12
+        gx, gf = np.interp(grid, t, x), np.interp(grid, t, f)
+        kin = frozen(grid, gx, gf, valid)
+        counted = (kin.time >= lo - 0.5 * dt) & ((kin.time < hi - 0.5 * dt) | last)
+        if not np.any(counted):
+            return
+        y = kin.force[counted]
+        columns: dict[str, Array] = {}
+        for s in sums:
+            A = design(s.law, kin, gx, sigma_x, columns)[counted]
+            s.G += A.T @ A
+            s.b += A.T @ y
+            s.yy += float(y @ y)
+            s.n += int(y.size)
+            if s.correction is not None:
+                # the noise correction is a sum over samples too; each block's share
+                # scales with the samples it counts
+                s.correction += eiv_correction(s.law, kin, gx, sigma_x) * (
+                    y.size / max(kin.time.size, 1)
+                )
+
+    def _score(self, sums: list[_Sums], pilot: BayesianFit, weight: float) -> None:
+        rng = np.random.default_rng(pilot.seed)
+        results = []
+        for s in sums:
+            if s.n <= len(s.law.terms):
+                continue
+            G = s.G - s.correction if s.correction is not None else s.G
+            st = SufficientStats(weight * G, weight * s.b, weight * s.yy, weight * s.n)
+            prior = law_prior(s.law, pilot.scales_)
+            post = ExactPosterior(st, prior).bounded(rng, CUT_THRESHOLD)
+            beta = np.linalg.lstsq(s.G, s.b, rcond=None)[0]
+            rss = max(s.yy - 2 * float(s.b @ beta) + float(beta @ s.G @ beta), 0.0)
+            results.append(
+                ModelResult(
+                    model=s.law,
+                    ln_evidence=post.ln_evidence,
+                    posterior=post,
+                    cond=float(np.linalg.cond(s.G)),
+                    residual_rms=float(np.sqrt(rss / s.n)),
+                    gram=s.G,
+                    correction=s.correction,
+                    stats=st,
+                    prior=prior,
+                )
+            )
+        if not results:
+            raise FitError("no block of the session could be filtered; fit it in full")
+        ln_z = np.array([r.ln_evidence for r in results])
+        if not np.all(np.isfinite(ln_z)):
+            raise FitError("a streamed evidence is not finite; fit a shorter stretch in full")
+        prob = np.exp(ln_z - ln_z.max())
+        prob /= prob.sum()
+        for r, p in zip(results, prob, strict=True):
+            r.probability = float(p)
+        results.sort(key=lambda r: -r.ln_evidence)
+        self.results_ = results
+        self.best_ = results[0]
+        self.n_samples_ = max(s.n for s in sums)
+        self.n_eff_ = weight * self.n_samples_
+        self.warnings_ = list(pilot.warnings_)
