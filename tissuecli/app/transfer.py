@@ -4,7 +4,9 @@ programs' HDF5 and TDMS) and HDF5 files."""
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -144,6 +146,44 @@ def export_csv(
     s = read_session(path, session)
     write_csv(csv_path, s, written)
     return s
+
+
+#: the fewest bytes a row of a text table takes (``0,1,2`` and a line end): a file
+#: smaller than this many bytes a row holds fewer rows than a limit
+MIN_ROW_BYTES = 6
+
+
+def may_hold_more_rows(path: str | os.PathLike[str], rows: int) -> bool:
+    """Whether a recording of another logger may hold more than ``rows`` rows (from its
+    size alone; a tissuecli session file is never one)."""
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        return False
+    return size > rows * MIN_ROW_BYTES and not is_session_file(path)
+
+
+@contextmanager
+def staged_recording(
+    path: str | os.PathLike[str],
+    session: str | None = None,
+    **reading: object,
+) -> Iterator[tuple[str, str]]:
+    """Another logger's recording stored block by block in a temporary HDF5 file, as
+    ``import`` stores it (bounded memory whatever its length), so that a fit can read
+    it by row range; the file is removed on leaving.
+
+    Yields
+    ------
+    h5, name : str
+        The temporary file and the session's name in it (``session``, else the sheet's
+        or the file's name).
+    """
+    with tempfile.TemporaryDirectory(prefix="tissuecli-") as work:
+        h5 = os.path.join(work, "staged.h5")
+        options = {k: v for k, v in reading.items() if v is not None}
+        imported, _ = import_recording(path, h5, session, **options)  # type: ignore[arg-type]
+        yield h5, imported.name
 
 
 def load_session(
