@@ -166,7 +166,8 @@ def fit(
     offset, friction) from a session, choosing among the candidate laws by evidence.
 
     FILES are tissuecli HDF5 files, or any recording `import` reads (text table,
-    .mat, .npz), read on the fly with --columns, --units, --jaw-length and --rate;
+    spreadsheet sheet, .mat, .npz, other programs' HDF5 and TDMS), read on the fly
+    with --columns, --units, --jaw-length, --rate and --sheet;
     folders and patterns ('data/**/*.h5') name every file in them. Several
     sessions are fitted in parallel (--jobs, or --scheduler for a Dask cluster)
     into a catalogue (--catalogue); a session already there with the same
