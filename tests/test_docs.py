@@ -12,10 +12,9 @@ output (slow blocks included) with what the code prints now.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -113,36 +112,59 @@ def test_slow_console_outputs_are_what_the_commands_print(name: str, tmp_path: P
     _check_page(name, tmp_path, slow=True)
 
 
+#: runs a page's Python blocks in order in one namespace in a fresh process (so that
+#: what `import tissuecli` loads is what a user's process loads), each block's stdout
+#: kept apart
+DRIVER = """
+import contextlib, io, json, sys
+blocks = json.load(open(sys.argv[1], encoding="utf-8"))
+namespace, outputs = {"__name__": "__main__"}, []
+for source, where in blocks:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(source, where, "exec"), namespace)
+    outputs.append(out.getvalue())
+json.dump(outputs, open(sys.argv[2], "w", encoding="utf-8"))
+"""
+
+
 @pytest.mark.parametrize("name", PYTHON)
-def test_python_examples_print_what_is_quoted(
-    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_python_examples_print_what_is_quoted(name: str, tmp_path: Path) -> None:
     """The Python blocks of a page run in order in one namespace, and each prints the
     ```text block that follows it."""
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setenv("COLUMNS", "100")
     doc = PAGES[name]
     blocks = db.blocks(doc)
-    namespace: dict[str, object] = {}
+    runs = [
+        (block, after)
+        for block, after in zip(blocks, [*blocks[1:], None], strict=False)
+        if db.kind(block) == "python"
+    ]
+    (tmp_path / "blocks.json").write_text(
+        json.dumps([["\n".join(b.body), b.where] for b, _ in runs]), encoding="utf-8"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", DRIVER, "blocks.json", "outputs.json"],
+        cwd=tmp_path,
+        env=db.environment(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    assert done.returncode == 0, f"{db.rel(doc)}: an example failed:\n{done.stderr[-3000:]}"
+    outputs = json.loads((tmp_path / "outputs.json").read_text(encoding="utf-8"))
     failures: list[str] = []
     rewrites = db.Rewrites()
-    for block, after in zip(blocks, [*blocks[1:], None], strict=False):
-        if db.kind(block) != "python":
-            continue
-        out = io.StringIO()
-        with contextlib.redirect_stdout(out):
-            exec(compile("\n".join(block.body), block.where, "exec"), namespace)  # noqa: S102
+    for (_, after), printed in zip(runs, outputs, strict=True):
         if after is None or db.kind(after) != "output":
             continue
-        actual = db.lines_of(out.getvalue())
+        actual = db.lines_of(printed)
         opts = db.options(after)
         bad = db.compare(after.body, actual, opts["tol"], opts["vary"])
         if db.UPDATE and bad is not None:  # a quote that still matches is kept
             new = db.elide(after.body, actual)
             if new != after.body:
                 rewrites.replace(doc, after.first, len(after.body), new)
-            continue
-        if bad is not None and not db.UPDATE:
+        elif bad is not None:
             failures.append(f"{db.rel(doc)}:{after.first + bad[0]}: {bad[1]}")
     rewrites.write()
     assert not failures, (
