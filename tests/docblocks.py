@@ -41,8 +41,8 @@ UPDATE = os.environ.get("TISSUECLI_UPDATE_DOCS", "") not in ("", "0")
 #: relative tolerance of numbers, unless a block says otherwise
 DEFAULT_TOL = 0.02
 
-FENCE = re.compile(r"^(`{3,})([\w+-]*)\s*$")
-MARK = re.compile(r"^<!--\s*([\w-]+)\s*:?\s*(.*?)\s*-->\s*$")
+FENCE = re.compile(r"^( *)(`{3,})([\w+-]*)\s*$")
+MARK = re.compile(r"^\s*<!--\s*([\w-]+)\s*:?\s*(.*?)\s*-->\s*$")
 NUMBER = re.compile(r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?")
 #: lines of a bare block that are commands: a program, a continuation, a comment
 COMMAND = re.compile(
@@ -60,6 +60,11 @@ class Block:
     lang: str
     body: list[str]
     marks: dict[str, str] = field(default_factory=dict)
+    indent: str = ""  # a fence inside a list item is indented; its lines too
+
+    def indented(self, lines: list[str]) -> list[str]:
+        """Lines as written back into the page, at the block's indent."""
+        return [self.indent + line if line else line for line in lines]
 
     @property
     def where(self) -> str:
@@ -91,10 +96,13 @@ def blocks(doc: Path) -> list[Block]:
         while j >= 0 and (mark := MARK.match(lines[j])):
             marks.setdefault(mark.group(1), mark.group(2))
             j -= 1
+        indent, fence = m.group(1), m.group(2)
         end = i + 1
-        while end < len(lines) and lines[end].rstrip() != m.group(1):
+        while end < len(lines) and lines[end].rstrip() != indent + fence:
             end += 1
-        out.append(Block(doc, i + 1, m.group(2), lines[i + 1 : end], marks))
+        body = [line[len(indent) :] if line.startswith(indent) else line
+                for line in lines[i + 1 : end]]  # fmt: skip
+        out.append(Block(doc, i + 1, m.group(3), body, marks, indent))
         i = end + 1
     return out
 

@@ -86,7 +86,7 @@ def _check_page(name: str, work: Path, slow: bool) -> None:
             if db.UPDATE and bad is not None:  # a quote that still matches is kept
                 new = db.elide(step.expected, actual)
                 if new != step.expected:
-                    rewrites.replace(doc, step.line, len(step.expected), new)
+                    rewrites.replace(doc, step.line, len(step.expected), block.indented(new))
                 continue
             if bad is not None and not db.UPDATE:
                 index, why = bad
@@ -163,7 +163,7 @@ def test_python_examples_print_what_is_quoted(name: str, tmp_path: Path) -> None
         if db.UPDATE and bad is not None:  # a quote that still matches is kept
             new = db.elide(after.body, actual)
             if new != after.body:
-                rewrites.replace(doc, after.first, len(after.body), new)
+                rewrites.replace(doc, after.first, len(after.body), after.indented(new))
         elif bad is not None:
             failures.append(f"{db.rel(doc)}:{after.first + bad[0]}: {bad[1]}")
     rewrites.write()
