@@ -11,7 +11,8 @@ row) is written once, then three child processes run one after the other on it:
 ``tissuecli import`` (into a new HDF5 file) and the one behind ``tissuecli sessions`` (on
 that file). Each child loads its libraries (pandas; or tissuecli, which loads h5py and, for a
 text table, pyarrow), then times its one call and reports its peak resident memory
-(``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB). ``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
+(``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB).
+``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
 """
 
 from __future__ import annotations

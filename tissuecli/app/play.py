@@ -48,7 +48,13 @@ from ..hw.stream import Stream
 from ..render.check import GRASP_FORCE_N, CheckResult, check
 from ..render.controller import Controller, Step, tracking_bound
 from ..render.handover import tissue_data, tissue_from_data
-from ..render.profile import PAPER_DISPLAY, DisplayProfile, profile_from_dict
+from ..render.profile import (
+    PAPER_DISPLAY,
+    DisplayProfile,
+    clamp_volts,
+    exceeded_limits,
+    profile_from_dict,
+)
 
 if TYPE_CHECKING:
     from ..formats.playlog import PlayLog
@@ -316,6 +322,7 @@ def play(
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``commands_sent``,
+        ``clamped_commands`` (brought within [0, v_max] before sending),
         ``actuator_work_j``, ``realtime`` (what :func:`~tissuecli.hw.realtime.elevate`
         obtained), ``check`` and more; ``faults`` (what went wrong, see
         :func:`play_faults`; empty for a good play) and ``verdict`` (``"as checked"``
@@ -527,13 +534,23 @@ def _open_display(
                 f"the display at {url} runs its loop at {device_rate:g} Hz; "
                 f"pass --rate {device_rate:g}"
             )
+        reported = info.get("profile")
+        limits = (
+            profile_from_dict(reported, source=f"profile reported by {url}")
+            if isinstance(reported, Mapping)
+            else None
+        )
         if profile is None:
-            reported = info.get("profile")
-            profile = (
-                profile_from_dict(reported, source=f"profile reported by {url}")
-                if isinstance(reported, Mapping)
-                else PAPER_DISPLAY
-            )
+            profile = limits if limits is not None else PAPER_DISPLAY
+        elif limits is not None:
+            # the display's own limits rule: a file may ask less, never more
+            over = exceeded_limits(profile, limits)
+            if over:
+                raise DeviceError(
+                    f"--profile asks more than the display at {url} reports: "
+                    + "; ".join(over)
+                    + "; lower them to the display's, or give no --profile"
+                )
         return link, info, profile
     except BaseException:
         link.close()
@@ -565,11 +582,15 @@ class _Player:
         self.figures = PlayFigures()
         self.volts = 0.0
         self.sent = 0
+        self.clamped = 0  # commands clamped to [0, v_max] before sending
         self.missed = self.misses_in_row = 0
         self.last_clock: int | None = None
         self.elapsed = 0.0  # display clock since the first frame, s
 
     def send(self, value: float) -> None:
+        # every command within the limits the display reported (or a lower --profile)
+        value, clamped = clamp_volts(value, self.profile.v_max)
+        self.clamped += clamped
         self.link.send(SetVoltage(self.sent & 0xFFFFFFFF, value))
         self.sent += 1
 
@@ -702,6 +723,7 @@ class _Player:
             "frames_lost": stream.seqs.lost,
             "frames_bad": self.link.decoder.bad_frames,
             "missed_periods": self.missed,
+            "clamped_commands": self.clamped,
             **figures,
         }
 

@@ -98,13 +98,19 @@ def simulate_display(
     duration_s: float | None = None,
     on_ready: Callable[[VirtualPort], None] | None = None,
     say: Callable[[str], None] | None = None,
+    load_kg: float = 0.0,
+    reports: StrPath | None = None,
 ) -> dict[str, Any]:
     """Run the simulated display until SIGINT/SIGTERM (or ``duration_s``); see
     :func:`tissuecli.sim.display.run_simulated_display`. ``profile`` is a display
-    profile file (the paper's prototype otherwise)."""
+    profile file (the paper's prototype otherwise); ``reports`` the profile file it
+    answers to IDENTIFY (``profile`` by default); ``load_kg`` a reference mass resting
+    on the piston in place of the finger."""
     return run_simulated_display(
         link,
         profile=read_profile(profile) if profile else None,
+        reports=read_profile(reports) if reports else None,
+        load_kg=load_kg,
         rate_hz=rate_hz,
         seed=seed,
         duration_s=duration_s,

@@ -132,20 +132,46 @@ def simulate_forceps(
 @rate_option("Control-loop rate in Hz.")
 @seed_option("Seed of the operator's presses.")
 @duration_option("Exit after this many seconds (default: run until Ctrl-C or SIGTERM).")
+@click.option(
+    "--load",
+    "load",
+    default=None,
+    help="A reference mass resting on the piston instead of the finger (e.g. 200g), "
+    "for `tissuecli calibrate display`.",
+)
+@click.option(
+    "--reports",
+    "reports_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Display profile JSON it answers to IDENTIFY (default: the one it runs): "
+    "stored constants that are not its true ones.",
+)
 def simulate_display(
-    link: str | None, profile_file: str | None, rate: float, seed: int, duration: float | None
+    link: str | None,
+    profile_file: str | None,
+    rate: float,
+    seed: int,
+    duration: float | None,
+    load: str | None,
+    reports_file: str | None,
 ) -> None:
     """A simulated solenoid display: piston, spring, solenoid, encoder and a pressing finger.
 
     It prints its port, then sends an Encoder frame every period to whoever opens
     it and sends START, and applies the SetVoltage frames it receives. With no
     SetVoltage for 5 periods it switches the solenoid off (watchdog). The finger
-    presses 1-2.5 N a few times per 10 s. Stop it with Ctrl-C or SIGTERM.
+    presses 1-2.5 N a few times per 10 s (with --load, a mass rests on the piston
+    instead). Stop it with Ctrl-C or SIGTERM.
 
     \b
-    Example:
+    Examples:
         tissuecli simulate display --link /tmp/display &
+        tissuecli simulate display --link /tmp/display --profile true.json --load 200g &
     """
+    from ..app.calibrate import parse_mass
+
+    load_kg = parse_mass(load, "--load") if load is not None else 0.0
     from ..app.simulate import simulate_display as run
 
     counters = run(
@@ -158,6 +184,8 @@ def simulate_display(
             port, f"simulated display at {rate:g} Hz, operator seed {seed}; Ctrl-C to stop"
         ),
         say=lambda line: click.echo(line, err=True),
+        load_kg=load_kg,
+        reports=reports_file,
     )
     click.echo(
         f"stopped: {counters['sent']} frames sent, {counters['commands']} SetVoltage received, "

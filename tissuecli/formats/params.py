@@ -521,11 +521,13 @@ def calibration_from_file_dict(data: Mapping[str, Any], source: str) -> Calibrat
     sc.keys(
         data,
         (),
-        ("format", "version", "software", "note", "force", "position"),
+        ("format", "version", "software", "note", "force", "position", "fit"),
         required=("force", "position"),
     )
     if "note" in data:
         sc.typed(data, ("note",), str)
+    if "fit" in data:  # how tissuecli calibrate forceps fitted it: for people, not used
+        sc.typed(data, ("fit",), dict)
     for name, (g_lo, g_hi, o_hi) in CALIBRATION_RANGES.items():
         entry = sc.typed(data, (name,), dict)
         sc.keys(entry, (name,), ("gain", "offset", "unit"), required=("gain",))

@@ -4,6 +4,7 @@ prototype, and the profile as a JSON object (files and the display's IDENTIFY re
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
@@ -31,7 +32,8 @@ class DisplayProfile:
         Encoder resolution, m per count.
     b : float
         Piston viscous damping, N s/m. The paper gives none; 0.5 N s/m (damping
-        ratio 0.05) is an assumption to be replaced by a ring-down measurement.
+        ratio 0.05) is an assumption: ``tissuecli calibrate display`` measures it
+        by ring-downs.
     """
 
     Mp: float = 0.08335
@@ -163,7 +165,8 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
             continue
         entry = data[key]
         if isinstance(entry, Mapping):
-            extra = [k for k in entry if k not in ("value", "unit")]
+            # ci95: the interval a calibration measured, kept for people, not used
+            extra = [k for k in entry if k not in ("value", "unit", "ci95")]
             if extra or "value" not in entry:
                 raise InputError(
                     f'{source}: {key} must be a number or {{"value": number, "unit": "{unit}"}}'
@@ -173,6 +176,13 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
                     f"{source}: {key} is in {_shown(entry['unit'])}; give it in {unit!r}"
                 )
             value = entry["value"]
+            ci = entry.get("ci95")
+            if ci is not None and not (
+                isinstance(ci, list)
+                and len(ci) == 2
+                and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in ci)
+            ):
+                raise InputError(f"{source}: {key}.ci95 must be [low, high] in {unit}")
         else:
             value = entry
         if not isinstance(value, (int, float)) or isinstance(value, bool):
@@ -184,3 +194,50 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "display profile") 
         return replace(PAPER_DISPLAY, **values).validate()
     except InputError as exc:
         raise InputError(str(exc).replace("display profile", source, 1)) from None
+
+
+#: Relative slack when a profile's limits are compared with a display's (float32 and
+#: decimal round trips of the same number).
+LIMIT_SLACK = 1e-6
+
+
+def exceeded_limits(asked: DisplayProfile, reported: DisplayProfile) -> list[str]:
+    """Where ``asked`` (a ``--profile``) asks more of the display than it reports.
+
+    The display's amplifier limit ``v_max``, its piston's ``stroke`` and its largest
+    pull ``alpha v_max^2`` bound every command: a profile above any of them would let
+    the host command more than the hardware allows (and judge renderable what is
+    not). Each item names both numbers.
+
+    Returns
+    -------
+    list of str
+        One phrase per limit exceeded, e.g. ``"v_max 100 V > 1.5 V"``; empty if none.
+    """
+    out = []
+    for name, unit, a, r in (
+        ("v_max", "V", asked.v_max, reported.v_max),
+        ("stroke", "m", asked.stroke, reported.stroke),
+        ("force alpha v_max^2", "N", asked.max_pull, reported.max_pull),
+    ):
+        if a > r * (1 + LIMIT_SLACK):
+            out.append(f"{name} {a:.4g} {unit} > {r:.4g} {unit}")
+    return out
+
+
+def clamp_volts(volts: float, v_max: float) -> tuple[float, bool]:
+    """``volts`` within [0, ``v_max``] (NaN read as 0), also once rounded to the float32
+    a SetVoltage frame carries; and whether it was changed."""
+    if not volts == volts or volts < 0.0:
+        return 0.0, True
+    clamped = volts > v_max
+    if clamped:
+        volts = v_max
+    if _float32(volts) > v_max:  # the frame's float32 would round above the limit
+        bits = struct.unpack("<I", struct.pack("<f", volts))[0] - 1
+        volts = struct.unpack("<f", struct.pack("<I", bits))[0]
+    return volts, clamped
+
+
+def _float32(value: float) -> float:
+    return float(struct.unpack("<f", struct.pack("<f", value))[0])

@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 from .._version import __version__
@@ -42,6 +43,10 @@ from .synth import CLOCK_HZ
 #: The display zeroes the voltage after this many periods without a valid SetVoltage
 #: (docs/protocol.md, section 7).
 WATCHDOG_PERIODS = 5
+#: Heaviest reference mass the simulated piston carries, kg.
+MAX_LOAD_KG = 5.0
+#: Standard gravity, m/s^2.
+G = 9.80665
 
 
 def display_info(profile: DisplayProfile, rate_hz: float) -> dict[str, Any]:
@@ -68,6 +73,8 @@ def simulate_display(
     duration_s: float | None = None,
     on_ready: Callable[[VirtualPort], None] | None = None,
     say: Callable[[str], None] | None = None,
+    load_kg: float = 0.0,
+    reports: DisplayProfile | None = None,
 ) -> dict[str, Any]:
     """Run the simulated display's firmware until ``stop`` is set (or ``duration_s``).
 
@@ -98,16 +105,32 @@ def simulate_display(
         Called with the port once it exists.
     say : callable, optional
         Receives one line when the watchdog trips (once per trip).
+    load_kg : float
+        A reference mass resting on the piston instead of the finger, kg (its
+        weight pushes down, and it moves with the piston): the load of
+        ``tissuecli calibrate display``.
+    reports : DisplayProfile, optional
+        The profile it answers to IDENTIFY (``profile`` by default): a display whose
+        stored constants are not its true ones.
 
     Returns
     -------
     dict
         Counters: ``sent`` Encoder frames, ``commands`` valid SetVoltage frames,
         ``last_command_volts`` (the last SetVoltage's value, V, or None),
+        ``max_command_volts`` (the largest SetVoltage value received, V, or None),
         ``watchdog_trips``, ``bad_frames``, ``missed_deadlines``, ``overrun_bytes``.
     """
     stop = stop if stop is not None else StopFlag()
-    fw = _Firmware(profile, port, rate_hz, operator or OperatorForce(), say)
+    if load_kg > 0:
+        weight = load_kg * G
+
+        def operator(t: float) -> float:
+            return weight
+
+    fw = _Firmware(
+        profile, port, rate_hz, operator or OperatorForce(), say, load_kg, reports or profile
+    )
     for t in (0.0, 1.0, 2.0):
         fw.operator(t)  # first calls build the presses' random generator: not inside a tick
     clock = Deadlines(fw.period)
@@ -126,6 +149,7 @@ def simulate_display(
         "sent": fw.sent,
         "commands": fw.commands,
         "last_command_volts": fw.last_command,
+        "max_command_volts": fw.max_command,
         "watchdog_trips": fw.trips,
         "bad_frames": fw.decoder.bad_frames,
         "missed_deadlines": clock.missed,
@@ -143,15 +167,21 @@ class _Firmware:
         rate_hz: float,
         operator: Callable[[float], float],
         say: Callable[[str], None] | None,
+        load_kg: float = 0.0,
+        reports: DisplayProfile | None = None,
     ) -> None:
         self.profile, self.port, self.operator, self.say = profile, port, operator, say
+        # a mass resting on the piston moves with it
+        self.plant = replace(profile, Mp=profile.Mp + load_kg) if load_kg > 0 else profile
+        self.loaded = load_kg > 0
         self.period = 1.0 / rate_hz
         self.decoder = FrameDecoder()
-        self.info = encode(Info(display_info(profile, rate_hz)))
+        self.info = encode(Info(display_info(reports or profile, rate_hz)))
         self.x = self.v = self.volts = 0.0
         self.at_limit = self.streaming = self.armed = self.tripped = False
         self.seq = self.sent = self.commands = self.trips = 0
         self.last_command: float | None = None
+        self.max_command: float | None = None
         self.k_start = 0
         # Simulated time, the clock field and the watchdog all count ticks the firmware
         # ran: a real display's microcontroller never skips one, while this process can
@@ -168,6 +198,8 @@ class _Firmware:
                     value = float(msg.volts)
                     self.volts = min(max(value, 0.0), self.profile.v_max) if value == value else 0.0
                     self.last_command, self.tick_command = value, self.ticks_run
+                    if value == value and (self.max_command is None or value > self.max_command):
+                        self.max_command = value
                     self.commands += 1
                     self.armed, self.tripped = True, False
             elif isinstance(msg, Command):
@@ -211,9 +243,9 @@ class _Firmware:
     def advance(self) -> None:
         """Integrate the piston over one period, voltage held."""
         t = (self.ticks_run - self.k_start) * self.period
-        force = self.operator if self.streaming else _no_force
+        force = self.operator if self.streaming or self.loaded else _no_force
         self.x, self.v, self.at_limit = piston_step(
-            self.profile, self.x, self.v, self.volts, force, t, self.period
+            self.plant, self.x, self.v, self.volts, force, t, self.period
         )
 
 
@@ -230,6 +262,8 @@ def run_simulated_display(
     duration_s: float | None = None,
     on_ready: Callable[[VirtualPort], None] | None = None,
     say: Callable[[str], None] | None = None,
+    load_kg: float = 0.0,
+    reports: DisplayProfile | None = None,
 ) -> dict[str, Any]:
     """A simulated display as a process runs it: a port (symlinked at ``link``),
     SIGINT/SIGTERM for a clean stop, and the firmware loop.
@@ -250,6 +284,10 @@ def run_simulated_display(
         Called with the port once it exists (print its name here).
     say : callable, optional
         Receives watchdog messages; stderr by default.
+    load_kg : float
+        A reference mass resting on the piston instead of the finger, kg.
+    reports : DisplayProfile, optional
+        The profile it answers to IDENTIFY (``profile`` by default).
 
     Returns
     -------
@@ -258,6 +296,8 @@ def run_simulated_display(
     """
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise InputError(f"--rate {rate_hz} must be a positive number of Hz")
+    if not (0 <= load_kg <= MAX_LOAD_KG):
+        raise InputError(f"--load {load_kg:g} kg must be between 0 and {MAX_LOAD_KG:g} kg")
     stop = StopFlag().install()
     port = VirtualPort(link)
     if say is None:
@@ -275,6 +315,8 @@ def run_simulated_display(
             duration_s=duration_s,
             on_ready=on_ready,
             say=say,
+            load_kg=load_kg,
+            reports=reports.validate() if reports is not None else None,
         )
     finally:
         port.close()

@@ -1,0 +1,169 @@
+"""A fixed-seed slice of the generalisation benchmark and of the protocol stress suite
+(benchmarks/generalisation.py, benchmarks/protocols.py): a few short scenes each.
+
+Bounds that today's fit does not meet are marked ``xfail`` with the failure seen; they
+are the bounds the fit must hold, kept here so that they turn green when it does."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.stats import binom
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+import generalisation as gen  # noqa: E402
+import protocols as prot  # noqa: E402
+
+from tissuecli.core.errors import FitError  # noqa: E402
+from tissuecli.identify import BayesianFit  # noqa: E402
+from tissuecli.sim.protocols import random_protocol  # noqa: E402
+from tissuecli.sim.scenes import FAMILIES, random_scene  # noqa: E402
+
+PAPER = [f for f in FAMILIES if f.startswith("paper")]
+
+
+@pytest.fixture(scope="module")
+def paper_rows() -> list[gen.Row]:
+    """Three short paper-form scenes (continuous contact and grasps), fitted both ways."""
+    rows: list[gen.Row] = []
+    for seed in (0, 1, 2):
+        scene = random_scene(seed, families=PAPER, max_samples=2000, duration_s=4.0)
+        rows += gen.run_scene(scene, seed=seed)
+    return rows
+
+
+def test_paper_scenes_are_fitted_and_scored(paper_rows):
+    fits = [r for r in paper_rows if r.fit in gen.FITS]
+    assert len(fits) == 6
+    assert not [r.refused for r in fits if r.refused]
+    assert all(np.isfinite(r.ratio) and r.ratio > 0 for r in paper_rows)
+    assert not [r.evidence for r in fits if r.evidence]
+
+
+def test_the_default_is_right_at_least_as_often_as_the_four_form_reference(paper_rows):
+    right = {k: sum(r.right for r in paper_rows if r.fit == k) for k in gen.FITS}
+    assert right["default"] >= right["paper"], right
+
+
+def test_the_reference_intervals_cover_at_their_nominal_rate():
+    """The four-form reference on the law it chose right: its 95 % intervals hold the
+    truth as often as a binomial count of that many intervals at 0.95 does, but for
+    one run in a thousand (intervals of one scene are correlated, so this is lenient
+    only if anything)."""
+    inside: list[bool] = []
+    for seed in range(100, 124):
+        scene = random_scene(seed, families=PAPER, max_samples=2500, contact="continuous")
+        fitted, _, _ = gen.split(scene.session)
+        try:
+            est = BayesianFit("paper", seed=seed).fit(fitted)
+        except FitError:  # a refusal is a failure of its own (see the test below)
+            continue
+        if scene.right(gen.chosen_law(est)):
+            inside += gen.intervals(est, scene)[0]
+    n = len(inside)
+    assert n >= 45
+    lo, hi = binom.ppf(0.0005, n, 0.95), binom.ppf(0.9995, n, 0.95)
+    assert lo <= sum(inside) <= hi, (sum(inside), n)
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="quantised noisy continuous contact is refused: 'no grasp stands above the "
+    "free-jaw force', or 'only N filtered samples have a window free of lost, clipped or "
+    "out-of-contact samples'",
+)
+def test_noisy_quantised_continuous_contact_is_never_refused():
+    """8 bits, 10 % noise, an x^3 law near zero at small closure, continuous contact."""
+    for seed in range(4):
+        scene = random_scene(seed, families=["paper x^3+xdot"], bits=8, noise_frac=0.1,
+                             rate_hz=250.0 + 500.0 * seed, contact="continuous",
+                             max_samples=3000)  # fmt: skip
+        BayesianFit(forms="paper").fit(scene.session)
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="predict gives the filtered force and starts relaxation from rest at the "
+    "held-out part: held-out error 2-20x the Savitzky-Golay noise floor",
+)
+def test_held_out_prediction_comes_within_half_again_the_noise_floor():
+    for seed, family in ((3, "one branch"), (4, "friction")):
+        scene = random_scene(seed, families=[family], max_samples=3000, contact="continuous")
+        rows = gen.run_scene(scene, fits=("default",), seed=seed)
+        assert rows[0].ratio <= 1.5, (family, rows[0].ratio)
+
+
+# -- protocols -------------------------------------------------------------------------
+
+#: moderate settings: SI units, 200 Hz, 1000 samples, 1 % noise, a 2 mm stroke
+MODERATE = {"rate_hz": 200.0, "force_unit": 1.0, "length_unit": 1.0, "noise_frac": 0.01,
+            "amplitude_m": 2e-3, "stiffness": 350.0, "quantisation": "float64",
+            "max_samples": 1000}  # fmt: skip
+
+
+def _holds(outcome: prot.Outcome) -> list[str]:
+    """The bounds of a Must-hold protocol that ``outcome`` breaks (time apart)."""
+    broken = []
+    if outcome.refused:
+        return [f"refused: {outcome.refused}"]
+    if outcome.evidence:
+        broken.append(f"evidence: {outcome.evidence}")
+    if not outcome.within:
+        broken.append(f"terms beyond the truth: {outcome.law}")
+    if not outcome.k_ok:
+        broken.append(f"K off by {outcome.k_error:.3g}")
+    return broken
+
+
+def test_a_triangle_cycle_holds_every_bound():
+    o = prot.fit_protocol(random_protocol(5, "triangle viscoelastic", **MODERATE))
+    assert not _holds(o), _holds(o)
+
+
+def test_a_sine_sweep_is_recovered():
+    o = prot.fit_protocol(random_protocol(6, "sine sweep", **MODERATE))
+    assert not _holds(o) and o.right, (o.law, _holds(o))
+
+
+def test_a_constant_speed_ramp_with_an_offset_holds_every_bound():
+    """Its damping column is one with the offset, which the truth has."""
+    o = prot.fit_protocol(random_protocol(7, "ramp offset", **MODERATE))
+    assert not _holds(o), _holds(o)
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="on a constant speed the candidate laws all carry a damping column, one with "
+    "an offset the truth lacks; at other scales contact+maxwell+sign(xdot) laws get ln Z "
+    "of 1e5-1e20",
+)
+@pytest.mark.parametrize("name", ["ramp linear", "ramp stiffening"])
+def test_constant_speed_ramps_hold_every_bound(name):
+    o = prot.fit_protocol(random_protocol(7, name, **MODERATE))
+    assert not _holds(o), _holds(o)
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="ramp-and-hold of a standard linear solid: a damper or a second branch is "
+    "added (P 0.58-0.86)",
+)
+def test_ramp_and_hold_of_a_standard_linear_solid_holds_every_bound():
+    o = prot.fit_protocol(random_protocol(8, "ramp-hold SLS", **MODERATE))
+    assert not _holds(o), _holds(o)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="constant-speed ramps break the evidence (ln Z ~1e20)")
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31), name=st.sampled_from(list(prot.PROTOCOLS)))
+def test_no_protocol_gives_an_impossible_evidence(seed, name):
+    """Over the whole stress space: every ln Z finite and within 20 nats per sample."""
+    o = prot.fit_protocol(random_protocol(seed, name, max_samples=4000))
+    assert not o.evidence, o.evidence
