@@ -65,9 +65,7 @@ def test_the_plots_are_written_as_files_in_the_format_asked(exported) -> None:
     _, root = exported
     files = sorted((root / "plots").iterdir())
     names = [f.name for f in files]
-    assert {"plot-time.svg", "plot-loop.svg", "plot-residuals.svg", "plot-corner.svg"} <= set(
-        names
-    )
+    assert {"plot-time.svg", "plot-loop.svg", "plot-residuals.svg", "plot-corner.svg"} <= set(names)
     for f in files:
         assert f.read_bytes().startswith(MAGIC["svg"]), f
 

@@ -181,7 +181,8 @@ def record(
         "forceps",
         baudrate=baudrate,
         require_info=calibration is None,
-        no_info_hint="; for a forceps that streams without identifying, give --calibration FILE",
+        no_info_hint="; for a forceps that streams without identifying, give --calibration FILE"
+        "; for a logger that prints lines of text, --protocol text",
         uses_calibration=calibration is None,
     )
     try:
@@ -557,6 +558,7 @@ def record_live(
     on_status: Callable[[RecordStatus], None] | None = None,
     on_samples: Callable[[SampleBlock], None] | None = None,
     status_interval_s: float = 0.5,
+    recorder: Callable[..., RecordResult] | None = None,
     **options: Any,
 ) -> RecordResult:
     """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
@@ -567,7 +569,8 @@ def record_live(
     memory; the pages are served from another process, which ends with this one. The
     view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
-    and once at the end.
+    and once at the end. ``recorder`` records (:func:`record` by default; a text
+    logger's is :func:`tissuecli.app.record_text.record_text`).
     Other parameters as :func:`record`.
     """
     from ..live.server import LiveServer, parse_address
@@ -598,7 +601,7 @@ def record_live(
         with LiveServer(state, host, port) as server:
             on_url(server.url)
             try:
-                return record(
+                return (recorder or record)(
                     url,
                     out,
                     session,

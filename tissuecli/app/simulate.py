@@ -14,6 +14,7 @@ from ..sim.display import run_simulated_display
 from ..sim.forceps import Faults, run_forceps
 from ..sim.port import VirtualPort
 from ..sim.synth import ForcepsModel, Sensors
+from ..sim.textlogger import TextLogger, run_text_logger
 
 StrPath = str | os.PathLike[str]
 
@@ -117,3 +118,79 @@ def simulate_display(
         on_ready=on_ready,
         say=say,
     )
+
+
+def simulate_text_logger(
+    link: StrPath | None = None,
+    *,
+    params: StrPath | None = None,
+    rate_hz: float = 1000.0,
+    adc_bits: int = 12,
+    force_noise_n: float = 0.005,
+    position_noise_m: float = 5e-6,
+    line_format: str = "csv",
+    stamps: str = "us",
+    header_every_s: float = 1.0,
+    jitter: float = 0.2,
+    broken: float = 0.001,
+    drift_ppm: float = 0.0,
+    clock_start: int = 0,
+    seed: int = 0,
+    duration_s: float | None = None,
+    on_ready: Callable[[VirtualPort, Tissue], None] | None = None,
+) -> dict[str, int]:
+    """Run a simulated plain-text logger until SIGINT/SIGTERM (or ``duration_s``).
+
+    Parameters
+    ----------
+    line_format : {"csv", "plotter", "teleplot"}
+        How lines are written (:class:`~tissuecli.sim.textlogger.TextLogger`).
+    stamps : {"us", "ms", "none"}
+        The device stamp printed on each line.
+    header_every_s : float
+        Print the csv header first and again this often, s; 0 for none.
+    jitter : float
+        The loop samples up to this fraction of a period late.
+    broken : float
+        Probability that a line is broken on the way.
+    clock_start : int
+        The device counter at the first sample (near 2**32 to see it wrap).
+    Others
+        As :func:`simulate_forceps`.
+
+    Returns
+    -------
+    dict
+        ``sent`` lines, ``broken`` among them, ``overrun_bytes``.
+    """
+    tissue = read_tissue(params) if params else DEFAULT_TISSUE
+    model = ForcepsModel(
+        tissue=tissue,
+        rate_hz=rate_hz,
+        drift_ppm=drift_ppm,
+        seed=seed,
+        sensors=Sensors(
+            bits=adc_bits, force_noise_n=force_noise_n, position_noise_m=position_noise_m
+        ),
+    )
+    logger = TextLogger(
+        model,
+        format=line_format,
+        stamps=stamps,
+        header_every_s=header_every_s,
+        jitter=jitter,
+        broken=broken,
+        clock_start=clock_start,
+    )
+    stop = StopFlag().install()
+    port = VirtualPort(link)
+    try:
+        return run_text_logger(
+            logger,
+            port,
+            stop=stop,
+            duration_s=duration_s,
+            on_ready=(lambda p: on_ready(p, tissue)) if on_ready is not None else None,
+        )
+    finally:
+        port.close()

@@ -71,9 +71,16 @@ def units_option(help: str) -> Decorator:
     return click.option("--units", default=None, help=help)
 
 
+<<<<<<< HEAD
 def recording_options() -> Decorator:
     """``--columns``, ``--units``, ``--jaw-length``, ``--rate`` and ``--sheet``: how to read
     another logger's recording (``import``, and ``fit`` of a recording directly)."""
+=======
+def recording_options(rate: bool = True) -> Decorator:
+    """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
+    logger's recording (``import``, and ``fit`` of a recording directly; ``record
+    --protocol text`` without ``--rate``)."""
+>>>>>>> 0f93adca6dd1ed10c43f4e9c28d78e9394ac6b38
 
     def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
         for option in reversed(
@@ -103,6 +110,7 @@ def recording_options() -> Decorator:
                     default=None,
                     help="Sample rate in Hz, for files without a time column.",
                 ),
+<<<<<<< HEAD
                 click.option(
                     "--sheet",
                     default=None,
@@ -110,6 +118,9 @@ def recording_options() -> Decorator:
                     "the only sheet with data; import stores each sheet as a session].",
                 ),
             ]
+=======
+            ][: None if rate else -1]
+>>>>>>> 0f93adca6dd1ed10c43f4e9c28d78e9394ac6b38
         ):
             fn = option(fn)
         return fn

@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from .base import cli, end_live_line, live_line
-from .options import duration_option, h5_out_option, label_options
+from .options import duration_option, h5_out_option, label_options, reading, recording_options
 
 
 def _status_line(session: str, identify: bool) -> Any:
@@ -63,6 +63,37 @@ def _summary(result: Any) -> str:
     )
 
 
+def _text_options(
+    protocol: str, columns: str | None, units: str | None, jaw_length: str | None
+) -> dict[str, Any]:
+    """The text logger's reading options; refused beside the binary protocol."""
+    if protocol != "text":
+        given = [
+            n for n, v in (("columns", columns), ("units", units), ("jaw-length", jaw_length)) if v
+        ]
+        if given:
+            raise click.UsageError(f"--{given[0]} is for --protocol text")
+        return {}
+    options = reading(columns, units, jaw_length, None)
+    del options["rate_hz"]
+    return options
+
+
+def _text_summary(result: Any) -> str:
+    """The line printed after a recording from a text logger."""
+    m = result.meta
+    return (
+        f"saved {result.samples} samples ({result.duration_s:.3f} s at {result.rate_hz:.1f} Hz) "
+        f"to {result.path} session {result.session!r}: "
+        f"{_plural(m.get('lines_received', 0), 'line')} received, "
+        f"{m.get('lines_malformed', 0)} malformed, {result.lost_frames} lost, "
+        f"{m.get('lines_ignored', 0)} ignored, "
+        f"{_plural(m.get('stamps_rejected', 0), 'stamp')} rejected, "
+        f"{_plural(m.get('clock_wraps', 0), 'clock wrap')}; time: {m.get('time_base', '')}; "
+        f"{result.stop_reason}"
+    )
+
+
 def _show_url(url: str) -> None:
     from ..live.server import exposure_warning
 
@@ -88,7 +119,23 @@ def _show_url(url: str) -> None:
     default=None,
     help="Counts-to-SI JSON for devices that do not report one (docs/formats.md).",
 )
-@click.option("--baud", type=int, default=921600, show_default=True, help="Line rate in bit/s.")
+@click.option(
+    "--baud",
+    type=int,
+    default=None,
+    help="Line rate in bit/s [default: 921600 binary, 115200 text].",
+)
+@click.option(
+    "--protocol",
+    type=click.Choice(["binary", "text"]),
+    default="binary",
+    show_default=True,
+    help="binary: tissuecli's framed protocol (docs/protocol.md); text: a logger printing "
+    "lines (t,force,pos with or without a header, Serial Plotter force:1.2 pos:3.4, "
+    "Teleplot >force:1.2), read with --columns, --units, --jaw-length and --calibration "
+    "as import reads files (docs/recording.md).",
+)
+@recording_options(rate=False)
 @click.option(
     "--identify/--no-identify",
     default=True,
@@ -123,7 +170,11 @@ def record(
     tissue: str,
     note: str,
     calibration: str | None,
-    baud: int,
+    baud: int | None,
+    protocol: str,
+    columns: str | None,
+    units: str | None,
+    jaw_length: str | None,
     identify: bool,
     forgetting: float,
     quiet: bool,
@@ -149,6 +200,7 @@ def record(
         tissuecli record --port /tmp/forceps --out grasp.h5 --no-identify
         tissuecli record --port /tmp/forceps --out grasp.h5 --live
         tissuecli record --port /tmp/forceps --out grasp.h5 --live 127.0.0.1:8050
+        tissuecli record --port /dev/ttyACM0 --protocol text --out grasp.h5 --units mm
     """
     from ..hw.realtime import StopFlag
 
@@ -163,10 +215,13 @@ def record(
 
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     status = None if quiet else _status_line(name, identify)
+    text = _text_options(protocol, columns, units, jaw_length)
+    if protocol == "text":
+        from ..app.record_text import record_text as run
     if live is not None:
         from ..app.record import record_live
 
-        run = partial(record_live, live, on_url=_show_url)
+        run = partial(record_live, live, on_url=_show_url, recorder=run)
     try:
         result = run(
             port,
@@ -177,8 +232,9 @@ def record(
             tissue=tissue,
             note=note,
             calibration=read_calibration(calibration) if calibration else None,
-            baudrate=baud,
+            baudrate=baud or (115200 if protocol == "text" else 921600),
             stop=stop,
+            **text,
             on_status=status,
             identify=identify,
             forgetting_s=forgetting,
@@ -186,7 +242,7 @@ def record(
     finally:
         if status is not None:
             end_live_line()
-    click.echo(_summary(result))
+    click.echo(_text_summary(result) if protocol == "text" else _summary(result))
     if identify:
         est = result.estimate
         last = "no estimate (too few samples in contact)" if est is None else est.describe()

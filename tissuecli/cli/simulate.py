@@ -78,6 +78,59 @@ def _announce(port: Any, detail: str) -> None:
 )
 @seed_option("Seed of noise and operator.")
 @duration_option("Exit after this many seconds (default: run until Ctrl-C or SIGTERM).")
+@click.option(
+    "--protocol",
+    type=click.Choice(["binary", "text"]),
+    default="binary",
+    show_default=True,
+    help="binary: the framed protocol (docs/protocol.md); text: a plain-text logger "
+    "printing lines from the start, whoever listens (docs/recording.md).",
+)
+@click.option(
+    "--format",
+    "line_format",
+    type=click.Choice(["csv", "plotter", "teleplot"]),
+    default="csv",
+    show_default=True,
+    help="Text only: t_us,force_N,closure_mm lines; Serial Plotter label:value pairs; "
+    "or Teleplot >name:value lines.",
+)
+@click.option(
+    "--stamps",
+    type=click.Choice(["us", "ms", "none"]),
+    default="us",
+    show_default=True,
+    help="Text only: the device stamp on each line, micros() or millis() (32-bit, "
+    "wrapping), or none.",
+)
+@click.option(
+    "--header-every",
+    type=click.FloatRange(min=0),
+    default=1.0,
+    show_default=True,
+    help="Text only: print the csv header first and again every this many s; 0 for none.",
+)
+@click.option(
+    "--jitter",
+    type=click.FloatRange(0, 0.4),
+    default=0.2,
+    show_default=True,
+    help="Text only: the logger samples up to this fraction of a period late.",
+)
+@click.option(
+    "--broken",
+    type=click.FloatRange(0, 1),
+    default=0.001,
+    show_default=True,
+    help="Text only: probability that a line is broken on the way.",
+)
+@click.option(
+    "--clock-start",
+    type=click.IntRange(0, 2**32 - 1),
+    default=0,
+    show_default=True,
+    help="Text only: the device counter at the first sample (near 4294967295 to see it wrap).",
+)
 def simulate_forceps(
     link: str | None,
     rate: float,
@@ -90,16 +143,65 @@ def simulate_forceps(
     drift_ppm: float,
     seed: int,
     duration: float | None,
+    protocol: str,
+    line_format: str,
+    stamps: str,
+    header_every: float,
+    jitter: float,
+    broken: float,
+    clock_start: int,
 ) -> None:
     """A simulated forceps: an operator squeezing tissue, sensors, an ADC, the wire protocol.
 
     It prints its port, then streams to whoever opens it and sends START.
-    Stop it with Ctrl-C or SIGTERM.
+    With --protocol text it is a plain-text logger instead, printing lines from the
+    start. Stop it with Ctrl-C or SIGTERM.
 
     \b
-    Example:
+    Examples:
         tissuecli simulate forceps --link /tmp/forceps --rate 1000 &
+        tissuecli simulate forceps --link /tmp/logger --protocol text --rate 500 &
     """
+    if protocol == "text":
+        from ..app.simulate import simulate_text_logger
+
+        if corrupt or drop:
+            raise click.UsageError(
+                "--corrupt and --drop are for frames; a text logger breaks lines with --broken"
+            )
+
+        def announce(port: Any, tissue: Any) -> None:
+            _announce(
+                port,
+                f"simulated text logger printing {line_format} lines of {tissue.law.name} "
+                f"tissue at {rate:g} Hz, stamps {stamps}; Ctrl-C to stop",
+            )
+
+        counters = simulate_text_logger(
+            link,
+            params=params_file,
+            rate_hz=rate,
+            adc_bits=adc_bits,
+            force_noise_n=force_noise,
+            position_noise_m=position_noise,
+            line_format=line_format,
+            stamps=stamps,
+            header_every_s=header_every,
+            jitter=jitter,
+            broken=broken,
+            drift_ppm=drift_ppm,
+            clock_start=clock_start,
+            seed=seed,
+            duration_s=duration,
+            on_ready=announce,
+        )
+        click.echo(
+            f"stopped: {counters['sent']} lines printed, {counters['broken']} broken, "
+            f"{counters['skipped']} skipped (starved), {counters['overrun_bytes']} bytes "
+            "nobody read",
+            err=True,
+        )
+        return
     from ..app.simulate import simulate_forceps as run
 
     def ready(port: Any, tissue: Any) -> None:

@@ -1,16 +1,20 @@
 """Terms of the tissue law: ``F = sum_i c_i r_i(x, xdot, xddot)``, one regressor r_i and
 one coefficient c_i per term, in SI units.
 
-Each term is one small class in a registry (:data:`TERMS`), so a new law is a new
-class and touches no fitting, rendering or file code. A term says which kinematic
-variable it reads (``x``, ``v`` for xdot, ``a`` for xddot, or none for a constant),
-the symbol and SI unit of its coefficient, whether the coefficient of a passive
-tissue is non-negative (``passive``), and whether the display renders it (a sensor
-offset is not tissue, so it is not rendered).
+A term is one class in a registry (:data:`TERMS`): a new law is a new class and touches
+no fitting, rendering, report or file code. The class declares everything the rest of
+the program asks of a term: its column (from ``x``, ``xdot``, ``xddot``, or for a term
+with memory from their history on a time base), the symbol and SI unit of its
+coefficient, its display name, whether a passive tissue's coefficient is non-negative,
+its place in a law, its shape parameters with their priors and ranges
+(:class:`ShapeParameter`), whether it has memory and how a simulation continues it,
+how the display renders it or why it refuses it, and what the default structure
+search does with it. :meth:`Law.of` and parameter files look names up here and refuse
+an unknown one.
 
 The paper's four laws are ``x`` or ``x^3`` with ``xdot`` or ``xdot|xdot|``, plus
 ``xddot``; real tissue adds an offset, hardening ``x + x^3``, dry friction
-``sign(xdot)``.
+``sign(xdot)``, Hunt-Crossley contact and relaxation branches.
 """
 
 from __future__ import annotations
@@ -34,13 +38,188 @@ Array = NDArray[np.float64]
 V_SMOOTH = 1e-3
 
 
-class Term(ABC):
-    """One term: a coefficient times a function of one kinematic variable.
+@dataclass(frozen=True)
+class SessionSpan:
+    """What a session lets a shape parameter's prior span: its sample interval ``dt``
+    (s), the cutoff of the filter that formed its kinematics (Hz), its fitted stretch
+    (s), and its closure's low end (2nd percentile) and span (m)."""
 
-    Subclasses set ``name`` (as written in parameter files and ``--forms``),
-    ``symbol`` and ``unit`` (the coefficient's), ``label`` (for reports),
-    ``role``, ``variable`` (``"x"``, ``"v"``, ``"a"`` or ``"1"``), ``passive``
-    (the coefficient is non-negative for a passive tissue) and ``rendered``.
+    dt: float
+    cutoff_hz: float
+    duration_s: float
+    x_low: float
+    x_span: float
+
+
+@dataclass(frozen=True)
+class ShapeParameter:
+    """A nonlinear (shape) parameter a term declares: what it is, its unit, the range a
+    parameter file may give it, and its prior, uniform in ``u`` (its logarithm if ``log``,
+    else the value) over :meth:`prior_range`.
+
+    Attributes
+    ----------
+    kind : str
+        The parameter's name, or its stem where a repeated term numbers it (``tau``:
+        ``tau1``, ``tau2``).
+    unit : str
+        SI unit.
+    meaning : str
+        What it is, in words (reports).
+    limits : (float, float)
+        The values a parameter file may hold, SI.
+    prior : (float, float), optional
+        The prior's support, SI, when it does not depend on the session.
+    log : bool
+        Prior uniform in ln(value) (a scale such as a time constant).
+    nodes, coarse : int
+        Quadrature nodes, and nodes of the coarse grid that only seeds a sampler.
+    """
+
+    kind: str
+    unit: str
+    meaning: str
+    limits: tuple[float, float]
+    prior: tuple[float, float] | None = None
+    log: bool = False
+    nodes: int = 7
+    coarse: int = 5
+
+    def prior_range(self, span: SessionSpan) -> tuple[float, float]:
+        """The prior's support for a session, SI (the fixed ``prior`` unless overridden)."""
+        if self.prior is None:
+            raise NotImplementedError(f"shape parameter {self.kind} needs a prior range")
+        return self.prior
+
+    def nodes_for(self, count: int, coarse: bool = False) -> int:
+        """Quadrature nodes per parameter when a law holds ``count`` of this kind."""
+        return self.coarse if coarse else self.nodes
+
+    def to_u(self, value: float) -> float:
+        """The coordinate the prior is uniform in."""
+        return math.log(value) if self.log else float(value)
+
+    def from_u(self, u: float) -> float:
+        return math.exp(u) if self.log else float(u)
+
+
+@dataclass(frozen=True)
+class TimeConstant(ShapeParameter):
+    """A relaxation time constant: log-uniform between what the filter can resolve and a
+    third of the fitted stretch (and within ``widest``). Above twice the filter's time
+    scale ``1 / (2 pi f_c)`` (a faster branch is a damper to the filtered data) and below
+    a third of the stretch (a slower one is a spring)."""
+
+    kind: str = "tau"
+    unit: str = "s"
+    meaning: str = "relaxation time constant"
+    limits: tuple[float, float] = (1e-4, 1e4)
+    log: bool = True
+    nodes: int = 16
+    coarse: int = 6
+    #: the widest range of time constants searched, s
+    widest: tuple[float, float] = (0.01, 100.0)
+    #: nodes per time constant for one, two and three of them
+    per_count: tuple[int, ...] = (16, 10, 6)
+
+    def prior_range(self, span: SessionSpan) -> tuple[float, float]:
+        dt = span.dt
+        fc = span.cutoff_hz if math.isfinite(span.cutoff_hz) and span.cutoff_hz > 0 else 0.1 / dt
+        lo = max(self.widest[0], 2.0 / (2.0 * math.pi * fc), 5.0 * dt)
+        hi = min(self.widest[1], span.duration_s / 3.0)
+        return lo, hi
+
+    def nodes_for(self, count: int, coarse: bool = False) -> int:
+        if coarse:
+            return self.coarse
+        return self.per_count[min(max(count, 1), len(self.per_count)) - 1]
+
+
+@dataclass(frozen=True)
+class ContactPoint(ShapeParameter):
+    """A contact point (closure, m): uniform from a quarter of the closure's span below
+    its lowest fitted value to half the span above it."""
+
+    kind: str = "x0"
+    unit: str = "m"
+    meaning: str = "contact point (closure)"
+    limits: tuple[float, float] = (-1.0, 1.0)
+    nodes: int = 7
+    coarse: int = 5
+
+    def prior_range(self, span: SessionSpan) -> tuple[float, float]:
+        width = span.x_span or 1e-3
+        return span.x_low - 0.25 * width, span.x_low + 0.5 * width
+
+
+#: the Hunt-Crossley exponent, uniform on [1, 2.5]
+EXPONENT = ShapeParameter("n", "1", "contact exponent", (0.5, 5.0), prior=(1.0, 2.5), nodes=5,
+                          coarse=4)  # fmt: skip
+TIME_CONSTANT = TimeConstant()
+CONTACT_POINT = ContactPoint()
+
+#: how the display renders a term (:func:`tissuecli.render.law.split_law` sorts by it):
+#: a function of the closure, of the speed, of both (``f(x) xdot``), dry friction (by the
+#: reference model), inertia (the reference model's mass), relaxation branches (a state
+#: each), left out by design (a sensor's offset), or refused with a reason
+DISPLAY = ("position", "speed", "mixed", "friction", "inertia", "relaxation", "omitted", "refused")
+
+#: what the default structure search may do with a term (:attr:`Term.search`)
+SEARCH = ("replace", "grow", "prune")
+
+#: where a term without an ``order`` of its own goes in a law, by role
+ROLE_ORDER = {"stiffness": 25.0, "relaxation": 40.0, "damping": 65.0, "friction": 80.0,
+              "inertia": 90.0, "offset": 100.0}  # fmt: skip
+
+
+class Term(ABC):
+    """One term: a coefficient times a function of the kinematics (or of their history).
+
+    A term is one class: subclass it, set the class attributes below, implement
+    ``__call__`` and ``derivative`` (and ``series`` for a term with memory), and
+    decorate it with :func:`register`. Fitting, reports, parameter files, simulation and
+    the display read everything from it.
+
+    Attributes
+    ----------
+    name : str
+        As written in parameter files and ``--forms``.
+    symbol, unit : str
+        The coefficient's symbol and SI unit.
+    label : str
+        The term's display name in reports (``x³``).
+    role : str
+        stiffness, damping, friction, inertia, offset or relaxation.
+    variable : str
+        What its column reads: ``"x"``, ``"v"`` (xdot), ``"a"`` (xddot), ``"1"`` (a
+        constant), ``"xv"`` (closure and speed) or ``"h"`` (the closure's history).
+    passive : bool
+        The coefficient of a passive tissue is non-negative.
+    rendered : bool
+        The display renders it (a sensor offset is not tissue).
+    display : str, optional
+        How the display renders it, one of :data:`DISPLAY`; by default from
+        ``variable``, ``role`` and ``memory`` (see :attr:`rendering`).
+    memory : bool
+        The force depends on the past: its column needs a time series (:meth:`series`).
+    order : float, optional
+        Its place in a law (x 10, maxwell 40, xdot 50, xddot 90, offset 100); by
+        default from its role (:data:`ROLE_ORDER`).
+    max_count : int
+        How many of it a law may hold (relaxation branches: 3, each numbered by
+        :meth:`instance`).
+    requires : tuple of str
+        Terms a law must hold beside it (contact damping needs its contact).
+    search : str, optional
+        What the default structure search does with it (:data:`SEARCH`): ``"replace"``
+        (tried, with the others so marked, in place of the best linear law's stiffness
+        and damping: contact), ``"grow"`` (added one at a time while it raises the
+        evidence: relaxation branches), ``"prune"`` (taken out again where that raises
+        the evidence), or None (fitted only when a law names it).
+    shapes, parameters : tuple
+        The names of its shape parameters and their :class:`ShapeParameter`
+        declarations (unit, prior, range), in the same order; ``shape`` their values
+        once bound.
     """
 
     name: ClassVar[str]
@@ -51,12 +230,18 @@ class Term(ABC):
     variable: ClassVar[str]
     passive: ClassVar[bool] = True
     rendered: ClassVar[bool] = True
+    display: ClassVar[str | None] = None
     #: the term's force depends on the past (a relaxation branch): it needs a time series
     memory: ClassVar[bool] = False
+    order: ClassVar[float | None] = None
+    max_count: ClassVar[int] = 1
+    requires: ClassVar[tuple[str, ...]] = ()
+    search: ClassVar[str | None] = None
 
-    #: names of the nonlinear (shape) parameters the term reads, and their values once
-    #: bound (a term with shapes fits as a family; a tissue holds it bound)
+    #: names of the nonlinear (shape) parameters the term reads, their declarations, and
+    #: their values once bound (a term with shapes fits as a family; a tissue holds it bound)
     shapes: tuple[str, ...] = ()
+    parameters: tuple[ShapeParameter, ...] = ()
     shape: dict[str, float] = {}
 
     @property
@@ -66,8 +251,50 @@ class Term(ABC):
 
     def bind(self, values: dict[str, float]) -> Term:
         """This term with its shape parameters set from ``values`` (by name); itself if it
-        has none."""
+        has none. A term with shapes takes them in ``__init__(shape=...)``."""
+        if not self.shapes:
+            return self
+        return type(self)(shape={k: float(values[k]) for k in self.shapes})  # type: ignore[call-arg]
+
+    def instance(self, index: int) -> Term:
+        """The ``index``-th (from 1) of this term in a law: itself, unless it may repeat
+        (then numbered, with its own symbol and shape parameters)."""
         return self
+
+    def shape_parameter(self, name: str) -> ShapeParameter:
+        """The declaration of one of its shape parameters, by name."""
+        return dict(zip(self.shapes, self.parameters, strict=True))[name]
+
+    @property
+    def rendering(self) -> str:
+        """How the display renders it (one of :data:`DISPLAY`): ``display`` if the class
+        declares it, else from what it reads."""
+        if self.display is not None:
+            return self.display
+        if not self.rendered:
+            return "omitted"
+        if self.memory:
+            return "refused"
+        by_variable = {"x": "position", "v": "speed", "a": "inertia", "xv": "mixed"}
+        kind = by_variable.get(self.variable, "refused")
+        return "friction" if kind == "speed" and self.role == "friction" else kind
+
+    def refusal(self) -> str:
+        """The sentence the display gives when it cannot render the term."""
+        if self.memory:
+            return (
+                f"term {self.name} ({self.symbol}) has a memory the display's controller "
+                "cannot integrate (only relaxation branches, maxwell, can): refit without it"
+            )
+        return (
+            f"term {self.name} ({self.symbol}) reads {self.variable!r}, which the display's "
+            "control law has no place for: refit without it"
+        )
+
+    def branches(self, c: float) -> list[tuple[float, float]]:
+        """For a term the display renders as relaxation: its branches as (Km N/m, tau s)
+        at coefficient ``c``; empty when it has none to render."""
+        return []
 
     def _key(self) -> tuple[object, ...]:
         return (type(self), self.symbol, tuple(sorted(self.shape.items())))
@@ -108,6 +335,66 @@ class Term(ABC):
         the first sample): what a term with memory needs; the others ignore ``dt``."""
         return self.regressor(x, v, a)
 
+    def columns(self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None) -> Array:
+        """The term's column at exact kinematics, shape (n,); a term with memory reads the
+        series' sample interval ``dt`` (s), the series starting from rest."""
+        x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
+        if self.memory:
+            if dt is None:
+                raise InputError(f"term {self.name} has memory: give the series' sample interval")
+            return self.series(dt, x, v, a)
+        return self.regressor(x, v, a)
+
+    def continued(self, x: Array, dt: float, state: object = None) -> tuple[Array, object]:
+        """A term with memory over the next closures ``x`` (m, every ``dt`` s), from
+        ``state`` (None: at rest before ``x[0]``); returns the regressor there and the
+        state to continue from. What a simulation streams block by block.
+
+        By default the state is the closure so far and the series is recomputed over it
+        (exact, and cost growing with the length); a term with a recursion overrides it.
+        """
+        past = np.zeros(0) if state is None else np.asarray(state, dtype=float)
+        whole = np.concatenate([past, np.asarray(x, dtype=float)])
+        speed = np.gradient(whole, dt) if whole.size > 1 else np.zeros_like(whole)
+        r = self.series(dt, whole, speed, np.zeros_like(whole))
+        return r[past.size :], whole
+
+    def steady(self, x: float, v: float) -> float:
+        """The regressor in steady motion at speed ``v`` (m/s) through closure ``x`` (m):
+        the column itself, or for a term with memory its value after a long ramp."""
+        if not self.memory:
+            return float(self.regressor(np.array([x]), np.array([v]), np.zeros(1))[0])
+        duration = 50.0 * max(self.time_scales())
+        n = 5000
+        t = np.linspace(0.0, duration, n)
+        ramp = x - v * (duration - t)
+        dt = float(t[1] - t[0])
+        return float(self.series(dt, ramp, np.full(n, v), np.zeros(n))[-1])
+
+    def time_scales(self) -> tuple[float, ...]:
+        """The times (s) over which a term with memory forgets: its shape parameters in
+        seconds, else 1 s."""
+        found = tuple(self.shape[n] for n, p in zip(self.shapes, self.parameters, strict=True)
+                      if p.unit == "s" and n in self.shape)  # fmt: skip
+        return found or (1.0,)
+
+    def step_response(self, t: ArrayLike, step: float) -> Array:
+        """The regressor at times ``t`` (s) after a step of ``step`` m in closure from
+        rest, with no speed or acceleration after it (the relaxation function)."""
+        t = np.asarray(t, dtype=float)
+        if not self.memory:
+            if self.variable == "x":
+                return np.full_like(t, float(self(np.array([step]))[0]))
+            return np.zeros_like(t)
+        # the series on a uniform grid fine enough for the earliest time asked, the
+        # closure stepping between its first two samples (at -dt and 0)
+        dt = max(float(np.min(t)) / 20.0, float(np.max(t)) / 200_000.0)
+        n = int(math.ceil(float(np.max(t)) / dt)) + 3
+        x = np.full(n, step)
+        x[0] = 0.0
+        r = self.series(dt, x, np.zeros(n), np.zeros(n))
+        return np.interp(t, dt * (np.arange(n) - 1.0), r)
+
     def typical(self, scales: MotionScales) -> float:
         """The regressor's size at a session's typical motion (for prior scales)."""
         u = {"x": scales.x, "v": scales.v, "a": scales.a, "1": 1.0}[self.variable]
@@ -118,13 +405,43 @@ class Term(ABC):
         return f"{type(self).__name__}({shape})"
 
 
+#: every registered term's prototype, by name, in the order registered
 TERMS: dict[str, Term] = {}
 
 
 def register(cls: type[Term]) -> type[Term]:
-    """Class decorator: add a term to :data:`TERMS` under its name."""
-    TERMS[cls.name] = cls()
+    """Class decorator: add a term to :data:`TERMS` under its name.
+
+    Raises
+    ------
+    InputError
+        If the name is taken by another class, or a shape parameter's name by a
+        different declaration (terms that share a shape parameter, as contact and its
+        damping share n and x0, declare the same one).
+    """
+    proto = cls()
+    known = TERMS.get(cls.name)
+    if known is not None and type(known) is not cls:
+        raise InputError(f"term {cls.name!r} is already registered by {type(known).__name__}")
+    if proto.rendering not in DISPLAY:
+        raise InputError(f"term {cls.name!r}: display {proto.rendering!r} is not one of {DISPLAY}")
+    if proto.search is not None and proto.search not in SEARCH:
+        raise InputError(f"term {cls.name!r}: search {proto.search!r} is not one of {SEARCH}")
+    for name, param in zip(proto.shapes, proto.parameters, strict=True):
+        for other in TERMS.values():
+            if other.name != cls.name and name in other.shapes:
+                if other.shape_parameter(name) != param:
+                    raise InputError(
+                        f"term {cls.name!r}: shape parameter {name!r} is already declared "
+                        f"differently by term {other.name!r}; choose another name"
+                    )
+    TERMS[cls.name] = proto
     return cls
+
+
+def unregister(name: str) -> None:
+    """Take a term out of :data:`TERMS` (a test's or an example's own term)."""
+    TERMS.pop(name, None)
 
 
 def term(name: str) -> Term:
@@ -133,6 +450,33 @@ def term(name: str) -> Term:
         return TERMS[name]
     except KeyError:
         raise InputError(f"unknown term {name[:30]!r}; choose among: {', '.join(TERMS)}") from None
+
+
+def term_order(t: Term) -> tuple[float, int]:
+    """Where a term goes in a law: its ``order`` (or its role's), then registration."""
+    names = list(TERMS)
+    place = names.index(t.name) if t.name in TERMS else len(names)
+    order = t.order if t.order is not None else ROLE_ORDER.get(t.role, 95.0)
+    return (order, place)
+
+
+def searched(kind: str) -> list[str]:
+    """The registered terms the default structure search treats as ``kind`` (one of
+    :data:`SEARCH`), in law order (``prune``: last first, as the search takes them out)."""
+    names = [t.name for t in sorted(TERMS.values(), key=term_order) if t.search == kind]
+    return names[::-1] if kind == "prune" else names
+
+
+def shape_parameter(name: str) -> ShapeParameter:
+    """The declaration of a shape parameter by name (``tau2``, ``n``), from the
+    registered terms; a numbered name matches its kind's stem."""
+    for proto in TERMS.values():
+        for own, param in zip(proto.shapes, proto.parameters, strict=True):
+            stem = name[: len(param.kind)]
+            numbered = stem == param.kind and name[len(param.kind) :].isdigit()
+            if name == own or name == param.kind or numbered:
+                return param
+    raise InputError(f"unknown shape parameter {name[:30]!r}")
 
 
 class _Proportional(Term):
@@ -153,6 +497,7 @@ class Linear(_Proportional):
     """x: Hookean stiffness, K in N/m."""
 
     name, symbol, unit, label, role, variable = "x", "K", "N/m", "x", "stiffness", "x"
+    order, display, search = 10.0, "position", "prune"
 
 
 @register
@@ -160,6 +505,7 @@ class Cubic(Term):
     """x^3: hardening stiffness, K3 in N/m^3."""
 
     name, symbol, unit, label, role, variable = "x^3", "K3", "N/m^3", "x³", "stiffness", "x"
+    order, display, search = 20.0, "position", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         u = np.asarray(u, dtype=float)
@@ -177,6 +523,7 @@ class Viscous(_Proportional):
     """xdot: Newtonian damping, S in N s/m."""
 
     name, symbol, unit, label, role, variable = "xdot", "S", "N s/m", "ẋ", "damping", "v"
+    order, display = 50.0, "speed"
 
 
 @register
@@ -190,6 +537,7 @@ class Quadratic(Term):
     name, symbol, unit, label, role, variable = (
         "xdot|xdot|", "S2", "N s^2/m^2", "ẋ|ẋ|", "damping", "v",
     )  # fmt: skip
+    order, display = 60.0, "speed"
 
     def __call__(self, u: ArrayLike) -> Array:
         u = np.asarray(u, dtype=float)
@@ -209,6 +557,7 @@ class Coulomb(Term):
     name, symbol, unit, label, role, variable = (
         "sign(xdot)", "Fc", "N", "sign(ẋ)", "friction", "v",
     )  # fmt: skip
+    order, display, search = 80.0, "friction", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.tanh(np.asarray(u, dtype=float) / V_SMOOTH)
@@ -225,6 +574,7 @@ class Inertia(_Proportional):
     """xddot: moving mass, M in kg."""
 
     name, symbol, unit, label, role, variable = "xddot", "M", "kg", "ẍ", "inertia", "a"
+    order, display = 90.0, "inertia"
 
 
 @register
@@ -235,6 +585,7 @@ class Offset(Term):
     name, symbol, unit, label, role, variable = "offset", "F0", "N", "1", "offset", "1"
     passive = False
     rendered = False
+    order, display, search = 100.0, "omitted", "prune"
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.ones_like(np.asarray(u, dtype=float))
@@ -254,13 +605,12 @@ class Contact(Term):
     name, symbol, unit, label, role, variable = (
         "contact", "Kc", "N/m^n", "dⁿ", "stiffness", "x",
     )  # fmt: skip
+    order, display, search = 30.0, "position", "replace"
     shapes = ("n", "x0")
+    parameters = (EXPONENT, CONTACT_POINT)
 
     def __init__(self, shape: dict[str, float] | None = None) -> None:
         self.shape = dict(shape or {})
-
-    def bind(self, values: dict[str, float]) -> Term:
-        return type(self)({k: float(values[k]) for k in self.shapes})
 
     def _nd(self) -> tuple[float, float]:
         return self.shape.get("n", 1.5), self.shape.get("x0", 0.0)
@@ -294,6 +644,7 @@ class ContactDamping(Contact):
     name, symbol, unit, label, role, variable = (
         "contact*xdot", "Lc", "N s/m^(n+1)", "dⁿẋ", "damping", "xv",
     )  # fmt: skip
+    order, display, requires, search = 70.0, "mixed", ("contact",), "replace"
 
     def regressor(self, x: Array, v: Array, a: Array) -> Array:
         return Contact.__call__(self, x) * np.asarray(v, dtype=float)
@@ -312,6 +663,8 @@ class Maxwell(Term):
     name, label, role, variable = "maxwell", "relax", "relaxation", "h"
     unit = "N/m"
     memory = True
+    order, display, max_count, search = 40.0, "relaxation", 3, "grow"
+    parameters = (TIME_CONSTANT,)
 
     def __init__(self, index: int = 1, shape: dict[str, float] | None = None) -> None:
         self.index = index
@@ -321,6 +674,13 @@ class Maxwell(Term):
 
     def bind(self, values: dict[str, float]) -> Term:
         return type(self)(self.index, {k: float(values[k]) for k in self.shapes})
+
+    def instance(self, index: int) -> Term:
+        return type(self)(index)
+
+    def branches(self, c: float) -> list[tuple[float, float]]:
+        tau = self.tau
+        return [(c, tau)] if math.isfinite(tau) and tau > 0 else []
 
     @property
     def tau(self) -> float:
@@ -338,6 +698,18 @@ class Maxwell(Term):
 
     def series(self, dt: float, x: Array, v: Array, a: Array) -> Array:
         return relaxation(np.asarray(x, dtype=float), dt, self.tau)[0]
+
+    def continued(self, x: Array, dt: float, state: object = None) -> tuple[Array, object]:
+        # the exact recursion carries (r, the last closure): no history kept
+        r0, before = state if isinstance(state, tuple) else (0.0, None)
+        r, last = relaxation(np.asarray(x, dtype=float), dt, self.tau, r0, before)
+        return r, (last, float(x[-1]) if len(x) else before)
+
+    def steady(self, x: float, v: float) -> float:
+        return self.tau * v  # the spring's stretch once the damper carries the motion
+
+    def step_response(self, t: ArrayLike, step: float) -> Array:
+        return step * np.exp(-np.asarray(t, dtype=float) / self.tau)
 
     def typical(self, scales: MotionScales) -> float:
         return scales.x or 1.0
@@ -424,26 +796,37 @@ class Law:
         if len(set(symbols)) != len(symbols) or not symbols:
             names = ", ".join(t.name for t in self.terms)
             raise InputError(f"a law needs distinct terms, got {names or 'none'}")
-        if any(t.name == "contact*xdot" for t in self.terms) and not any(
-            t.name == "contact" for t in self.terms
-        ):
-            raise InputError("contact*xdot (Hunt-Crossley damping) needs its contact term too")
+        held = {t.name for t in self.terms}
+        for t in self.terms:
+            missing = [r for r in t.requires if r not in held]
+            if missing:
+                raise InputError(f"{t.name} ({t.role}) needs the term {', '.join(missing)} too")
 
     @classmethod
     def of(cls, names: Iterable[str]) -> Law:
-        """The law of the named terms, in the canonical order; ``maxwell`` may repeat (one
-        relaxation branch each)."""
-        names = list(names)
-        branches = sum(1 for n in names if n == "maxwell")
-        if branches > MAX_BRANCHES:
-            raise InputError(f"at most {MAX_BRANCHES} relaxation branches (maxwell) in a law")
-        chosen = {term(n).name: term(n) for n in names if n != "maxwell"}
+        """The law of the named registered terms, in their order (:func:`term_order`); a
+        term that may repeat (``maxwell``: one relaxation branch each) is numbered, any
+        other named twice is held once.
+
+        Raises
+        ------
+        InputError
+            Naming an unknown term (with the choices), or a repeating term given more
+            often than it may be.
+        """
+        counts: dict[str, int] = {}
+        for n in names:
+            name = term(n).name
+            counts[name] = counts.get(name, 0) + 1
+        protos = sorted((TERMS[n] for n in counts), key=term_order)
         terms: list[Term] = []
-        for name in CANONICAL:
-            if name == "maxwell":
-                terms += [Maxwell(i) for i in range(1, branches + 1)]
-            elif name in chosen:
-                terms.append(chosen[name])
+        for proto in protos:
+            k = counts[proto.name]
+            if k > proto.max_count > 1:  # a term that may not repeat is named once
+                what = "relaxation branches" if proto.name == "maxwell" else "terms"
+                raise InputError(f"at most {proto.max_count} {what} ({proto.name}) in a law")
+            many = proto.max_count > 1
+            terms += [proto.instance(i) for i in range(1, k + 1)] if many else [proto]
         return cls(tuple(terms))
 
     @classmethod
@@ -478,6 +861,13 @@ class Law:
         for t in self.terms:
             seen.update(dict.fromkeys(t.shapes))
         return tuple(seen)
+
+    def shape_parameter(self, name: str) -> ShapeParameter:
+        """The declaration of one of the law's shape parameters, by name."""
+        for t in self.terms:
+            if name in t.shapes:
+                return t.shape_parameter(name)
+        raise InputError(f"law {self.name} has no shape parameter {name[:30]!r}")
 
     @property
     def shape(self) -> dict[str, float]:
@@ -514,9 +904,7 @@ class Law:
         x, v, a = (np.asarray(z, dtype=float) for z in (x, v, a))
         if self.memory and dt is None:
             raise InputError(f"law {self.name} has memory: give the series' sample interval")
-        return np.column_stack(
-            [t.series(dt, x, v, a) if t.memory else t.regressor(x, v, a) for t in self.terms]  # type: ignore[arg-type]
-        )
+        return np.column_stack([t.columns(x, v, a, dt) for t in self.terms])
 
     def force(
         self, c: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None
@@ -530,35 +918,18 @@ class Law:
         return np.array([scales.force / t.typical(scales) for t in self.terms])
 
 
-#: units and the range a file may give each kind of shape parameter (SI): time
-#: constants, Hunt-Crossley exponents and contact points
-SHAPE_UNITS = {"tau": "s", "n": "1", "x0": "m"}
-SHAPE_RANGES = {"tau": (1e-4, 1e4), "n": (0.5, 5.0), "x0": (-1.0, 1.0)}
-#: what each kind of shape parameter is, in words
-SHAPE_MEANING = {
-    "tau": "relaxation time constant",
-    "n": "contact exponent",
-    "x0": "contact point (closure)",
-}
-
-
 def shape_kind(name: str) -> str:
-    """``tau`` for a branch's time constant (``tau2``), else the name (``n``, ``x0``)."""
-    return "tau" if name.startswith("tau") else name
+    """The kind of a shape parameter (``tau2`` -> ``tau``), from its declaration."""
+    return shape_parameter(name).kind
 
 
 def shape_unit(name: str) -> str:
-    """The SI unit of a shape parameter (``tau2`` -> ``s``)."""
-    return SHAPE_UNITS[shape_kind(name)]
+    """The SI unit of a shape parameter (``tau2`` -> ``s``), from its declaration."""
+    return shape_parameter(name).unit
 
 
 #: most relaxation branches a law may have
-MAX_BRANCHES = 3
-#: the order of terms in a law: stiffness, relaxation, damping, friction, inertia, offset
-CANONICAL = (
-    "x", "x^3", "contact", "maxwell", "xdot", "xdot|xdot|", "contact*xdot", "sign(xdot)",
-    "xddot", "offset",
-)  # fmt: skip
+MAX_BRANCHES = Maxwell.max_count
 
 
 def parse_law(spec: str) -> Law:
@@ -591,6 +962,5 @@ def symbols_of(laws: Sequence[Law]) -> list[str]:
     seen: dict[str, None] = {}
     for law in sorted(laws, key=lambda law: -len(law.terms)):
         seen.update(dict.fromkeys(law.symbols))
-    order = {name: i for i, name in enumerate(CANONICAL)}
     by_symbol = {t.symbol: t for law in laws for t in law.terms}
-    return sorted(seen, key=lambda s: (order[by_symbol[s].name], s))
+    return sorted(seen, key=lambda s: (term_order(by_symbol[s]), s))

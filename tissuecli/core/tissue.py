@@ -120,10 +120,12 @@ class Tissue:
     # which the controller's reference model carries
 
     def _rendered(self, variable: str) -> list[tuple[Term, float]]:
+        # as each term declares it rendered: of the closure, or of the speed (with friction)
+        kinds = {"x": ("position",), "v": ("speed", "friction")}[variable]
         return [
             (t, float(c))
             for t, c in zip(self.law.terms, self.coef, strict=True)
-            if t.rendered and t.variable == variable
+            if t.rendered and t.rendering in kinds
         ]
 
     def static_force(self, x: ArrayLike) -> Array:

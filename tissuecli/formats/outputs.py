@@ -160,9 +160,7 @@ def _refuse_special(path: Path, option: str) -> None:
         raise InputError(f"cannot write {option} {path}: {exc.strerror}") from None
     for test, kind in _KINDS:
         if test(mode):
-            raise InputError(
-                f"{option} {path} is {kind}, not a regular file; give a file path"
-            )
+            raise InputError(f"{option} {path} is {kind}, not a regular file; give a file path")
 
 
 def _same_file(a: Path, b: Path) -> bool:

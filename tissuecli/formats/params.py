@@ -19,15 +19,7 @@ from numpy.typing import NDArray
 from .._version import __version__
 from ..core.calibration import SI_UNITS, Calibration, calibration_from_dict
 from ..core.errors import InputError
-from ..core.terms import (
-    SHAPE_RANGES,
-    TERMS,
-    Law,
-    MotionScales,
-    Term,
-    shape_kind,
-    shape_unit,
-)
+from ..core.terms import TERMS, Law, MotionScales, Term
 from ..core.tissue import Tissue
 from ..render.profile import DisplayProfile, profile_from_dict
 from .jsonfile import item_name, json_type, read_json, shown, write_json
@@ -95,7 +87,7 @@ def _law(
         out["shape"] = [
             {
                 "name": n,
-                "unit": shape_unit(n),
+                "unit": law.shape_parameter(n).unit,
                 **(dict(shape[n]) if shape and n in shape else {"mean": law.shape[n]}),
             }
             for n in law.shape_names
@@ -402,7 +394,7 @@ def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
             raise sc.fail(
                 (*path, "term"), f"= {shown(name)} is not a term; choose among: {', '.join(TERMS)}"
             )
-        if name in names and name != "maxwell":
+        if name in names and TERMS[name].max_count == 1:
             raise sc.fail((*path, "term"), f"= {name!r} appears twice")
         names.append(name)
     try:
@@ -410,16 +402,14 @@ def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
     except InputError as exc:
         raise sc.fail(("law", "terms"), f"do not make a law: {exc}") from None
     if law.shape_names:
-        law = law.bind(_read_shape(sc, spec.get("shape"), law.shape_names))
-    # entries in the file's order; relaxation branches in theirs
+        law = law.bind(_read_shape(sc, spec.get("shape"), law))
+    # entries in the file's order; a repeated term's (relaxation branches) in theirs
     by_symbol: dict[str, int] = {}
-    branch = 0
+    seen: dict[str, int] = {}
     for j, name in enumerate(names):
-        if name == "maxwell":
-            branch += 1
-            by_symbol[f"Km{branch}"] = j
-        else:
-            by_symbol[TERMS[name].symbol] = j
+        seen[name] = seen.get(name, 0) + 1
+        proto = TERMS[name]
+        by_symbol[proto.instance(seen[name]).symbol if proto.max_count > 1 else proto.symbol] = j
     values = [
         _coefficient(sc, t, terms[by_symbol[t.symbol]], ("law", "terms", by_symbol[t.symbol]))
         for t in law.terms
@@ -427,8 +417,10 @@ def _read_law(sc: _Schema, spec: Any) -> tuple[Law, list[float]]:
     return law, values
 
 
-def _read_shape(sc: _Schema, spec: Any, wanted: tuple[str, ...]) -> dict[str, float]:
-    """The nonlinear parameters: ``[{"name", "mean", "unit", ...}]``, each in range."""
+def _read_shape(sc: _Schema, spec: Any, law: Law) -> dict[str, float]:
+    """The nonlinear parameters: ``[{"name", "mean", "unit", ...}]``, each in the range its
+    term declares."""
+    wanted = law.shape_names
     if not isinstance(spec, list):
         raise sc.fail(
             ("law", "shape"), f"must list the law's nonlinear parameters {', '.join(wanted)}"
@@ -444,11 +436,12 @@ def _read_shape(sc: _Schema, spec: Any, wanted: tuple[str, ...]) -> dict[str, fl
         name = entry["name"]
         if name not in wanted or name in out:
             raise sc.fail((*path, "name"), f"= {shown(name)}; the law's are {', '.join(wanted)}")
-        unit = shape_unit(name)
+        declared = law.shape_parameter(name)
+        unit = declared.unit
         if entry.get("unit", unit) != unit:
             given = shown(entry.get("unit"))
             raise sc.fail((*path, "unit"), f"= {given}, but {name} is in {unit!r}")
-        lo, hi = SHAPE_RANGES[shape_kind(name)]
+        lo, hi = declared.limits
         out[name] = sc.number(entry["mean"], (*path, "mean"), lo, hi, unit)
     missing = [n for n in wanted if n not in out]
     if missing:

@@ -42,7 +42,7 @@ from ..core.units import (
 from .arrays import read_arrays
 from .foreign import Columns, read_hdf5, read_tdms
 from .sheets import is_workbook, read_sheet
-from .tables import Clock, Layout, Table, clock_seconds, sniff_table
+from .tables import Block, Clock, Layout, Table, clock_seconds, sniff_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
 SYNONYMS = {
@@ -155,38 +155,44 @@ class Reading:
         order = [q for q in COLUMNS if q in self.picked]
         columns = [self.picked[q][0] for q in order]
         for block in self.source.blocks(columns):
-            values = {q: block.values[:, j] for j, q in enumerate(order)}
-            lines = block.lines
-            if "time" in self.picked:
-                index, unit = self.picked["time"]
-                if self.clock is not None:
-                    stamps = self.clock.seconds(block.text.get(index, []))
-                    if stamps is None:
-                        raise InputError(
-                            f"{self.path}: a time between lines {lines[0]} and {lines[-1]} "
-                            "is not a clock time like the others; repair the time column"
-                        )
-                else:
-                    stamps = values["time"] * ColumnUnits(time=unit).factor("time")
-            else:
-                stamps = (self.rows + np.arange(lines.size)) / float(self.rate_hz or 1.0)
-            force = _force(values["force"], self.picked["force"][1], self.jaw_length_m, self.path)
-            position = _closure(
-                values["position"], self.picked["position"][1], self.jaw_length_m, self.path
-            )
-            if self.opening:
-                position = -position
-            for quantity, si in (("force", force), ("position", position)):
-                bad = beyond_physical(quantity, si)
-                if bad is not None:
+            yield self.convert(block)
+
+    def convert(self, block: Block) -> SIBlock:
+        """One block of rows (the chosen columns, in the order time, force, position)
+        in SI, as :meth:`blocks` yields them."""
+        order = [q for q in COLUMNS if q in self.picked]
+        values = {q: block.values[:, j] for j, q in enumerate(order)}
+        lines = block.lines
+        if "time" in self.picked:
+            index, unit = self.picked["time"]
+            if self.clock is not None:
+                stamps = self.clock.seconds(block.text.get(index, []))
+                if stamps is None:
                     raise InputError(
-                        f"{self.path}: {quantity} reads {si[bad]:.3g} "
-                        f"{'N' if quantity == 'force' else 'm'} at line {lines[bad]}, beyond "
-                        f"any {'grasp' if quantity == 'force' else 'jaw'} (|{quantity}| <= "
-                        f"{PHYSICAL_LIMITS[quantity]:.0e}); check the column and --units"
+                        f"{self.path}: a time between lines {lines[0]} and {lines[-1]} "
+                        "is not a clock time like the others; repair the time column"
                     )
-            self.rows += lines.size
-            yield stamps, force, position, lines
+            else:
+                stamps = values["time"] * ColumnUnits(time=unit).factor("time")
+        else:
+            stamps = (self.rows + np.arange(lines.size)) / float(self.rate_hz or 1.0)
+        force = _force(values["force"], self.picked["force"][1], self.jaw_length_m, self.path)
+        position = _closure(
+            values["position"], self.picked["position"][1], self.jaw_length_m, self.path
+        )
+        if self.opening:
+            position = -position
+        for quantity, si in (("force", force), ("position", position)):
+            bad = beyond_physical(quantity, si)
+            if bad is not None:
+                raise InputError(
+                    f"{self.path}: {quantity} reads {si[bad]:.3g} "
+                    f"{'N' if quantity == 'force' else 'm'} at line {lines[bad]}, beyond "
+                    f"any {'grasp' if quantity == 'force' else 'jaw'} (|{quantity}| <= "
+                    f"{PHYSICAL_LIMITS[quantity]:.0e}); check the column and --units"
+                )
+        self.rows += lines.size
+        return stamps, force, position, lines
 
     def fraction(self) -> float:
         """How much of the file has been read, 0 to 1."""
@@ -239,9 +245,35 @@ def open_recording(
         With one line that names the file, the column or the line at fault.
     """
     path = Path(path)
-    source = open_source(path, sheet)
+    return reading_of(
+        open_source(path, sheet),
+        path,
+        columns=columns,
+        units=units,
+        jaw_length_m=jaw_length_m,
+        rate_hz=rate_hz,
+    )
+
+
+def reading_of(
+    source: Source,
+    path: Path,
+    *,
+    columns: str | None = None,
+    units: str | None = None,
+    jaw_length_m: float | None = None,
+    rate_hz: float | None = None,
+    time_optional: bool = False,
+) -> Reading:
+    """:func:`open_recording` of a source already open (a table, or the first lines of a
+    text logger); ``path`` names it in messages. With ``time_optional`` a source without a
+    time column is read without one (a logger stamped by the host), and a bare table of
+    two columns is force and position.
+    """
     report = ImportReport()
-    chosen = _choose_columns(source, _parse_columns(columns), rate_hz is not None, path)
+    chosen = _choose_columns(
+        source, _parse_columns(columns), rate_hz is not None, path, time_optional=time_optional
+    )
     units_given = parse_units(units)
     picked: dict[str, tuple[int, str]] = {}
     clock: Clock | None = None
@@ -273,7 +305,11 @@ def open_recording(
             f"position: {source.names[picked['position'][0]]!r} grows as the jaws open; "
             "closure is its negative"
         )
-    if "time" not in picked and not (rate_hz and rate_hz > 0 and math.isfinite(rate_hz)):
+    if (
+        "time" not in picked
+        and not time_optional
+        and not (rate_hz and rate_hz > 0 and math.isfinite(rate_hz))
+    ):
         raise InputError("--rate must be a positive number of Hz")
     for quantity in ("force", "position"):  # fail before reading the body
         unit = picked[quantity][1]
@@ -389,7 +425,12 @@ def _normal(name: str) -> str:
 
 
 def _choose_columns(
-    table: Source, spec: dict[str, str], rate_given: bool, path: Path
+    table: Source,
+    spec: dict[str, str],
+    rate_given: bool,
+    path: Path,
+    *,
+    time_optional: bool = False,
 ) -> dict[str, int]:
     """Column index of each quantity: as named, else by header word, else by position."""
     names = table.names
@@ -409,7 +450,7 @@ def _choose_columns(
             if not matches:
                 raise InputError(
                     f"--columns {quantity}={column[:40]!r}: no such column in {path}; it has "
-                    + ", ".join(repr(n) for n in names[:12])
+                    + _listed(names)
                 )
             index = matches[0]
         chosen[quantity] = index
@@ -435,14 +476,25 @@ def _choose_columns(
     if missing and not table.header and len(names) == len(wanted) and not chosen:
         chosen = {q: i for i, q in enumerate(wanted)}  # a bare table in the documented order
         missing = []
+    if time_optional and missing == ["time"]:
+        missing = []  # stamped by the host
+    elif time_optional and missing and not table.header and not chosen and len(names) == 2:
+        chosen, missing = {"force": 0, "position": 1}, []
     if missing:
         hint = " (or --rate HZ if the file has no time column)" if "time" in missing else ""
         raise InputError(
             f"{path}: no column for {' and '.join(missing)} among "
-            + ", ".join(repr(n) for n in names[:12])
+            + _listed(names)
             + f"; name them with --columns {missing[0]}=NAME{hint}"
         )
     return chosen
+
+
+def _listed(names: list[str]) -> str:
+    """Column names for a one-line message: the first eight, each cut to 40 characters
+    (another program's dataset paths can be long)."""
+    shown = [repr(n if len(n) <= 40 else "..." + n[-37:]) for n in names[:8]]
+    return ", ".join(shown) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
 
 
 def _unit(

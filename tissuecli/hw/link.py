@@ -93,6 +93,14 @@ class Link:
             raise DeviceLost(f"lost {self.url}: {_reason(exc)}") from None
         return self.decoder.feed(data) if data else []
 
+    def read_bytes(self) -> bytes:
+        """The bytes that have arrived, undecoded (waiting up to ``timeout`` for the first):
+        for devices that print lines rather than frames (:mod:`tissuecli.hw.text`)."""
+        try:
+            return bytes(self._port.read(self._port.in_waiting or 1))
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceLost(f"lost {self.url}: {_reason(exc)}") from None
+
     def discard_input(self) -> None:
         """Drop whatever the device sent before now."""
         try:

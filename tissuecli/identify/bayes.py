@@ -20,7 +20,15 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
-from ..core.terms import MAX_BRANCHES, Law, MotionScales, paper_laws, parse_law, shape_kind
+from ..core.terms import (
+    MAX_BRANCHES,
+    Law,
+    MotionScales,
+    paper_laws,
+    parse_law,
+    searched,
+    term,
+)
 from .derivatives import Differentiator, Kinematics
 from .design import (
     design,
@@ -191,6 +199,9 @@ class BayesianFit(Estimator):
         Residual SD the best form expects (N): force noise plus position noise
         carried through the law.
     warnings_ : list of str
+    law_, coef_, coef_sd_, coef_ci95_, tissue_
+        As every estimator (:class:`~tissuecli.identify.estimator.Estimator`): the chosen
+        law, its posterior means, SDs and 95 % intervals.
     """
 
     def __init__(
@@ -639,11 +650,12 @@ class BayesianFit(Estimator):
         self, linear: list[ModelResult], fit: _Context, warnings: list[str]
     ) -> list[ModelResult]:
         """Laws beyond the linear ones, built from the best of them and scored by exact
-        evidence (a greedy search; docs/estimators.md): Hunt-Crossley contact in place
-        of its stiffness and damping; then, to the better of the two, relaxation branches
-        one at a time (up to three, one on a contact law) while each raises the
-        evidence; after each, terms the new one makes redundant are taken out while
-        that raises the evidence."""
+        evidence (a greedy search; docs/estimators.md): the terms that declare
+        ``search = "replace"`` (Hunt-Crossley contact) in place of its stiffness and
+        damping; then, to the better of the two, the ``"grow"`` terms (relaxation
+        branches) one at a time (up to three, one on a contact law) while each raises
+        the evidence; after each, ``"prune"`` terms the new one makes redundant are taken
+        out while that raises the evidence."""
         # from the law the evidence prefers, and from the one that fits best by BIC:
         # on a misfit's correlated residuals the two part, and only the second may be
         # the stem of the law that fits
@@ -677,9 +689,10 @@ class BayesianFit(Estimator):
             while improved:
                 improved = False
                 names = [t.name for t in res.family.terms]  # type: ignore[union-attr]
-                for extra in ("offset", "sign(xdot)", "x^3", "x"):
+                for extra in searched("prune"):
                     fewer = [n for n in names if n != extra]
-                    if extra not in names or not any(n in ("x", "x^3", "contact") for n in fewer):
+                    stiff = any(term(n).role == "stiffness" for n in fewer)
+                    if extra not in names or not stiff:
                         continue
                     trial = score(fewer)
                     if trial.ln_evidence > res.ln_evidence:
@@ -688,7 +701,7 @@ class BayesianFit(Estimator):
             return res
 
         keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
-        contact = prune(score(["contact", "contact*xdot", *keep]))
+        contact = prune(score([*searched("replace"), *keep]))
         base = contact if contact.ln_evidence > best.ln_evidence else best
         if not resolvable(fit.kin):
             lo, hi = tau_range(fit.kin)
@@ -711,7 +724,8 @@ class BayesianFit(Estimator):
                 )
                 break
             names = [t.name for t in (current.family or current.model).terms]
-            trial = score([*names, "maxwell"])
+            trial = max((score([*names, g]) for g in searched("grow")),
+                        key=lambda r: r.ln_evidence)  # fmt: skip
             if trial.ln_evidence <= current.ln_evidence:
                 break
             current = prune(trial)
@@ -777,6 +791,12 @@ class BayesianFit(Estimator):
         post = self.best_.posterior
         assert post is not None
         return self.best_.model, post.mean
+
+    def _uncertainty(self) -> tuple[Array, Array]:
+        """The chosen law's posterior SDs and 95 % intervals."""
+        post = self.best_.posterior
+        assert post is not None
+        return np.asarray(post.sd, dtype=float), np.asarray(post.ci95, dtype=float)
 
     def contributions(self) -> Array:
         """Each term's share of the fitted force at the fitted samples, shape (m, p), N
@@ -1035,10 +1055,11 @@ def _bic(res: ModelResult, n: int) -> float:
 
 def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
     """Mean, SD and central 95 % interval (SI) of each shape parameter from draws in
-    ``u`` (time constants drawn in their logarithm)."""
+    ``u`` (parameters of log-uniform prior, such as time constants, drawn in their
+    logarithm)."""
     out: dict[str, dict[str, Any]] = {}
     for j, name in enumerate(grid.names):
-        v = np.exp(draws[:, j]) if shape_kind(name) == "tau" else draws[:, j]
+        v = np.exp(draws[:, j]) if grid.log(name) else draws[:, j]
         out[name] = {
             "mean": float(np.mean(v)),
             "sd": float(np.std(v, ddof=1)),

@@ -1,15 +1,21 @@
-"""What the estimators share: a differentiator and a grasp choice, the preparation of a
-session as they fit it, and prediction and scoring on the fitted session or another."""
+"""What the estimators share: a differentiator and a grasp choice, hyperparameters read
+and set in the scikit-learn manner, the preparation of a session as they fit it, one
+vocabulary for what a fit found, and prediction and scoring on the fitted session or
+another."""
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.errors import FitError
 from ..core.session import Session
 from ..core.terms import Law
+from ..core.tissue import Tissue
 from .derivatives import Differentiator, Frozen, Gaussian, Kinematics, differentiator
 from .design import design
 from .prepare import Prepared, prepare
@@ -21,15 +27,95 @@ class Estimator:
     """Base of :class:`~tissuecli.identify.bayes.BayesianFit` and
     :class:`~tissuecli.identify.pinv.WindowedPinv`.
 
-    Subclasses set ``differentiator`` and ``grasps`` in ``__init__``, and after
-    ``fit`` the attributes ``session_``, ``kinematics_`` and what
-    :meth:`_coefficients` and :meth:`_position_noise_sd` read.
+    Subclasses take their hyperparameters as keyword arguments of ``__init__`` and store
+    each under its own name, unchanged (so :meth:`get_params` and :meth:`set_params`
+    read and set them, as in scikit-learn); among them ``differentiator`` and
+    ``grasps``. After ``fit`` they set ``session_``, ``kinematics_``, ``contact_`` and
+    ``warnings_``, and what :meth:`_coefficients`, :meth:`_uncertainty` and
+    :meth:`_position_noise_sd` read.
+
+    Every fitted estimator then answers in one vocabulary: ``law_`` (the law chosen or
+    given), ``coef_`` (its coefficients, SI), ``coef_sd_`` and ``coef_ci95_`` (their
+    uncertainty), ``tissue_`` (law and coefficients as a
+    :class:`~tissuecli.core.tissue.Tissue`), :meth:`predict` and :meth:`score`.
     """
 
     differentiator: str | Differentiator | None
     grasps: str | Sequence[int]
     session_: Session
     kinematics_: Kinematics
+
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        """The hyperparameters: the keyword arguments of ``__init__``."""
+        kinds = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+        sig = inspect.signature(cls.__init__)
+        return [p.name for p in sig.parameters.values() if p.name != "self" and p.kind in kinds]
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The estimator's hyperparameters by name (``deep`` is accepted for scikit-learn's
+        sake: no hyperparameter is itself an estimator)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params: Any) -> Estimator:
+        """Set hyperparameters by name; returns self. A fit already made stands until
+        the next ``fit``.
+
+        Raises
+        ------
+        FitError
+            Naming a parameter the estimator does not have.
+        """
+        names = self._param_names()
+        for key, value in params.items():
+            if key not in names:
+                raise FitError(
+                    f"{type(self).__name__} has no parameter {key[:30]!r}; "
+                    f"choose among: {', '.join(names)}"
+                )
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        sig = inspect.signature(type(self).__init__)
+        changed = [
+            f"{k}={v!r}" for k, v in self.get_params().items()
+            if sig.parameters[k].default is inspect.Parameter.empty
+            or not _same(v, sig.parameters[k].default)
+        ]  # fmt: skip
+        return f"{type(self).__name__}({', '.join(changed)})"
+
+    # one vocabulary for what any estimator found
+
+    @property
+    def law_(self) -> Law:
+        """The law fitted (chosen, for a model choice), its shape parameters bound."""
+        return self._coefficients()[0]
+
+    @property
+    def coef_(self) -> Array:
+        """Its coefficients, SI, shape (p,), in the order of ``law_.terms``."""
+        return np.asarray(self._coefficients()[1], dtype=float)
+
+    @property
+    def coef_sd_(self) -> Array:
+        """Each coefficient's uncertainty as an SD, SI, shape (p,)."""
+        return self._uncertainty()[0]
+
+    @property
+    def coef_ci95_(self) -> Array:
+        """Each coefficient's central 95 % interval, SI, shape (p, 2)."""
+        return self._uncertainty()[1]
+
+    @property
+    def tissue_(self) -> Tissue:
+        """The law and its coefficients as a tissue (what ``simulate`` and ``play`` take)."""
+        law, coef = self._coefficients()
+        return Tissue(law, *(float(c) for c in coef))
+
+    def _uncertainty(self) -> tuple[Array, Array]:
+        """SD (p,) and 95 % interval (p, 2) of the coefficients, SI."""
+        raise NotImplementedError
 
     def _diff(self) -> Differentiator:
         d = self.differentiator
@@ -52,10 +138,15 @@ class Estimator:
     def _position_noise_sd(self) -> float:
         return 0.0
 
+    def _fitted(self) -> None:
+        if not hasattr(self, "kinematics_"):
+            raise FitError(f"this {type(self).__name__} is not fitted yet: call fit(session) first")
+
     def predict(self, session: Session | None = None) -> Array:
         """Filtered force (N) the fitted law predicts: at the fitted samples
         (``kinematics_.time``), or at the samples of another ``session`` that this
         estimator would fit (``self.prepare(session).kinematics.time``); shape (m,)."""
+        self._fitted()
         if session is None:
             kin, position = self.kinematics_, self.session_.position
         else:
@@ -67,7 +158,15 @@ class Estimator:
     def score(self, session: Session | None = None) -> float:
         """Coefficient of determination R^2 of the predicted filtered force, on the fitted
         session or another: 1 is perfect, 0 no better than the force's mean."""
+        self._fitted()
         kin = self.kinematics_ if session is None else self.prepare(session).kinematics
         resid = kin.force - self.predict(session)
         total = kin.force - np.mean(kin.force)
         return 1.0 - float(resid @ resid) / max(float(total @ total), 1e-300)
+
+
+def _same(a: Any, b: Any) -> bool:
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):  # arrays compare element by element
+        return a is b

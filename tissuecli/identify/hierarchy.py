@@ -362,10 +362,8 @@ def steady_force(
     for j, t in enumerate(law.terms):
         if not t.rendered:
             continue  # a sensor offset is not tissue
-        if t.memory:
-            row[j] = t.shape[t.shapes[0]] * speed_m_s
-        else:
-            row[j] = float(t.regressor(x, v, a)[0])
+        # a term with memory in steady motion (a branch: its spring stretched tau v)
+        row[j] = t.steady(closure_m, speed_m_s) if t.memory else float(t.regressor(x, v, a)[0])
     m = np.asarray(mean, dtype=float)
     c = np.asarray(cov, dtype=float)
     return float(row @ m), float(row @ c @ row)

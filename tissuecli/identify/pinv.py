@@ -50,6 +50,9 @@ class WindowedPinv(Estimator):
         Condition numbers of the best window's design, raw and column-scaled.
     pooled_ : ndarray, shape (p,)
         All windows in one least-squares problem, for comparison.
+    law_, coef_, coef_sd_, coef_ci95_, tissue_
+        As every estimator (:class:`~tissuecli.identify.estimator.Estimator`): the law,
+        ``params_``, and the windows' spread.
     """
 
     def __init__(
@@ -109,7 +112,16 @@ class WindowedPinv(Estimator):
         return self
 
     def _coefficients(self) -> tuple[Law, Array]:
+        self._fitted()
         return self.model_, self.params_
+
+    def _uncertainty(self) -> tuple[Array, Array]:
+        """The spread of the windows' parameters: their SD and central 95 % (what the
+        choice of window would change; one window gives zero)."""
+        self._fitted()
+        w = self.windows_
+        sd = np.std(w, axis=0, ddof=1) if w.shape[0] > 1 else np.zeros(w.shape[1])
+        return sd, np.percentile(w, [2.5, 97.5], axis=0).T
 
     def summary(self) -> dict[str, Any]:
         return {

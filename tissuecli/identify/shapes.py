@@ -1,14 +1,17 @@
 """Laws with nonlinear (shape) parameters: relaxation time constants, a contact's
-exponent and contact point. Given the shape the law is linear in its coefficients, so
-its exact evidence is known; the shape is marginalised by quadrature over a grid that
-covers only what the session can resolve, and the posterior is the mixture of the
-grid's conditional posteriors.
+exponent and contact point, or any a term declares. Given the shape the law is linear in
+its coefficients, so its exact evidence is known; the shape is marginalised by
+quadrature over a grid that covers only what the session can resolve, and the posterior
+is the mixture of the grid's conditional posteriors.
 
-Priors: a time constant is log-uniform between what the filter can resolve and a third
-of the fitted stretch (and within 10 ms to 100 s); two branches are ordered, tau1 <
-tau2, uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5];
-the contact point x0 uniform from a quarter of the closure's span below its lowest
-fitted value to half the span above it.
+Priors come from the terms: each declares its shape parameters
+(:class:`~tissuecli.core.terms.ShapeParameter`) with the coordinate the prior is
+uniform in and its support for a session. For the built-in terms: a time constant is
+log-uniform between what the filter can resolve and a third of the fitted stretch (and
+within 10 ms to 100 s); several branches' time constants are ordered, tau1 < tau2,
+uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5]; the
+contact point x0 uniform from a quarter of the closure's span below its lowest fitted
+value to half the span above it.
 """
 
 from __future__ import annotations
@@ -22,21 +25,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.terms import Law, shape_kind
+from ..core.terms import TIME_CONSTANT, Law, SessionSpan, ShapeParameter
 from .derivatives import Kinematics
 from .posterior import Posterior
 
 Array = NDArray[np.float64]
 
-#: the widest range of time constants searched, s
-TAU_RANGE = (0.01, 100.0)
-#: nodes per time constant: one branch, and each of two or more
-TAU_NODES = {1: 16, 2: 10, 3: 6}
-#: Hunt-Crossley exponent range and nodes; contact point nodes
-N_RANGE, N_NODES, X0_NODES = (1.0, 2.5), 5, 7
-#: the coarse grid that only seeds the peak for emcee (more than two shape parameters):
-#: nodes per time constant, exponent and contact point
-COARSE_NODES = {"tau": 6, "n": 4, "x0": 5}
 #: evaluations per shape parameter after which the search for the peak checks whether
 #: it is heading for the prior's edge
 EDGE_CHECK = 25
@@ -48,8 +42,10 @@ KEPT_MASS, MAX_KEPT = 0.999, 12
 class ShapeGrid:
     """Quadrature nodes over a law's shape parameters.
 
-    The prior is uniform in the coordinates ``u`` (ln tau for a time constant, the value
-    itself for n and x0), over the box of ``ranges`` (time constants ordered).
+    The prior is uniform in the coordinates ``u`` (each parameter's
+    :meth:`~tissuecli.core.terms.ShapeParameter.to_u`: ln tau for a time constant, the
+    value itself for n and x0), over the box of ``ranges`` (the parameters of a
+    repeated term ordered).
 
     Attributes
     ----------
@@ -63,6 +59,10 @@ class ShapeGrid:
         The nodes' spacing in ``u``, per parameter.
     log_density : float
         ln of the prior density in ``u`` inside the ranges.
+    params : dict
+        Each parameter's declaration, by name.
+    ordered : list of list of str
+        Groups of parameters held in increasing order (a repeated term's).
     """
 
     nodes: list[dict[str, float]]
@@ -70,50 +70,60 @@ class ShapeGrid:
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
     spacing: Array = field(default_factory=lambda: np.zeros(0))
     log_density: float = 0.0
+    params: dict[str, ShapeParameter] = field(default_factory=dict)
+    ordered: list[list[str]] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
         return list(self.nodes[0])
 
+    def log(self, name: str) -> bool:
+        """Whether the prior of ``name`` is uniform in its logarithm."""
+        return self.params[name].log
+
     def to_u(self, node: dict[str, float]) -> Array:
-        return np.array([_u(n, node[n]) for n in self.names])
+        return np.array([self.params[n].to_u(node[n]) for n in self.names])
 
     def from_u(self, u: Array) -> dict[str, float]:
-        return {n: (math.exp(v) if shape_kind(n) == "tau" else float(v)) for n, v in
-                zip(self.names, u, strict=True)}  # fmt: skip
+        return {n: self.params[n].from_u(float(v)) for n, v in zip(self.names, u, strict=True)}
 
     def inside(self, u: Array) -> bool:
-        """Whether ``u`` lies in the prior's support (time constants ordered)."""
-        for n, v in zip(self.names, u, strict=True):
-            lo, hi = (_u(n, b) for b in self.ranges[n])
+        """Whether ``u`` lies in the prior's support (ordered groups in order)."""
+        at = dict(zip(self.names, u, strict=True))
+        for n, v in at.items():
+            lo, hi = (self.params[n].to_u(b) for b in self.ranges[n])
             if not lo <= v <= hi:
                 return False
-        taus = [v for n, v in zip(self.names, u, strict=True) if shape_kind(n) == "tau"]
-        return all(a < b for a, b in itertools.pairwise(taus))
+        return all(at[a] < at[b] for group in self.ordered for a, b in itertools.pairwise(group))
 
     def interior(self, u: Array) -> Array:
         """``u`` moved inside the box by a millionth of a grid step: a node on the
         box's edge may fall outside it after a round trip through ln and exp."""
         out = np.array(u, dtype=float)
         for i, (n, h) in enumerate(zip(self.names, self.spacing, strict=True)):
-            lo, hi = (_u(n, b) for b in self.ranges[n])
+            lo, hi = (self.params[n].to_u(b) for b in self.ranges[n])
             out[i] = min(max(out[i], lo + 1e-6 * h), hi - 1e-6 * h)
         return out
 
 
-def _u(name: str, value: float) -> float:
-    return math.log(value) if shape_kind(name) == "tau" else float(value)
+def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
+    """What a session lets the shape parameters' priors span (see
+    :class:`~tissuecli.core.terms.SessionSpan`); without ``closure`` the closure's low
+    end and span are NaN (a pass over every sample saved where only times matter)."""
+    x = kin.x_raw
+    return SessionSpan(
+        dt=float(np.median(np.diff(kin.time))),
+        cutoff_hz=float(kin.cutoff_hz),
+        duration_s=float(kin.time[-1] - kin.time[0]),
+        x_low=float(np.percentile(x, 2)) if closure else math.nan,
+        x_span=float(np.ptp(x)) if closure else math.nan,
+    )
 
 
 def tau_range(kin: Kinematics) -> tuple[float, float]:
-    """The time constants a fit can tell apart, s: above twice the filter's time scale
-    (``1 / (2 pi f_c)``; a faster branch is a damper to the filtered data) and below a
-    third of the fitted stretch (a slower one is a spring)."""
-    dt = float(np.median(np.diff(kin.time)))
-    fc = kin.cutoff_hz if math.isfinite(kin.cutoff_hz) and kin.cutoff_hz > 0 else 0.1 / dt
-    lo = max(TAU_RANGE[0], 2.0 / (2.0 * math.pi * fc), 5.0 * dt)
-    hi = min(TAU_RANGE[1], float(kin.time[-1] - kin.time[0]) / 3.0)
-    return lo, hi
+    """The time constants a fit can tell apart, s (a relaxation branch's prior:
+    :class:`~tissuecli.core.terms.TimeConstant`)."""
+    return TIME_CONSTANT.prior_range(session_span(kin, closure=False))
 
 
 def resolvable(kin: Kinematics) -> bool:
@@ -122,43 +132,54 @@ def resolvable(kin: Kinematics) -> bool:
     return hi > 4.0 * lo
 
 
+def _groups(law: Law) -> list[list[str]]:
+    """The law's shape parameters in groups: those of a repeated term (one parameter each,
+    exchangeable, so held in order) first, then each other parameter alone, in the
+    law's order."""
+    repeated: dict[type, list[str]] = {}
+    singles: list[str] = []
+    seen: set[str] = set()
+    for t in law.terms:
+        for name in t.shapes:
+            if name in seen:
+                continue  # shared (contact and its damping share n and x0)
+            seen.add(name)
+            if t.max_count > 1 and len(t.shapes) == 1:
+                repeated.setdefault(type(t), []).append(name)
+            else:
+                singles.append(name)
+    return [*repeated.values(), *([n] for n in singles)]
+
+
 def shape_grid(law: Law, kin: Kinematics, coarse: bool = False) -> ShapeGrid:
     """The quadrature nodes and prior masses for ``law``'s shape parameters; ``coarse``:
-    :data:`COARSE_NODES` per parameter, a seed for a sampler rather than a quadrature."""
-    names = law.shape_names
-    taus = [n for n in names if shape_kind(n) == "tau"]
+    each parameter's coarse node count, a seed for a sampler rather than a quadrature."""
+    span = session_span(kin)
     axes: list[tuple[list[str], Array, Array]] = []  # names, values (k, d), ln weights (k,)
     ranges: dict[str, tuple[float, float]] = {}
+    params: dict[str, ShapeParameter] = {}
+    ordered: list[list[str]] = []
     spacing: list[float] = []
     log_density = 0.0
-    if taus:
-        lo, hi = tau_range(kin)
-        width = math.log(max(hi, lo * 1.0001) / lo)
-        k = COARSE_NODES["tau"] if coarse else TAU_NODES[len(taus)]
-        u, w = _trapezoid(math.log(lo), math.log(lo) + width, max(k, len(taus)))
-        combos = np.array(list(itertools.combinations(range(u.size), len(taus))))
-        values = np.exp(u[combos])  # increasing along each row: tau1 < tau2 < ...
+    for group in _groups(law):
+        spec = law.shape_parameter(group[0])
+        lo, hi = spec.prior_range(span)
+        u_lo = spec.to_u(lo)
+        width = spec.to_u(max(hi, lo * 1.0001)) - u_lo if spec.log else hi - lo
+        k = spec.nodes_for(len(group), coarse)
+        u, w = _trapezoid(u_lo, u_lo + width, max(k, len(group)))
+        combos = np.array(list(itertools.combinations(range(u.size), len(group))))
+        values = np.array([[spec.from_u(float(v)) for v in row] for row in u[combos]])
         lw = np.sum(np.log(w[combos]), axis=1)
-        axes.append((taus, values, lw - _logsumexp(lw)))
-        ranges.update(dict.fromkeys(taus, (lo, hi)))
-        spacing += [float(u[1] - u[0])] * len(taus)
+        axes.append((group, values, lw - _logsumexp(lw)))
+        for name in group:
+            ranges[name] = (lo, hi)
+            params[name] = spec
+        if len(group) > 1:
+            ordered.append(group)
+        spacing += [float(u[1] - u[0])] * len(group)
         # uniform over the ordered simplex of the box: k! / width^k
-        log_density += math.lgamma(len(taus) + 1) - len(taus) * math.log(width)
-    if "n" in names:
-        u, w = _trapezoid(*N_RANGE, COARSE_NODES["n"] if coarse else N_NODES)
-        axes.append((["n"], u[:, None], np.log(w)))
-        ranges["n"] = N_RANGE
-        spacing.append(float(u[1] - u[0]))
-        log_density -= math.log(N_RANGE[1] - N_RANGE[0])
-    if "x0" in names:
-        x = kin.x_raw
-        low, span = float(np.percentile(x, 2)), float(np.ptp(x)) or 1e-3
-        lo, hi = low - 0.25 * span, low + 0.5 * span
-        u, w = _trapezoid(lo, hi, COARSE_NODES["x0"] if coarse else X0_NODES)
-        axes.append((["x0"], u[:, None], np.log(w)))
-        ranges["x0"] = (lo, hi)
-        spacing.append(float(u[1] - u[0]))
-        log_density -= math.log(hi - lo)
+        log_density += math.lgamma(len(group) + 1) - len(group) * math.log(width)
     nodes: list[dict[str, float]] = []
     log_weight: list[float] = []
     for parts in itertools.product(*(range(len(a[1])) for a in axes)):
@@ -169,7 +190,8 @@ def shape_grid(law: Law, kin: Kinematics, coarse: bool = False) -> ShapeGrid:
             lw += float(weights[i])
         nodes.append(node)
         log_weight.append(lw)
-    return ShapeGrid(nodes, np.array(log_weight), ranges, np.array(spacing), log_density)
+    return ShapeGrid(nodes, np.array(log_weight), ranges, np.array(spacing), log_density,
+                     params, ordered)  # fmt: skip
 
 
 @dataclass
@@ -335,8 +357,8 @@ def shape_summary(
     grid: ShapeGrid, log_post: Array
 ) -> tuple[dict[str, dict[str, float | list[float]]], dict[str, float]]:
     """The shape parameters' posterior from the grid's weights: mean, SD and central 95 %
-    interval of each (SI), and a point to bind the law at (time constants at their
-    geometric mean, the others at their mean)."""
+    interval of each (SI), and a point to bind the law at (parameters of log-uniform
+    prior, such as time constants, at their geometric mean, the others at their mean)."""
     p = np.exp(log_post - _logsumexp(log_post))
     out: dict[str, dict[str, float | list[float]]] = {}
     point: dict[str, float] = {}
@@ -348,7 +370,7 @@ def shape_summary(
         cdf = np.cumsum(p[order])
         ci = [float(np.interp(q, cdf, v[order])) for q in (0.025, 0.975)]
         out[name] = {"mean": mean, "sd": sd, "ci95": ci}
-        point[name] = float(np.exp(p @ np.log(v))) if shape_kind(name) == "tau" else mean
+        point[name] = float(np.exp(p @ np.log(v))) if grid.log(name) else mean
     return out, point
 
 

@@ -126,13 +126,9 @@ class StreamedFit:
             raise FitError("the pilot stretch scored no law; fit a shorter session in full")
         sums = [_Sums.empty(r.model, r.correction is not None) for r in chosen]
         half = kin0.window // 2
+        # the times over which each term with memory forgets (a branch's tau)
         taus = [
-            float(v)
-            for r in chosen
-            for t in r.model.terms
-            if t.memory
-            for k, v in t.shape.items()
-            if k.startswith("tau")
+            float(v) for r in chosen for t in r.model.terms if t.memory for v in t.time_scales()
         ]
         step = max(self.block_samples, 4 * kin0.window)
         # a law with memory needs its history; past two blocks of it the read would

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core.errors import RenderError
 from ..core.flags import NONFINITE, SATURATED, UNRENDERABLE
-from ..core.terms import Maxwell, Term
+from ..core.terms import Term
 from ..core.tissue import Tissue
 from .profile import DisplayProfile
 
@@ -142,44 +142,41 @@ class LawParts:
 
 
 def split_law(tissue: Tissue) -> LawParts:
-    """Sort a tissue's terms into what the controller renders, and how.
+    """Sort a tissue's terms into what the controller renders, and how, as each term
+    declares (:attr:`~tissuecli.core.terms.Term.rendering`).
 
     Position terms (``x``, ``x^3``, ``contact``) and speed terms (``xdot``,
-    ``xdot|xdot|``) are rendered at the piston's state, as in eq. 9; contact damping
-    (variable ``xv``, ``f(x) xdot``) at the piston's closure and speed; relaxation branches
-    (``maxwell``) through a state each, driven by the piston's closure; dry friction
-    (role ``friction``) by the reference model alone, since its slope at rest
-    (``Fc / V_SMOOTH``, 100 N s/m per 0.1 N) is far beyond the damping a sampled loop
-    renders; inertia by the reference model's mass. A term the display leaves out by
-    design (``rendered`` False: a sensor's offset) goes to ``unrendered``; any other term
-    goes to ``refusals`` with a sentence naming it, never silently dropped.
+    ``xdot|xdot|``) are rendered at the piston's state, as in eq. 9; mixed terms
+    (``f(x) xdot``, contact damping) at the piston's closure and speed; relaxation
+    branches (``maxwell``) through a state each, driven by the piston's closure; dry
+    friction by the reference model alone, since its slope at rest (``Fc / V_SMOOTH``,
+    100 N s/m per 0.1 N) is far beyond the damping a sampled loop renders; inertia by
+    the reference model's mass. A term the display leaves out by design (a sensor's
+    offset) goes to ``unrendered``; any other term goes to ``refusals`` with the
+    sentence the term gives (:meth:`~tissuecli.core.terms.Term.refusal`), never
+    silently dropped.
     """
     parts = LawParts()
     branches = []
     for t, c in zip(tissue.law.terms, tissue.coef, strict=True):
         c = float(c)
-        if not t.rendered:
+        how = t.rendering
+        if how == "omitted":
             parts.unrendered.append((t, c))
-        elif isinstance(t, Maxwell) and math.isfinite(t.tau) and t.tau > 0:
-            branches.append(Branch(c, t.tau))
-        elif t.memory:
-            parts.refusals.append(
-                f"term {t.name} ({t.symbol}) has a memory the display's controller cannot "
-                "integrate (only relaxation branches, maxwell, can): refit without it"
-            )
-        elif t.variable == "a":
-            pass  # inertia: the reference model's mass (Tissue.mass)
-        elif t.variable == "x":
+        elif how == "relaxation" and t.branches(c):
+            branches += [Branch(km, tau) for km, tau in t.branches(c)]
+        elif how == "inertia":
+            pass  # the reference model's mass (Tissue.mass)
+        elif how == "position":
             parts.position.append((t, c))
-        elif t.variable == "v":
-            (parts.friction if t.role == "friction" else parts.speed).append((t, c))
-        elif t.variable == "xv" and _is_product(t):
+        elif how == "speed":
+            parts.speed.append((t, c))
+        elif how == "friction":
+            parts.friction.append((t, c))
+        elif how == "mixed" and _is_product(t):
             parts.mixed.append((t, c))
         else:
-            parts.refusals.append(
-                f"term {t.name} ({t.symbol}) reads {t.variable!r}, which the display's "
-                "control law has no place for: refit without it"
-            )
+            parts.refusals.append(t.refusal())
     return LawParts(**{**parts.__dict__, "branches": tuple(branches)})
 
 

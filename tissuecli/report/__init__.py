@@ -93,8 +93,10 @@ def render_report(outcome: FitOutcome) -> str:
         (
             "diagnostics",
             "Session and diagnostics",
-            folded("The session, the filter, the grasps and the sampler",
-                   session_table(outcome, s) + diagnostics(outcome)),
+            folded(
+                "The session, the filter, the grasps and the sampler",
+                session_table(outcome, s) + diagnostics(outcome),
+            ),
         ),  # fmt: skip
         (
             "reading",

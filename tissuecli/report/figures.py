@@ -345,23 +345,25 @@ def elastic_figure(s: Series) -> Figure:
 
 
 def relaxation_figure(model: Law, coef: Array, shape_ci: dict[str, list[float]]) -> Figure:
-    """The law's force after a 1 mm step in closure (the relaxation function): each
-    branch decays as e^(-t/tau) to the equilibrium stiffness; the band spans the time
-    constants' 95 % intervals."""
+    """The law's force after a 1 mm step in closure (the relaxation function): each term
+    with memory answers as it declares (:meth:`~tissuecli.core.terms.Term.step_response`;
+    a relaxation branch decays as e^(-t/tau)) on top of the position terms; the band spans
+    the memory terms' shape parameters' 95 % intervals."""
     fig = new_figure(6.4, 4.2)
     ax = fig.add_subplot()
-    taus = [t.tau for t in model.terms if t.memory]
+    taus = [s for t in model.terms if t.memory for s in t.time_scales()]
     t = np.logspace(np.log10(min(taus) / 30), np.log10(max(taus) * 30), 300)
 
     def response(which: int) -> Array:
         out = np.zeros_like(t)
         for term, c in zip(model.terms, coef, strict=True):
             if term.memory:
-                name = term.shapes[0]
-                tau = shape_ci[name][which] if which >= 0 else term.tau
-                out += c * 1e-3 * np.exp(-t / tau)
-            elif term.name == "x":
-                out += c * 1e-3
+                if which >= 0:
+                    term = term.bind({n: shape_ci[n][which] if n in shape_ci else term.shape[n]
+                                      for n in term.shapes})  # fmt: skip
+                out += c * term.step_response(t, 1e-3)
+            elif term.rendered and term.variable == "x":
+                out += c * term.step_response(t, 1e-3)
         return out
 
     ax.fill_between(t, response(0), response(1), color=COLOURS["band"], alpha=0.6, lw=0,

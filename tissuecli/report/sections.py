@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._version import __version__
-from ..core.terms import SHAPE_MEANING, Law, Term, shape_kind, shape_unit
+from ..core.terms import Law, Term
 from ..identify.bayes import DECISIVE, BayesianFit, ModelResult
 from ..identify.outcome import FitOutcome
 from ..identify.pinv import WindowedPinv
@@ -171,8 +171,7 @@ def header(outcome: FitOutcome, s: Series) -> str:
     session = outcome.session
     model = s.model
     facts = (
-        f"{len(session):,} samples, {sig(session.duration_s, 4)} s at "
-        f"{sig(session.rate_hz, 4)} Hz"
+        f"{len(session):,} samples, {sig(session.duration_s, 4)} s at {sig(session.rate_hz, 4)} Hz"
     )
     if session.meta.get("tissue"):
         facts = f"{esc(session.meta['tissue'])}; {facts}"
@@ -195,16 +194,12 @@ def header(outcome: FitOutcome, s: Series) -> str:
             "estimate of the best window:</p>"
         )
     title = f"Tissue identification: {session.name or 'session'}"
-    return (
-        f"<h1>{esc(title)}</h1><p class='small'>{facts}</p>{chosen}{formula(model, values)}"
-    )
+    return f"<h1>{esc(title)}</h1><p class='small'>{facts}</p>{chosen}{formula(model, values)}"
 
 
 def folded(summary: str, body: str, *, open_: bool = False) -> str:
     """``body`` folded under a one-line ``summary`` (HTML ``<details>``, no script)."""
-    return (
-        f"<details{' open' if open_ else ''}><summary>{esc(summary)}</summary>{body}</details>"
-    )
+    return f"<details{' open' if open_ else ''}><summary>{esc(summary)}</summary>{body}</details>"
 
 
 def law_name(name: str) -> str:
@@ -276,10 +271,11 @@ def parameters_bayes(est: BayesianFit, s: Series) -> str:
         mean, sd = float(sp["mean"]), float(sp["sd"])
         lo, hi = (float(q) for q in sp["ci95"])
         digit = place(sd) if sd > 0 else place(abs(mean) * 1e-3 or 1e-3)
-        unit = shape_unit(name)
+        declared = best.model.shape_parameter(name)
+        unit = declared.unit
         rows.append(
             [
-                f"<b>{esc(name)}</b> {esc(SHAPE_MEANING[shape_kind(name)])}",
+                f"<b>{esc(name)}</b> {esc(declared.meaning)}",
                 with_sd(mean, sd),
                 sig(sd, 2),
                 f"[{at_place(lo, digit)}, {at_place(hi, digit)}]",
@@ -405,9 +401,13 @@ def comparison(est: BayesianFit) -> str:
            "all are shown.")
         + "</p>"
     )  # fmt: skip
-    return intro + best_few + folded(
-        f"All {len(results)} laws: evidence, Bayes factors, method, conditioning, notes",
-        full_comparison(est),
+    return (
+        intro
+        + best_few
+        + folded(
+            f"All {len(results)} laws: evidence, Bayes factors, method, conditioning, notes",
+            full_comparison(est),
+        )
     )
 
 

@@ -17,7 +17,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..core.calibration import Adc, Calibration, Channel
 from ..core.session import Session
-from ..core.terms import relaxation
 from ..core.tissue import DEFAULT_TISSUE, Tissue
 
 Array = NDArray[np.float64]
@@ -161,10 +160,10 @@ class ForcepsModel:
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
-        # the relaxation branches' force at samples 0.. computed so far, and where each
-        # branch's recursion stands (its state and the last fine-grid closure)
+        # the memory terms' force at samples 0.. computed so far, and the state each term
+        # continues from (a relaxation branch's: its recursion and the last closure)
         self._memory = np.zeros(0)
-        self._branches: list[tuple[float, float | None]] = []
+        self._states: list[object] = []
 
     def true_time(self, k: ArrayLike) -> Array:
         """True (host) time of samples ``k``, in s."""
@@ -177,7 +176,8 @@ class ForcepsModel:
     def truth(self, k: ArrayLike) -> tuple[Array, Array, Array, Array]:
         """True x (m), xdot (m/s), xddot (m/s^2) and F (N) at samples ``k``; the jaws
         touch the tissue at closure 0, so there is no force below it. A law with
-        relaxation branches starts from rest at sample 0."""
+        memory (relaxation branches, or any term whose force depends on the past) starts
+        from rest at sample 0."""
         k = np.asarray(k)
         x, v, a = self.operator.kinematics(self.true_time(k))
         law = self.tissue.law
@@ -185,21 +185,22 @@ class ForcepsModel:
             return x, v, a, np.where(x > 0, self.tissue.force(x, v, a), 0.0)
         now = [(t, c) for t, c in zip(law.terms, self.tissue.coef, strict=True) if not t.memory]
         f = sum((c * t.regressor(x, v, a) for t, c in now), np.zeros_like(x))
-        f = f + self._relaxation(int(k.max()) + 1 if k.size else 0)[k]
+        f = f + self._memory_force(int(k.max()) + 1 if k.size else 0)[k]
         return x, v, a, np.where(x > 0, f, 0.0)
 
-    #: fine steps per sample for the relaxation branches' exact integration
+    #: fine steps per sample for the memory terms' integration
     SUBSTEPS = 8
 
-    def _relaxation(self, n: int) -> Array:
-        """The relaxation branches' summed force at samples ``0 .. n-1``, N, integrated
+    def _memory_force(self, n: int) -> Array:
+        """The memory terms' summed force at samples ``0 .. n-1``, N, each term continued
+        from where the last call left it (:meth:`~tissuecli.core.terms.Term.continued`)
         on a grid :data:`SUBSTEPS` times finer than the samples (the operator's closure
         is exact there), extending what earlier calls computed."""
         done = self._memory.size
         if n <= done:
             return self._memory
         law, coef = self.tissue.law, self.tissue.coef
-        branches = [(t, c) for t, c in zip(law.terms, coef, strict=True) if t.memory]
+        memory = [(t, c) for t, c in zip(law.terms, coef, strict=True) if t.memory]
         sub = self.SUBSTEPS
         # fine points after the last one done (sample done-1), up to sample n-1
         first = (done - 1) * sub + 1 if done else 0
@@ -208,12 +209,11 @@ class ForcepsModel:
         dt = float(self.true_time(1.0)) / sub
         total = np.zeros(x.size)
         states = []
-        for i, (term, c) in enumerate(branches):
-            state, before = self._branches[i] if done else (0.0, None)
-            r, last = relaxation(x, dt, term.tau, state, before)
+        for i, (term, c) in enumerate(memory):
+            r, state = term.continued(x, dt, self._states[i] if done else None)
             total += c * r
-            states.append((last, float(x[-1])))
-        self._branches = states
+            states.append(state)
+        self._states = states
         picked = total[sub - 1 :: sub] if done else total[::sub]
         self._memory = np.concatenate([self._memory, picked])
         return self._memory

@@ -1,0 +1,1 @@
+../../core/tc_protocol.c
