@@ -71,16 +71,10 @@ def units_option(help: str) -> Decorator:
     return click.option("--units", default=None, help=help)
 
 
-<<<<<<< HEAD
-def recording_options() -> Decorator:
-    """``--columns``, ``--units``, ``--jaw-length``, ``--rate`` and ``--sheet``: how to read
-    another logger's recording (``import``, and ``fit`` of a recording directly)."""
-=======
 def recording_options(rate: bool = True) -> Decorator:
-    """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
-    logger's recording (``import``, and ``fit`` of a recording directly; ``record
-    --protocol text`` without ``--rate``)."""
->>>>>>> 0f93adca6dd1ed10c43f4e9c28d78e9394ac6b38
+    """``--columns``, ``--units``, ``--jaw-length``, and for files ``--rate`` and
+    ``--sheet``: how to read another logger's recording (``import``, and ``fit`` of a
+    recording directly; ``record --protocol text`` without the options for files)."""
 
     def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
         for option in reversed(
@@ -110,17 +104,13 @@ def recording_options(rate: bool = True) -> Decorator:
                     default=None,
                     help="Sample rate in Hz, for files without a time column.",
                 ),
-<<<<<<< HEAD
                 click.option(
                     "--sheet",
                     default=None,
                     help="The sheet of a spreadsheet (.xlsx, .xls, .ods) to read [default: "
                     "the only sheet with data; import stores each sheet as a session].",
                 ),
-            ]
-=======
-            ][: None if rate else -1]
->>>>>>> 0f93adca6dd1ed10c43f4e9c28d78e9394ac6b38
+            ][: None if rate else -2]
         ):
             fn = option(fn)
         return fn
