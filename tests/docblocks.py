@@ -47,7 +47,7 @@ NUMBER = re.compile(r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?")
 #: lines of a bare block that are commands: a program, a continuation, a comment
 COMMAND = re.compile(
     r"^\s*(tissuecli|python3?|pip|sqlite3|git|apt-get|sudo|export|cd|TISSUECLI_\w+=|"
-    r"PYTHONPATH=|taskset|curl|ulimit|chrt|#|\.{3}$|\[)"
+    r"PYTHONPATH=|taskset|curl|arduino-cli|cc |gcc |make|\./|ulimit|chrt|#|\.{3}$|\[)"
 )
 
 
