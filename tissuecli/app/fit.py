@@ -17,7 +17,7 @@ from ..formats.params import write_params
 from ..formats.sessions import is_session_file, read_session, session_rows
 from ..identify.outcome import FitOutcome, fit_session
 from ..identify.stream import StreamedFit
-from .transfer import load_session
+from .transfer import load_session, may_hold_more_rows, staged_recording
 
 #: a stored session longer than this (samples) is fitted from sums streamed block by
 #: block (:class:`~tissuecli.identify.stream.StreamedFit`): the full fit keeps about
@@ -137,14 +137,23 @@ def _streamed(
     session is short enough, or the options ask for what only the full fit gives (the
     pseudoinverse, a time window, held-out samples, the sampler)."""
     plain = (
-        not any(v is not None for v in (reading or {}).values())
-        and options.get("method", "bayes") == "bayes"
+        options.get("method", "bayes") == "bayes"
         and not options.get("hold_out")
         and options.get("start_s") is None
         and options.get("end_s") is None
         and options.get("sampler", "auto") == "auto"
     )
-    if not plain or not is_session_file(path):
+    if not plain:
+        return None
+    if may_hold_more_rows(path, STREAM_ABOVE):
+        # another logger's long recording: stored block by block as `import` stores it,
+        # then fitted from there as a stored session is
+        with staged_recording(path, session, **(reading or {})) as (h5, name):
+            outcome = _streamed(h5, name, None, options, progress)
+            if outcome is not None:
+                outcome.session.meta["file"] = os.fspath(path)
+            return outcome
+    if any(v is not None for v in (reading or {}).values()) or not is_session_file(path):
         return None
     rows = session_rows(path, session)
     if rows <= STREAM_ABOVE:

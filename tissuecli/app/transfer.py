@@ -1,9 +1,12 @@
-"""Moving sessions between foreign files (CSV, TSV, MATLAB, NumPy) and HDF5 files."""
+"""Moving sessions between foreign files (CSV, TSV, spreadsheets, MATLAB, NumPy, other
+programs' HDF5 and TDMS) and HDF5 files."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +21,7 @@ from ..formats.sessions import (
     is_session_file,
     read_session,
 )
+from ..formats.sheets import data_sheets, is_workbook
 
 
 def import_recording(
@@ -32,11 +36,13 @@ def import_recording(
     tissue: str = "",
     note: str = "",
     progress: Callable[[float], None] | None = None,
+    sheet: str | None = None,
 ) -> tuple[Imported, ImportReport]:
-    """Read a recording (text table, .mat or .npz; see
+    """Read a recording (text table, spreadsheet, .mat or .npz; see
     :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
     file ``out`` (created if missing; other sessions are never touched), named
-    ``session`` or else after the source file (its name without the extension).
+    ``session`` or else after the sheet read or the source file (its name without the
+    extension).
 
     The recording is read and written block by block, so its length is bounded by the
     disk, not the memory (:func:`tissuecli.formats.recording.store_recording`).
@@ -45,6 +51,9 @@ def import_recording(
     ----------
     progress : callable, optional
         Called after each block with the fraction of the source read (0 to 1).
+    sheet : str, optional
+        The sheet of a spreadsheet; without it the workbook must hold one sheet with
+        data (:func:`import_recordings` stores every sheet).
 
     Returns
     -------
@@ -55,15 +64,56 @@ def import_recording(
     """
     check_outputs([Output(out, "--out", appends=True)], [source])
     if session is None:
-        session = Path(source).stem
+        session = sheet if sheet is not None else Path(source).stem
     check_new_session(out, session)
     reading = open_recording(
-        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
-    )
+        source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        sheet=sheet,
+    )  # fmt: skip
     n, duration, rate = store_recording(
         reading, out, session, {"tissue": tissue, "note": note}, progress
     )
     return Imported(session, n, duration, rate), reading.report
+
+
+def import_recordings(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    session: str | None = None,
+    *,
+    sheet: str | None = None,
+    **options: object,
+) -> Iterator[tuple[Imported, ImportReport]]:
+    """Import a recording as :func:`import_recording` does, and every sheet of a
+    workbook with data as a session named after its sheet (unless ``sheet`` picks one).
+    Every session name is checked free before any is written; each sheet is stored as
+    it is read, so a sheet that fails leaves the ones before it imported.
+
+    Yields
+    ------
+    imported, report
+        As :func:`import_recording` returns them, one pair per session.
+    """
+    if sheet is not None or not is_workbook(source):
+        yield import_recording(source, out, session, sheet=sheet, **options)  # type: ignore[arg-type]
+        return
+    sheets = data_sheets(source)
+    if len(sheets) == 1:
+        yield import_recording(source, out, session, sheet=sheets[0], **options)  # type: ignore[arg-type]
+        return
+    if session is not None:
+        raise InputError(
+            f"{source} holds {len(sheets)} sheets with data, each imported as a session named "
+            "after it; leave out --session, or import one with --sheet NAME --session NAME"
+        )
+    check_outputs([Output(out, "--out", appends=True)], [source])
+    for name in sheets:
+        check_new_session(out, name)
+    for name in sheets:
+        try:
+            yield import_recording(source, out, name, sheet=name, **options)  # type: ignore[arg-type]
+        except InputError as exc:
+            raise InputError(f"sheet {name!r}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -98,6 +148,44 @@ def export_csv(
     return s
 
 
+#: the fewest bytes a row of a text table takes (``0,1,2`` and a line end): a file
+#: smaller than this many bytes a row holds fewer rows than a limit
+MIN_ROW_BYTES = 6
+
+
+def may_hold_more_rows(path: str | os.PathLike[str], rows: int) -> bool:
+    """Whether a recording of another logger may hold more than ``rows`` rows (from its
+    size alone; a tissuecli session file is never one)."""
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        return False
+    return size > rows * MIN_ROW_BYTES and not is_session_file(path)
+
+
+@contextmanager
+def staged_recording(
+    path: str | os.PathLike[str],
+    session: str | None = None,
+    **reading: object,
+) -> Iterator[tuple[str, str]]:
+    """Another logger's recording stored block by block in a temporary HDF5 file, as
+    ``import`` stores it (bounded memory whatever its length), so that a fit can read
+    it by row range; the file is removed on leaving.
+
+    Yields
+    ------
+    h5, name : str
+        The temporary file and the session's name in it (``session``, else the sheet's
+        or the file's name).
+    """
+    with tempfile.TemporaryDirectory(prefix="tissuecli-") as work:
+        h5 = os.path.join(work, "staged.h5")
+        options = {k: v for k, v in reading.items() if v is not None}
+        imported, _ = import_recording(path, h5, session, **options)  # type: ignore[arg-type]
+        yield h5, imported.name
+
+
 def load_session(
     path: str | os.PathLike[str],
     session: str | None = None,
@@ -106,6 +194,7 @@ def load_session(
     units: str | None = None,
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
+    sheet: str | None = None,
 ) -> tuple[Session, ImportReport | None]:
     """A session from a tissuecli HDF5 file, or read on the fly from another logger's
     recording (as :func:`import_recording` reads it, without storing it).
@@ -129,6 +218,7 @@ def load_session(
                 ("--units", units),
                 ("--jaw-length", jaw_length_m),
                 ("--rate", rate_hz),
+                ("--sheet", sheet),
             )
             if value is not None
         ]
@@ -139,7 +229,9 @@ def load_session(
             )
         return read_session(path, session), None
     name = session if session is not None else Path(path).stem
+    if sheet is not None and session is None:
+        name = sheet  # a sheet is named after itself, as import names it
     return read_recording(
         path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
-        name=name,
+        name=name, sheet=sheet,
     )  # fmt: skip

@@ -106,15 +106,19 @@ def import_(
     units: str | None,
     jaw_length: str | None,
     rate: float | None,
+    sheet: str | None,
     tissue: str,
     note: str,
 ) -> None:
     """Import a recording from another logger as a new session.
 
-    SOURCE is a text table (comma, tab, semicolon or space separated; header,
-    comments and junk lines allowed), a MATLAB .mat (v5 to v7.3) or a NumPy .npz
-    file. Columns are found by header name unless --columns says; time stamps from a
-    coarse or jittery clock are put back on their regular clock.
+    SOURCE is a text table (comma, tab, semicolon or space separated; header, a
+    units row, comments and junk lines allowed; UTF-8, UTF-16, cp1252, GBK or
+    Shift-JIS), a spreadsheet (.xlsx, .xls, .ods: each sheet with data becomes a
+    session named after it, or --sheet NAME picks one), a MATLAB .mat (v5 to v7.3),
+    a NumPy .npz, another program's HDF5 or a LabVIEW TDMS file. Columns are found
+    by header name unless --columns says; time stamps from a coarse or jittery clock
+    are put back on their regular clock.
 
     \b
     Examples:
@@ -123,24 +127,25 @@ def import_(
             --columns time=t_ms,force=force_g,position=angle_deg \\
             --units time=ms,force=gf,position=deg --jaw-length 20mm
         tissuecli import rig.mat --out grasp.h5 --session rig-1 --columns time=t,force=F,position=x
+        tissuecli import specimens.xlsx --out grasp.h5      # a session per sheet
     """
-    from ..app.transfer import import_recording
+    from ..app.transfer import import_recordings
 
-    s, report = import_recording(
+    for s, report in import_recordings(
         source,
         out,
         session,
-        **reading(columns, units, jaw_length, rate),
+        **reading(columns, units, jaw_length, rate, sheet),
         tissue=tissue,
         note=note,
         progress=reading_progress(source),
-    )
-    for line in report.lines():
-        click.echo(line)
-    click.echo(
-        f"imported {len(s)} samples ({s.duration_s:.3f} s at {s.rate_hz:.1f} Hz) "
-        f"into {out} session {s.name!r}"
-    )
+    ):
+        for line in report.lines():
+            click.echo(line)
+        click.echo(
+            f"imported {len(s)} samples ({s.duration_s:.3f} s at {s.rate_hz:.1f} Hz) "
+            f"into {out} session {s.name!r}"
+        )
 
 
 @cli.command()

@@ -137,6 +137,7 @@ def fit(
     units: str | None,
     jaw_length: str | None,
     rate: float | None,
+    sheet: str | None,
     out: str | None,
     report: str | None,
     draws: str | None,
@@ -165,7 +166,8 @@ def fit(
     offset, friction) from a session, choosing among the candidate laws by evidence.
 
     FILES are tissuecli HDF5 files, or any recording `import` reads (text table,
-    .mat, .npz), read on the fly with --columns, --units, --jaw-length and --rate;
+    spreadsheet sheet, .mat, .npz, other programs' HDF5 and TDMS), read on the fly
+    with --columns, --units, --jaw-length, --rate and --sheet;
     folders and patterns ('data/**/*.h5') name every file in them. Several
     sessions are fitted in parallel (--jobs, or --scheduler for a Dask cluster)
     into a catalogue (--catalogue); a session already there with the same
@@ -216,7 +218,7 @@ def fit(
             scheduler=scheduler,
             on_error=on_error or "continue",
             refit=refit,
-            reading=reading(columns, units, jaw_length, rate),
+            reading=reading(columns, units, jaw_length, rate, sheet),
             settings=settings,
         )
         return
@@ -236,7 +238,7 @@ def fit(
         plots=plots,
         plot_format=plot_format or "png",
         force=force,
-        reading=reading(columns, units, jaw_length, rate),
+        reading=reading(columns, units, jaw_length, rate, sheet),
         **settings,
         progress=TerminalProgress.for_terminal(),
     )

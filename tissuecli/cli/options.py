@@ -72,9 +72,9 @@ def units_option(help: str) -> Decorator:
 
 
 def recording_options(rate: bool = True) -> Decorator:
-    """``--columns``, ``--units``, ``--jaw-length`` and ``--rate``: how to read another
-    logger's recording (``import``, and ``fit`` of a recording directly; ``record
-    --protocol text`` without ``--rate``)."""
+    """``--columns``, ``--units``, ``--jaw-length``, and for files ``--rate`` and
+    ``--sheet``: how to read another logger's recording (``import``, and ``fit`` of a
+    recording directly; ``record --protocol text`` without the options for files)."""
 
     def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
         for option in reversed(
@@ -104,7 +104,13 @@ def recording_options(rate: bool = True) -> Decorator:
                     default=None,
                     help="Sample rate in Hz, for files without a time column.",
                 ),
-            ][: None if rate else -1]
+                click.option(
+                    "--sheet",
+                    default=None,
+                    help="The sheet of a spreadsheet (.xlsx, .xls, .ods) to read [default: "
+                    "the only sheet with data; import stores each sheet as a session].",
+                ),
+            ][: None if rate else -2]
         ):
             fn = option(fn)
         return fn
@@ -113,7 +119,11 @@ def recording_options(rate: bool = True) -> Decorator:
 
 
 def reading(
-    columns: str | None, units: str | None, jaw_length: str | None, rate: float | None
+    columns: str | None,
+    units: str | None,
+    jaw_length: str | None,
+    rate: float | None,
+    sheet: str | None = None,
 ) -> dict[str, Any]:
     """The keywords of :func:`tissuecli.app.transfer.import_recording` from
     :func:`recording_options`' values (--jaw-length parsed to metres)."""
@@ -126,6 +136,7 @@ def reading(
         if jaw_length
         else None,
         "rate_hz": rate,
+        **({"sheet": sheet} if sheet is not None else {}),
     }
 
 

@@ -36,6 +36,7 @@ def predict(
     units: str | None,
     jaw_length: str | None,
     rate: float | None,
+    sheet: str | None,
     force: bool,
 ) -> None:
     """Predict the force of a session with a fitted tissue, with its 95 % predictive
@@ -63,7 +64,7 @@ def predict(
         out=out,
         session=session,
         force=force,
-        reading=reading(columns, units, jaw_length, rate),
+        reading=reading(columns, units, jaw_length, rate, sheet),
         filtered=filtered,
     )
     what = "filtered force" if filtered else "force"

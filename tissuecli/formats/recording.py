@@ -41,6 +41,7 @@ from ..core.units import (
 )
 from .arrays import read_arrays
 from .foreign import Columns, read_hdf5, read_tdms
+from .sheets import is_workbook, read_sheet
 from .tables import Block, Clock, Layout, Table, clock_seconds, sniff_table
 
 #: header words (lower case, letters and digits only, unit removed) for each column
@@ -94,11 +95,16 @@ Source = Table | Layout | Columns
 SIBlock = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
 
 
-def open_source(path: str | os.PathLike[str]) -> Source:
+def open_source(path: str | os.PathLike[str], sheet: str | None = None) -> Source:
     """The reader for a recording, chosen by its suffix and its first bytes: .mat and
-    .npz arrays, HDF5 (and NWB), LabVIEW TDMS, else a text table."""
+    .npz arrays, spreadsheets (one sheet: ``sheet``, or the only one with data), HDF5
+    (and NWB), LabVIEW TDMS, else a text table."""
     path = Path(path)
     suffix = path.suffix.lower()
+    if is_workbook(path):
+        return read_sheet(path, sheet)
+    if sheet is not None:
+        raise InputError(f"--sheet {sheet!r}: {path} is not a spreadsheet (.xlsx, .xls, .ods)")
     if suffix in ARRAY_SUFFIXES:
         return read_arrays(path)
     try:
@@ -243,6 +249,7 @@ def open_recording(
     units: str | None = None,
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
+    sheet: str | None = None,
 ) -> Reading:
     """Open a foreign recording: its layout sniffed, its columns and units chosen, nothing
     of its body read yet (see :func:`read_recording` for the parameters).
@@ -254,7 +261,7 @@ def open_recording(
     """
     path = Path(path)
     return reading_of(
-        open_source(path),
+        open_source(path, sheet),
         path,
         columns=columns,
         units=units,
@@ -342,13 +349,15 @@ def read_recording(
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
     name: str = "",
+    sheet: str | None = None,
 ) -> tuple[Session, ImportReport]:
     """Read a foreign recording into a session in SI units.
 
     Parameters
     ----------
     path : path
-        A text table (CSV, TSV, ...), a MATLAB .mat or a NumPy .npz file.
+        A text table (CSV, TSV, ...), a spreadsheet, a MATLAB .mat or a NumPy .npz file,
+        another program's HDF5 or a LabVIEW TDMS file.
     columns : str, optional
         ``time=NAME,force=NAME,position=NAME``, names or 1-based indices; any omitted
         are found by header name.
@@ -360,6 +369,9 @@ def read_recording(
         Sample rate for files without a time column, Hz.
     name : str
         The session's name.
+    sheet : str, optional
+        The sheet of a spreadsheet (.xlsx, .xls, .ods) to read; without it the workbook
+        must hold one sheet with data.
 
     Raises
     ------
@@ -367,20 +379,38 @@ def read_recording(
         With one line that names the file, the column or the line at fault.
     """
     reading = open_recording(
-        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz
-    )
-    parts = list(reading.blocks())
+        path, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
+        sheet=sheet,
+    )  # fmt: skip
+    # block by block, as import stores it: the columns kept in blocks and joined one at
+    # a time (each list freed as it is joined), the line numbers as runs
+    columns: tuple[list[NDArray[np.float64]], ...] = ([], [], [])
+    lines = LineNumbers()
+    for block in reading.blocks():
+        for kept, values in zip(columns, block[:3], strict=True):
+            kept.append(values)
+        lines.add(block[3])
     reading.finish()
-    stamps, force, position = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    lines = np.concatenate([p[3] for p in parts])
-    del parts
+    stamps, force, position = (_join(kept) for kept in columns)
     time = reading.time_base(stamps, lines)
+    del stamps
     session = Session(time, force, position, name=name, meta=reading.meta())
     session.validate()
     reading.report.warnings = unit_warnings(
         session, position_given=dimension_of(reading.picked["position"][1]) != "angle"
     )
     return session, reading.report
+
+
+def _join(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The blocks as one array, each block freed as it is copied (never two copies)."""
+    out = np.empty(sum(b.size for b in blocks))
+    row = 0
+    while blocks:
+        block = blocks.pop(0)
+        out[row : row + block.size] = block
+        row += block.size
+    return out
 
 
 def _parse_columns(spec: str | None) -> dict[str, str]:
