@@ -43,7 +43,7 @@ from .design import (
     term_noise_path,
 )
 from .estimator import Estimator
-from .identifiable import Design, examine
+from .identifiable import PREFERENCE, Design, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
 from .shapes import (
@@ -269,11 +269,16 @@ class BayesianFit(Estimator):
         columns: dict[str, Array] = {}
         # what the recording can tell apart, before any evidence: the default search
         # never compares laws that differ only by a column the design leaves empty
-        design_ = examine(kin, session.position, sigma_x, columns, scales=scales)
+        whole_search = self.forms in (None, "all", "linear")
+        # laws asked for by name: only their own terms are examined (a note on columns
+        # no law here has would only puzzle)
+        present = {t.name for m in models for t in m.terms}
+        names = PREFERENCE if whole_search else [n for n in PREFERENCE if n in present]
+        design_ = examine(kin, session.position, sigma_x, columns, names, scales=scales)
         self.design_ = design_
         if design_.summary:
             warnings.append(design_.summary)
-        if self.forms in (None, "all", "linear"):
+        if whole_search:
             models = design_.reduce(models)
         paths: dict[str, tuple[Array, Array]] = {}  # and their noise paths
         linear = [m for m in models if not m.shape_names]
