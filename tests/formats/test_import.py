@@ -317,3 +317,19 @@ def test_fit_reads_a_recording_directly_as_import_would(tmp_path: Path) -> None:
     assert [t["mean"] for t in a["terms"]] == [t["mean"] for t in b["terms"]]
     # reading options belong to recordings: a session file says so
     assert_clean_error(tissuecli("fit", str(h5), "--units", "mm"), "tissuecli session file")
+
+
+
+def test_rows_after_a_preamble_and_far_into_the_head_are_read(tmp_path) -> None:
+    """The sniffer classifies only the head's first lines: a logger's preamble
+    still leads to its rows, and the rows far into the head are read with it."""
+    from tissuecli.formats.tables import sniff_table
+
+    path = tmp_path / "preamble.csv"
+    preamble = "".join(f"setting {i}: value {i}\n" for i in range(20))
+    rows = "".join(f"{i / 1000:.3f},{0.1 * i:.3f},{0.001 * i:.4f}\n" for i in range(5000))
+    path.write_text(preamble + "time,force,position\n" + rows)
+    layout = sniff_table(path)
+    assert layout.first_line == 22
+    assert layout.names == ["time", "force", "position"]
+    assert layout.format.endswith("20 preamble line(s)")

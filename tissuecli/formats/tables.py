@@ -460,20 +460,10 @@ def sniff_table(path: str | os.PathLike[str]) -> Layout:
                 f"{path}: line 1 is longer than {HEAD_BYTES >> 20} MB; not a table of samples"
             )
         text = text[: cut + 1]
-    numbered: list[tuple[int, str]] = []
-    comment_lines: list[tuple[int, str]] = []
-    marks: list[int] = []  # lines of punctuation alone: a rich-text export's "\\", a "}"
     all_lines = text.split("\n")
-    for i, raw_line in enumerate(all_lines):
-        line = raw_line.strip()
-        if not line:
-            continue
-        if line.startswith(COMMENTS):
-            comment_lines.append((i + 1, line))
-        elif not any(c.isalnum() for c in line):
-            marks.append(i + 1)
-        else:
-            numbered.append((i + 1, line))
+    # the sniffing reads the first 400 lines with letters or digits and the 400 after
+    # the first row, so the rows begin among those: the rest of the megabyte can wait
+    numbered, comment_lines, marks = _classify(all_lines, SNIFF_LINES)
     if not numbered:
         raise InputError(f"{path} holds no data lines")
     sniffed = _sniff([line for _, line in numbered[:400]])
@@ -550,6 +540,35 @@ def sniff_table(path: str | os.PathLike[str]) -> Layout:
         lone_cr=lone_cr,
         size=size,
     )
+
+
+#: lines with letters or digits classified while sniffing (the rows must begin among
+#: the first 400 of them to be found)
+SNIFF_LINES = 1000
+
+
+def _classify(
+    lines: list[str], limit: int | None
+) -> tuple[list[tuple[int, str]], list[tuple[int, str]], list[int]]:
+    """The head's lines with letters or digits, its comment lines and its lines of
+    punctuation alone (a rich-text export's "\\", a "}"), each with its line number;
+    stops after ``limit`` lines with letters or digits."""
+    numbered: list[tuple[int, str]] = []
+    comment_lines: list[tuple[int, str]] = []
+    marks: list[int] = []
+    for i, raw_line in enumerate(lines):
+        line = raw_line.strip()
+        if not line:
+            continue
+        if line.startswith(COMMENTS):
+            comment_lines.append((i + 1, line))
+        elif not any(c.isalnum() for c in line):
+            marks.append(i + 1)
+        else:
+            numbered.append((i + 1, line))
+            if limit is not None and len(numbered) >= limit:
+                break
+    return numbered, comment_lines, marks
 
 
 def _units_row(fields: list[str]) -> bool:
