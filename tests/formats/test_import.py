@@ -322,7 +322,7 @@ def test_fit_reads_a_recording_directly_as_import_would(tmp_path: Path) -> None:
 
 def test_rows_after_a_preamble_and_far_into_the_head_are_read(tmp_path) -> None:
     """The sniffer classifies only the head's first lines: a logger's preamble
-    still leads to its rows, and the rows far into the head are read with it."""
+    still leads to its header and its rows."""
     from tissuecli.formats.tables import sniff_table
 
     path = tmp_path / "preamble.csv"
