@@ -178,7 +178,7 @@ def test_a_backwards_clock_and_a_restart_still_store_increasing_time(tmp_path):
     from tissuecli.cli import cli
 
     listed = CliRunner().invoke(cli, ["sessions", str(out)])
-    assert listed.exit_code == 0 and "(1 clock step; 1 sequence restart)" in listed.output
+    assert listed.exit_code == 0 and "(1 clock step; 1 sequence restart;" in listed.output
 
 
 def test_lost_frames_are_counted_only_up_to_the_duration(tmp_path):
