@@ -201,3 +201,25 @@ def test_degenerate_sessions_over_every_law(n: int, shape: str, scale: float, ex
     """The same over the eight default laws, whose sampled posteriors a degenerate
     session makes hard (about 2.5 min: emcee runs to its budget on several laws)."""
     _fits_or_says_why(_degenerate(n, shape, scale, exact), "all")
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e-3, 1e3])
+def test_a_closure_in_any_unit_is_motion_not_a_constant(scale: float) -> None:
+    """Whether the jaws moved is judged against the closure's own size: the same motion
+    written in a unit a million times larger (values near 1e-9) is fitted, its
+    stiffness scaled by the unit; only a closure that truly never changes is refused."""
+    from tissuecli.core.errors import FitError
+    from tissuecli.identify import BayesianFit
+    from tissuecli.sim.synth import ForcepsModel, synthesize
+
+    session, _ = synthesize(ForcepsModel(seed=2), 4.0)
+    base = BayesianFit(forms="x+xdot+xddot").fit(session)
+    small = session.replace(session.time, session.force, session.position * scale)
+    fit = BayesianFit(forms="x+xdot+xddot").fit(small)
+    k0, k = base.best_.posterior.mean[0], fit.best_.posterior.mean[0]
+    # the same estimate (the session's ADC, left in metres, floors the position noise
+    # slightly differently: a fraction of an SD apart)
+    assert abs(k * scale - k0) < 0.25 * base.best_.posterior.sd[0]
+    still = session.replace(session.time, session.force, np.full(len(session), 3e-9))
+    with pytest.raises(FitError, match="jaw position is constant"):
+        BayesianFit(forms="x+xdot+xddot").fit(still)

@@ -138,7 +138,9 @@ def prepare(
         if np.all(valid)
         else (u[valid] for u in (session.position, session.force))
     )
-    if refuse_constant and (np.ptp(x) <= 0 or np.std(x) < 1e-9):
+    # constant relative to the closure's own size, so that no choice of unit (um, km)
+    # turns motion into a constant; a millionth is float32 rounding, not motion
+    if refuse_constant and np.ptp(x) <= 1e-6 * float(np.max(np.abs(x))):
         raise FitError(
             "jaw position is constant: nothing to identify; the jaws must move "
             "while the forceps records"
