@@ -185,9 +185,7 @@ def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
 def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
     massless = Tissue(Law.paper("x", "xdot"), K=350.0, S=3.0, M=0.0)
     # the law asked for keeps the mass the tissue does not have (the search would drop it)
-    outcome = fit_session(
-        _session(seed=5, duration_s=4.0, tissue=massless), forms="x+xdot+xddot"
-    )
+    outcome = fit_session(_session(seed=5, duration_s=4.0, tissue=massless), forms="x+xdot+xddot")
     warnings = outcome.warnings
     assert warnings, "a massless tissue should leave M unidentified"
     text = _write(tmp_path, outcome)
