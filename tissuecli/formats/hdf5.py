@@ -649,6 +649,28 @@ def group_names(path: StrPath, parent: str) -> list[str]:
     return [key for _, key in sorted(groups)]
 
 
+def has_group(path: StrPath, parent: str, key: str) -> bool:
+    """Whether a group named `key` lies under `parent`: one lookup, where
+    :func:`group_names` reads every group's start to sort them.
+
+    Raises
+    ------
+    StorageError
+        If the file is missing, not HDF5, or its list of groups is damaged.
+    """
+    name = os.fspath(path)
+    with opened(name, "r") as f:
+        try:
+            root = f.get(group_path(parent))
+            return (
+                isinstance(root, h5py.Group)
+                and isinstance(root.get(key, getlink=True), h5py.HardLink)
+                and isinstance(root.get(key), h5py.Group)
+            )
+        except H5_ERRORS as exc:
+            raise damaged(name, f"/{parent}", exc) from None
+
+
 def start_key(g: h5py.Group) -> str:
     """When a group started (``start_utc``, else ``created_utc``), to sort by; '' if unknown."""
     for key in ("start_utc", "created_utc"):
