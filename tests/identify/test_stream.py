@@ -42,6 +42,16 @@ def test_every_filtered_sample_is_summed_once(long_session: Session) -> None:
     assert max(b - a for a, b in blocks) <= 7_000 + window
 
 
+def test_a_short_tail_goes_with_the_block_before_it(long_session: Session) -> None:
+    """90,000 rows in blocks of 8,980 leave a tail of 200 rows, shorter than two filter
+    windows: it is filtered with the block before it, and nothing is lost."""
+    fit = StreamedFit(20_000, 8_980, bayes={"forms": "paper"}).fit(
+        reader(long_session, []), len(long_session)
+    )
+    assert fit.n_samples_ == len(long_session) - fit.pilot_.kinematics_.window + 1
+    assert fit.skipped_blocks_ == 0
+
+
 def test_streamed_sums_give_the_full_fit(long_session: Session) -> None:
     """Same data, same law: the streamed posterior is the full one up to the filter,
     which the pilot chose on a stretch rather than on the whole session. Both estimate

@@ -102,7 +102,7 @@ class StreamedFit:
         Samples read and differentiated at a time (memory grows with it).
     candidates : int
         How many of the pilot's best laws are scored over the whole session.
-    **bayes
+    bayes : dict
         Hyperparameters of the pilot's :class:`BayesianFit` (forms, seed, ...).
 
     Attributes
@@ -163,15 +163,17 @@ class StreamedFit:
         # than the pilot can tell apart from a spring anyway
         warm = half + min(int(np.ceil(MEMORY_WARMUP * max(taus, default=0.0) / dt)), 2 * step)
         starts = list(range(0, rows, step))
+        if len(starts) > 1 and rows - starts[-1] < 2 * kin0.window:
+            starts.pop()  # a tail too short to filter goes with the block before it
         progress.stage("summing the session block by block", len(starts))
         t_first: float | None = None
         self.skipped_blocks_ = 0
         for i, s in enumerate(starts):
-            e = min(rows, s + step)
-            block = read(max(0, s - warm), min(rows, e + half))
+            e = rows if i == len(starts) - 1 else s + step
+            first = max(0, s - warm)
+            block = read(first, min(rows, e + half))
             if t_first is None:
                 t_first = float(block.time[0])
-            first = max(0, s - warm)
             lo = float(block.time[s - first])
             hi = float(block.time[e - first]) if e < rows else np.inf  # the next block's
             try:
