@@ -82,9 +82,9 @@ TRUTHS = [
 
 @pytest.mark.parametrize("factors", TRUTHS)
 def test_calibrate_display_recovers_constants_it_is_not_told(tmp_path: Path, factors: dict):
-    """Kp, alpha and Mp within 5 %, the damping within 20 % (the issue's bounds; on an
-    idle machine they come within 0.1 %): the display reports the paper's constants,
-    so only its motion can tell the truth."""
+    """Kp, alpha and Mp within 5 %, the damping within 20 % (the bounds a calibration
+    is held to; on an idle machine they come within 0.1 %): the display reports the
+    paper's constants, so only its motion can tell the truth."""
     truth = replace(PAPER_DISPLAY, **{k: getattr(PAPER_DISPLAY, k) * f for k, f in factors.items()})
     display = Display(tmp_path / "display", {k: getattr(truth, k) for k in factors}, 0.2)
     out = tmp_path / "profile.json"
