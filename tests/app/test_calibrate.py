@@ -278,7 +278,9 @@ def test_the_forceps_example_of_the_docs_prints_what_the_page_says(tmp_path: Pat
     (tmp_path / "loads.csv").write_text(docs_block("`loads.csv`"))
     (tmp_path / "gaps.csv").write_text(docs_block("`gaps.csv`"))
     block = next(
-        b for b in re.findall(r"```\n(.*?)```", DOCS.read_text(), re.S) if "$ tissuecli" in b
+        b
+        for b in re.findall(r"```(?:console)?\n(.*?)```", DOCS.read_text(), re.S)
+        if "$ tissuecli" in b
     ).splitlines()
     command, expected = block[0].removeprefix("$ tissuecli ").split(), block[1:]
     cwd = os.getcwd()

@@ -174,7 +174,9 @@ def test_the_refusal_the_docs_quote_is_what_play_prints(tmp_path: Path):
 
     docs = Path(__file__).resolve().parents[2] / "docs" / "calibration.md"
     block = next(
-        b for b in re.findall(r"```\n(.*?)```", docs.read_text(), re.S) if "--profile big" in b
+        b
+        for b in re.findall(r"```(?:console)?\n(.*?)```", docs.read_text(), re.S)
+        if "--profile big" in b
     )
     command, expected = [line.strip() for line in block.strip().splitlines()]
     (tmp_path / "liver.json").write_text(json.dumps(tissue_to_dict(DEFAULT_TISSUE)))

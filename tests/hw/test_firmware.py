@@ -240,7 +240,12 @@ def test_the_c_text_logger_at_1_khz_loses_no_line_and_counts_every_broken_one(ho
     window = np.arange(k0, k[-1] + 1)
     broken = window % every == every - 1
     assert set(window[~broken]) == set(k)
-    assert s.meta["lines_malformed"] == res.bad_frames == int(broken.sum()) > 0
+    # a broken line just before the first sample kept or just after the last one is
+    # counted too, though it falls outside the span of samples
+    edges = int((k0 - 1) % every == every - 1) + int((k[-1] + 1) % every == every - 1)
+    assert s.meta["lines_malformed"] == res.bad_frames
+    assert int(broken.sum()) <= res.bad_frames <= int(broken.sum()) + edges
+    assert broken.sum() > 0
     # header reprinted every second: ignored, not malformed
     assert s.meta["lines_ignored"] >= 2
     # the closure the C core printed: its ADC through its calibration constants, in mm
