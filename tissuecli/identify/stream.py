@@ -120,6 +120,9 @@ class StreamedFit:
         Effective independent samples (the pilot's weight per sample times n_samples_).
     skipped_blocks_ : int
         Blocks left out because their samples were too irregular for the filter.
+    not_evaluated_ : list of (str, str)
+        Candidates whose evidence over the whole session cannot be trusted, with the
+        reason; never chosen.
     warnings_ : list of str
     """
 
