@@ -109,6 +109,12 @@ def _stop_after(play_s: float, action: Callable[[], object]) -> Callable[[dict],
     return listen
 
 
+def _starved(s: dict) -> bool:
+    """Whether the machine kept the loop from running in real time: a display watchdog
+    cut, or more than 1 % of periods passed without a frame."""
+    return bool(s["watchdog_frames"]) or s["missed_periods"] > 0.01 * s["frames"]
+
+
 def _figures(s: dict) -> str:
     return (
         f"rms {s['tracking_rms_m'] * 1e6:.2f} um, max {s['tracking_max_m'] * 1e6:.1f} um, "
@@ -124,9 +130,7 @@ def test_tissue_inside_the_band_tracks_within_the_bound_and_is_logged(display, t
     s = play(INSIDE, str(d.link), RUN_S, log=log, name="liver")
     print("inside the band:", _figures(s))
     assert s["stop_reason"] == "duration reached"
-    assert s["frames"] > 0.9 * RUN_S * 1000 and s["frames_lost"] == 0
-    assert s["tracking_rms_m"] <= s["tracking_bound_m"]
-    assert s["saturated_fraction"] == 0.0 and s["unrenderable_fraction"] < 0.01
+    assert s["frames"] > 0.5 * RUN_S * 1000 and s["frames_lost"] == 0
     assert s["nonfinite_frames"] == 0
     assert s["check"]["renderable"] and s["log"] == {"path": str(log), "group": "plays/liver"}
 
@@ -142,13 +146,18 @@ def test_tissue_inside_the_band_tracks_within_the_bound_and_is_logged(display, t
     assert 1.0 < np.percentile(cols["force_observed"], 99.5) < 2.7
     counters = d.stop()
     assert counters["last_command_volts"] == 0.0
+    if _starved(s):  # the tracking figures below are a real-time loop's
+        pytest.skip(f"host starved of CPU, the loop was not real time: {_figures(s)}")
+    assert s["frames"] > 0.9 * RUN_S * 1000
+    assert s["tracking_rms_m"] <= s["tracking_bound_m"]
+    assert s["saturated_fraction"] == 0.0 and s["unrenderable_fraction"] < 0.01
 
 
 def test_matched_mass_tracks_close_to_the_encoder_resolution(display):
     d = display()
     s = play(MATCHED, str(d.link), RUN_S)
     print("Mm = Mp:", _figures(s))
-    if s["watchdog_frames"] or s["missed_periods"] > 0.01 * s["frames"]:
+    if _starved(s):
         # the offline loop (test_display) holds this figure on any machine
         pytest.skip(f"host starved of CPU, the loop was not real time: {_figures(s)}")
     assert s["tracking_rms_m"] < 2 * PAPER_DISPLAY.resolution
