@@ -60,7 +60,8 @@ def params(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def display(tmp_path: Path) -> Iterator[SimulatorProcess]:
-    with SimulatorProcess("display", tmp_path / "display") as d:
+    # the firmware's 5-period watchdog, not one lengthened to the port's round trips
+    with SimulatorProcess("display", tmp_path / "display", ["--watchdog-periods", "5"]) as d:
         yield d
 
 

@@ -117,7 +117,8 @@ def stalling_controller(monkeypatch: pytest.MonkeyPatch) -> None:
 
 @pytest.fixture
 def display(tmp_path: Path) -> Iterator[SimulatorProcess]:
-    with SimulatorProcess("display", tmp_path / "display") as d:
+    # the firmware's 5-period watchdog, not one lengthened to the port's round trips
+    with SimulatorProcess("display", tmp_path / "display", ["--watchdog-periods", "5"]) as d:
         yield d
 
 

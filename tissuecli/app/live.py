@@ -46,7 +46,14 @@ from ..render.handover import TISSUE, read_tissue_message, tissue_message
 from ..render.law import Gains
 from ..render.passivity import PassivityController
 from ..render.profile import DisplayProfile
-from .play import HostLoop, Rendering, _jsonable, _open_display, classify_faults
+from .play import (
+    HostLoop,
+    Rendering,
+    _jsonable,
+    _open_display,
+    classify_faults,
+    watchdog_periods,
+)
 from .record import RecordStatus, SampleBlock, record
 
 #: The forceps silent this long (no sample block) and the display goes to 0 V, s.
@@ -163,6 +170,7 @@ def _live_loop(
             parent,
         )
         loop.where = "process"
+        loop.watchdog_periods = watchdog_periods(info)
         stream = Stream(
             link,
             Encoder,

@@ -41,17 +41,16 @@ from ..formats.params import read_profile, read_tissue
 from ..hw.link import DEFAULT_BAUD, Link, open_device
 from ..hw.protocol import Encoder, SetVoltage
 from ..hw.realtime import (
-    SPIN_S,
     Deadlines,
     Elevation,
     LoopProcess,
     Parent,
     StopFlag,
-    cpu_to_spare,
     elevate,
     fallback_message,
     realtime,
     run_in_thread,
+    spin_for,
     wait_readable,
     wait_until,
 )
@@ -69,6 +68,10 @@ from ..render.profile import (
 
 if TYPE_CHECKING:
     from ..formats.playlog import PlayLog
+
+#: A display cuts the solenoid after this many periods without a SetVoltage, unless
+#: it states its own limit (docs/protocol.md, section 7).
+WATCHDOG_PERIODS = 5
 
 #: A missing Encoder frame is bridged by repeating the last voltage this many periods,
 #: then the host sends 0 V until frames return.
@@ -177,12 +180,13 @@ def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[in
         else ""
     )
     if num("watchdog_frames") > 0:
+        limit = num("watchdog_periods") or 5  # what the display stated, else the firmware's
         faults.append(
             (
                 EXIT_WATCHDOG,
                 f"the display's watchdog cut the solenoid on {num('watchdog_frames'):.0f} "
-                f"frame(s): the host stopped answering for 5 periods ({5e3 / rate_hz:g} ms)"
-                + guarantee,
+                f"frame(s): the host stopped answering for {limit:.0f} periods "
+                f"({limit * 1e3 / rate_hz:g} ms)" + guarantee,
             )
         )
     rate = num("loop_rate_hz")
@@ -537,6 +541,7 @@ def _render(
             before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
         )
         player.auto_silence = idle_timeout_s is None
+        player.watchdog_periods = watchdog_periods(info)
         player.where = "process" if inbox is not None else "thread" if in_thread else "plain"
         if in_thread:  # the main thread stays free for signals
             summary = run_in_thread(
@@ -677,6 +682,8 @@ class HostLoop:
         self.link, self.profile, self.log = link, profile, log
         self.realtime, self.on_message, self.inbox = realtime, on_message, inbox
         self.where = "plain"  # which of LOOPS runs it, for the summary
+        # the display's watchdog limit, periods: as it states it, else the firmware's
+        self.watchdog_periods = WATCHDOG_PERIODS
         # the display's silence limit follows what the loop's scheduling can guarantee
         self.auto_silence = False
         self.spin_s = 0.0
@@ -714,12 +721,7 @@ class HostLoop:
             message = fallback_message(self.elevation)
             if message is not None and self.on_message is not None:
                 self.on_message(message)
-        # a spin pays only at real-time priority: an ordinary thread spinning on a busy
-        # machine spends its time slice and is then descheduled for longer; and only with
-        # a CPU to spare: on a saturated machine the spins of real-time loops add up to
-        # the kernel's real-time budget (95 %), and then every such loop is stopped for
-        # tens of ms, where an elevated loop that sleeps wakes within 0.1-0.8 ms
-        self.spin_s = SPIN_S if self.elevation.elevated and cpu_to_spare() else 0.0
+        self.spin_s = spin_for(self.elevation)  # the simulated devices' rule too
         if self.auto_silence:
             elevated = self.elevation.elevated
             stream.idle_timeout_s = (
@@ -733,6 +735,7 @@ class HostLoop:
             summary = self._loop(stream, duration_s, on_status, period, fd)
         finally:
             restore()
+        summary["watchdog_periods"] = self.watchdog_periods
         summary["realtime"] = {
             "loop": self.where,
             **self.elevation.as_dict(),
@@ -867,6 +870,14 @@ class HostLoop:
             **figures,
             **silence_figures(stream),
         }
+
+
+def watchdog_periods(info: Mapping[str, Any]) -> int:
+    """The watchdog limit a display states in its IDENTIFY answer, periods (a simulated
+    display's may be longer than the firmware's, judged against its port); the
+    firmware's :data:`WATCHDOG_PERIODS` if it states none."""
+    value = info.get("watchdog_periods")
+    return int(value) if isinstance(value, int) and value > 0 else WATCHDOG_PERIODS
 
 
 #: The loop's former name, for code that used it.

@@ -107,12 +107,14 @@ def simulate_display(
     say: Callable[[str], None] | None = None,
     load_kg: float = 0.0,
     reports: StrPath | None = None,
+    watchdog_periods: int | None = None,
 ) -> dict[str, Any]:
     """Run the simulated display until SIGINT/SIGTERM (or ``duration_s``); see
     :func:`tissuecli.sim.display.run_simulated_display`. ``profile`` is a display
     profile file (the paper's prototype otherwise); ``reports`` the profile file it
     answers to IDENTIFY (``profile`` by default); ``load_kg`` a reference mass resting
-    on the piston in place of the finger."""
+    on the piston in place of the finger; ``watchdog_periods`` a fixed watchdog limit
+    (by default judged against the port at start-up)."""
     return run_simulated_display(
         link,
         profile=read_profile(profile) if profile else None,
@@ -123,6 +125,7 @@ def simulate_display(
         duration_s=duration_s,
         on_ready=on_ready,
         say=say,
+        watchdog_periods=watchdog_periods,
     )
 
 

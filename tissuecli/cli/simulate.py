@@ -249,6 +249,15 @@ def simulate_forceps(
     help="Display profile JSON it answers to IDENTIFY (default: the one it runs): "
     "stored constants that are not its true ones.",
 )
+@click.option(
+    "--watchdog-periods",
+    "watchdog_periods",
+    type=int,
+    default=None,
+    help="Cut the solenoid after this many periods without a SetVoltage (5 is the "
+    "firmware's). Default: 5 plus 4 times the longest round trip through its port "
+    "timed at start-up, at most 50 ms, said on stderr when longer than 5.",
+)
 def simulate_display(
     link: str | None,
     profile_file: str | None,
@@ -257,12 +266,14 @@ def simulate_display(
     duration: float | None,
     load: str | None,
     reports_file: str | None,
+    watchdog_periods: int | None,
 ) -> None:
     """A simulated solenoid display: piston, spring, solenoid, encoder and a pressing finger.
 
     It prints its port, then sends an Encoder frame every period to whoever opens
     it and sends START, and applies the SetVoltage frames it receives. With no
-    SetVoltage for 5 periods it switches the solenoid off (watchdog). The finger
+    SetVoltage for its watchdog's periods (stated in its IDENTIFY answer; see
+    --watchdog-periods) it switches the solenoid off. The finger
     presses 1-2.5 N a few times per 10 s (with --load, a mass rests on the piston
     instead). Stop it with Ctrl-C or SIGTERM.
 
@@ -288,6 +299,7 @@ def simulate_display(
         say=lambda line: click.echo(line, err=True),
         load_kg=load_kg,
         reports=reports_file,
+        watchdog_periods=watchdog_periods,
     )
     click.echo(
         f"stopped: {counters['sent']} frames sent, {counters['commands']} SetVoltage received, "

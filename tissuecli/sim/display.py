@@ -3,8 +3,10 @@
 At each tick of its loop it applies the latest SetVoltage, sends an Encoder frame
 and integrates the piston's physics (:func:`~tissuecli.render.plant.piston_step`)
 under a simulated finger (:class:`~tissuecli.sim.finger.OperatorForce`) until the
-next tick. If no valid SetVoltage arrives for :data:`WATCHDOG_PERIODS` periods it
-zeroes the voltage and raises ``FLAG_WATCHDOG``.
+next tick. If no valid SetVoltage arrives for its watchdog's periods it zeroes the
+voltage and raises ``FLAG_WATCHDOG``: :data:`WATCHDOG_PERIODS`, as the firmware, or a
+limit judged against its own port (:func:`watchdog_limit`), stated in its IDENTIFY
+answer as ``watchdog_periods``.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -33,7 +34,7 @@ from ..hw.protocol import (
     SetVoltage,
     encode,
 )
-from ..hw.realtime import Deadlines, StopFlag, device_loop, realtime
+from ..hw.realtime import Deadlines, StopFlag, device_loop, realtime, spin_for, wait_until
 from ..render.plant import piston_step
 from ..render.profile import PAPER_DISPLAY, DisplayProfile
 from .finger import OperatorForce
@@ -41,16 +42,55 @@ from .port import VirtualPort
 from .synth import CLOCK_HZ
 
 #: The display zeroes the voltage after this many periods without a valid SetVoltage
-#: (docs/protocol.md, section 7).
+#: (docs/protocol.md, section 7): the firmware's limit, which no host changes.
 WATCHDOG_PERIODS = 5
+#: The simulated display's own limit may be lengthened to what its port can guarantee
+#: (:func:`watchdog_limit`), never beyond this, s: half the host's 100 ms no-frame
+#: limit, and a third of the 150 ms a person takes to react, so a dead host's last
+#: command is never felt for longer than the firmware's own limit would allow a person
+#: to notice.
+SIM_WATCHDOG_MAX_S = 0.05
+#: Round trips through the port timed at start-up, and the margin over the longest of
+#: them that the watchdog allows on top of the firmware's periods: a start-up sample of
+#: 100 sees the p99 of the transfer, a play of seconds its p99.99, 2-4 times longer on
+#: this machine (docs/benchmarks.md, "Where a loop's time goes").
+PROBES = 100
+ROUND_TRIP_MARGIN = 4.0
 #: Heaviest reference mass the simulated piston carries, kg.
 MAX_LOAD_KG = 5.0
 #: Standard gravity, m/s^2.
 G = 9.80665
 
 
-def display_info(profile: DisplayProfile, rate_hz: float) -> dict[str, Any]:
-    """What a display answers to IDENTIFY: identity, loop rate, encoder scale and profile."""
+def watchdog_limit(round_trips_s: list[float], period_s: float) -> tuple[int, str]:
+    """The simulated display's watchdog, periods, judged against its port: the firmware's
+    :data:`WATCHDOG_PERIODS` plus :data:`ROUND_TRIP_MARGIN` times the longest round trip
+    timed at start-up (``round_trips_s``, s; :meth:`VirtualPort.round_trips`), at most
+    :data:`SIM_WATCHDOG_MAX_S`; and the one line that says how it was set.
+
+    A host that answers every frame at once is then cut only when it, or the line,
+    stalls for longer than the port showed it could be trusted with; a real display's
+    firmware keeps its own limit.
+    """
+    cap = max(WATCHDOG_PERIODS, int(SIM_WATCHDOG_MAX_S / period_s))
+    if not round_trips_s:
+        return WATCHDOG_PERIODS, f"watchdog {WATCHDOG_PERIODS} periods, as the firmware"
+    ordered = sorted(round_trips_s)
+    worst, median = ordered[-1], ordered[len(ordered) // 2]
+    periods = min(cap, WATCHDOG_PERIODS + math.ceil(ROUND_TRIP_MARGIN * worst / period_s))
+    return periods, (
+        f"watchdog {periods} periods ({periods * period_s * 1e3:g} ms): the firmware's "
+        f"{WATCHDOG_PERIODS} plus {ROUND_TRIP_MARGIN:g} x the longest of {len(ordered)} "
+        f"round trips through the port at start-up ({median * 1e3:.2f} ms median, "
+        f"{worst * 1e3:.2f} ms longest), at most {SIM_WATCHDOG_MAX_S * 1e3:g} ms"
+    )
+
+
+def display_info(
+    profile: DisplayProfile, rate_hz: float, watchdog_periods: int = WATCHDOG_PERIODS
+) -> dict[str, Any]:
+    """What a display answers to IDENTIFY: identity, loop rate, encoder scale, watchdog
+    and profile."""
     return {
         "protocol": PROTOCOL_VERSION,
         "device": "display",
@@ -58,6 +98,7 @@ def display_info(profile: DisplayProfile, rate_hz: float) -> dict[str, Any]:
         "firmware": __version__,
         "rate_hz": rate_hz,
         "clock_hz": CLOCK_HZ,
+        "watchdog_periods": watchdog_periods,
         "calibration": {"position": {"gain": profile.resolution, "offset": 0.0, "unit": "m"}},
         "profile": profile.as_dict(),
     }
@@ -75,6 +116,8 @@ def simulate_display(
     say: Callable[[str], None] | None = None,
     load_kg: float = 0.0,
     reports: DisplayProfile | None = None,
+    watchdog_periods: int = WATCHDOG_PERIODS,
+    spin_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the simulated display's firmware until ``stop`` is set (or ``duration_s``).
 
@@ -112,6 +155,12 @@ def simulate_display(
     reports : DisplayProfile, optional
         The profile it answers to IDENTIFY (``profile`` by default): a display whose
         stored constants are not its true ones.
+    watchdog_periods : int
+        Periods without a valid SetVoltage before the watchdog cuts (stated in the
+        IDENTIFY answer).
+    spin_s : float
+        Sleep until this long before each tick, then spin, s
+        (:func:`~tissuecli.hw.realtime.spin_for`: the host loop's rule).
 
     Returns
     -------
@@ -119,7 +168,8 @@ def simulate_display(
         Counters: ``sent`` Encoder frames, ``commands`` valid SetVoltage frames,
         ``last_command_volts`` (the last SetVoltage's value, V, or None),
         ``max_command_volts`` (the largest SetVoltage value received, V, or None),
-        ``watchdog_trips``, ``bad_frames``, ``missed_deadlines``, ``overrun_bytes``.
+        ``watchdog_trips``, ``watchdog_periods``, ``bad_frames``, ``missed_deadlines``,
+        ``overrun_bytes``.
     """
     stop = stop if stop is not None else StopFlag()
     if load_kg > 0:
@@ -129,7 +179,14 @@ def simulate_display(
             return weight
 
     fw = _Firmware(
-        profile, port, rate_hz, operator or OperatorForce(), say, load_kg, reports or profile
+        profile,
+        port,
+        rate_hz,
+        operator or OperatorForce(),
+        say,
+        load_kg,
+        reports or profile,
+        watchdog_periods,
     )
     for t in (0.0, 1.0, 2.0):
         fw.operator(t)  # first calls build the presses' random generator: not inside a tick
@@ -143,7 +200,7 @@ def simulate_display(
             fw.receive()
             fw.tick()
             fw.advance()
-            time.sleep(max(0.0, clock.next() - time.monotonic()))
+            wait_until(None, clock.next(), spin_s)
     fw.receive()  # what the host sent last (its final 0 V and STOP) is counted
     return {
         "sent": fw.sent,
@@ -151,6 +208,7 @@ def simulate_display(
         "last_command_volts": fw.last_command,
         "max_command_volts": fw.max_command,
         "watchdog_trips": fw.trips,
+        "watchdog_periods": fw.watchdog_periods,
         "bad_frames": fw.decoder.bad_frames,
         "missed_deadlines": clock.missed,
         "overrun_bytes": port.overruns,
@@ -169,14 +227,16 @@ class _Firmware:
         say: Callable[[str], None] | None,
         load_kg: float = 0.0,
         reports: DisplayProfile | None = None,
+        watchdog_periods: int = WATCHDOG_PERIODS,
     ) -> None:
+        self.watchdog_periods = watchdog_periods
         self.profile, self.port, self.operator, self.say = profile, port, operator, say
         # a mass resting on the piston moves with it
         self.plant = replace(profile, Mp=profile.Mp + load_kg) if load_kg > 0 else profile
         self.loaded = load_kg > 0
         self.period = 1.0 / rate_hz
         self.decoder = FrameDecoder()
-        self.info = encode(Info(display_info(reports or profile, rate_hz)))
+        self.info = encode(Info(display_info(reports or profile, rate_hz, watchdog_periods)))
         self.x = self.v = self.volts = 0.0
         self.at_limit = self.streaming = self.armed = self.tripped = False
         self.seq = self.sent = self.commands = self.trips = 0
@@ -221,14 +281,14 @@ class _Firmware:
             self.streaming
             and self.armed
             and not self.tripped
-            and self.ticks_run - self.tick_command > WATCHDOG_PERIODS
+            and self.ticks_run - self.tick_command > self.watchdog_periods
         ):
             self.volts, self.tripped = 0.0, True
             self.trips += 1
             if self.say is not None:
                 self.say(
-                    f"watchdog: no SetVoltage for {WATCHDOG_PERIODS} periods "
-                    f"({WATCHDOG_PERIODS * self.period * 1e3:g} ms); solenoid off"
+                    f"watchdog: no SetVoltage for {self.watchdog_periods} periods "
+                    f"({self.watchdog_periods * self.period * 1e3:g} ms); solenoid off"
                 )
         if self.streaming:
             flags = (FLAG_WATCHDOG if self.tripped else 0) | (FLAG_LIMIT if self.at_limit else 0)
@@ -264,9 +324,12 @@ def run_simulated_display(
     say: Callable[[str], None] | None = None,
     load_kg: float = 0.0,
     reports: DisplayProfile | None = None,
+    watchdog_periods: int | None = None,
 ) -> dict[str, Any]:
     """A simulated display as a process runs it: a port (symlinked at ``link``),
-    SIGINT/SIGTERM for a clean stop, and the firmware loop.
+    SIGINT/SIGTERM for a clean stop, and the firmware loop, kept on time as the host's
+    haptic loop is (SCHED_FIFO and locked memory where allowed, absolute deadlines,
+    the same spin rule).
 
     Parameters
     ----------
@@ -288,6 +351,10 @@ def run_simulated_display(
         A reference mass resting on the piston instead of the finger, kg.
     reports : DisplayProfile, optional
         The profile it answers to IDENTIFY (``profile`` by default).
+    watchdog_periods : int, optional
+        The watchdog's limit, periods (:data:`WATCHDOG_PERIODS` is the firmware's); by
+        default judged against the port at start-up (:func:`watchdog_limit`, said on
+        ``say`` when longer than the firmware's), before the link is made.
 
     Returns
     -------
@@ -298,15 +365,24 @@ def run_simulated_display(
         raise InputError(f"--rate {rate_hz} must be a positive number of Hz")
     if not (0 <= load_kg <= MAX_LOAD_KG):
         raise InputError(f"--load {load_kg:g} kg must be between 0 and {MAX_LOAD_KG:g} kg")
+    if watchdog_periods is not None and watchdog_periods < 1:
+        raise InputError(f"--watchdog-periods {watchdog_periods} must be 1 or more")
     stop = StopFlag().install()
-    port = VirtualPort(link)
+    port = VirtualPort(link if watchdog_periods is not None else None)
     if say is None:
 
         def say(line: str) -> None:
             print(line, file=sys.stderr, flush=True)
 
     try:
-        with device_loop(say):  # SCHED_FIFO where allowed, as the host's loop
+        with device_loop(say) as elevation:  # SCHED_FIFO where allowed, as the host's loop
+            if watchdog_periods is None:
+                # timed under the loop's own scheduling, before a host can open the port
+                watchdog_periods, basis = watchdog_limit(port.round_trips(PROBES), 1 / rate_hz)
+                if watchdog_periods > WATCHDOG_PERIODS:
+                    say(f"note: {basis}")
+                if link is not None:
+                    port.publish(link)
             return simulate_display(
                 (profile or PAPER_DISPLAY).validate(),
                 port,
@@ -318,6 +394,8 @@ def run_simulated_display(
                 say=say,
                 load_kg=load_kg,
                 reports=reports.validate() if reports is not None else None,
+                watchdog_periods=watchdog_periods,
+                spin_s=spin_for(elevation),
             )
     finally:
         port.close()

@@ -6,6 +6,8 @@ from __future__ import annotations
 import errno
 import os
 import pty
+import select
+import time
 import tty
 from pathlib import Path
 
@@ -56,6 +58,43 @@ class VirtualPort:
             ) from None
         except OSError as exc:
             raise DeviceError(f"cannot create --link {link}: {exc.strerror}") from None
+
+    def publish(self, link: str | os.PathLike[str]) -> None:
+        """Make the symlink ``link`` to this pty now (for a port made without one, so that
+        no host finds it before :meth:`round_trips` has run)."""
+        self._make_link(Path(link))
+        self.link = Path(link)
+
+    def round_trips(self, probes: int = 100, interval_s: float = 1e-3) -> list[float]:
+        """Time ``probes`` round trips of one byte through the pseudo-terminal, s: from the
+        device side to the host side and back, ``interval_s`` apart, as a host answering
+        each frame at once would see them (the transfer alone, no host code).
+
+        Each direction goes through the kernel's tty buffer work, which runs in a
+        kernel worker thread at ordinary priority (not in the writer's or the reader's
+        context): on a busy machine it, not either loop, is what delays a frame. Run
+        before a host can open the port (a port made without a link); a probe lost for
+        0.5 s counts as 0.5 s.
+        """
+        got: list[float] = []
+        for _ in range(probes):
+            t0 = time.monotonic()
+            os.write(self.master, b"\x00")
+            if self._await(self._slave):
+                os.read(self._slave, 64)
+                os.write(self._slave, b"\x00")
+                if self._await(self.master):
+                    os.read(self.master, 64)
+            got.append(time.monotonic() - t0)
+            time.sleep(max(0.0, t0 + interval_s - time.monotonic()))
+        return got
+
+    @staticmethod
+    def _await(fd: int, timeout_s: float = 0.5) -> bool:
+        try:
+            return bool(select.select([fd], [], [], timeout_s)[0])
+        except InterruptedError:
+            return False
 
     @property
     def path(self) -> str:
