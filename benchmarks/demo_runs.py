@@ -26,6 +26,7 @@ PLAYED = re.compile(
     r".*?(\d+) periods without a frame"
 )
 WATCHDOG = re.compile(r"watchdog frames (\d+)")
+LIMIT = re.compile(r"display watchdog (\d+) periods")
 
 
 def main() -> None:
@@ -39,7 +40,7 @@ def main() -> None:
     ]
     print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
     print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} {'watchdog':>8} "
-          f"{'missed':>6} {'s':>5}")
+          f"{'missed':>6} {'limit':>5} {'s':>5}")
     passed = 0
     try:
         for run in range(args.runs):
@@ -50,6 +51,7 @@ def main() -> None:
             )  # fmt: skip
             played = PLAYED.search(done.stdout)
             watchdog = WATCHDOG.search(done.stdout)
+            limit = LIMIT.search(done.stdout)
             passed += done.returncode == 0
             if played is None:
                 last = (done.stderr.strip().splitlines() or ["?"])[-1]
@@ -59,7 +61,7 @@ def main() -> None:
             print(
                 f"{run:>3} {done.returncode:>4} {float(rate):8.1f} {float(p99):7.2f} "
                 f"{float(worst):7.2f} {watchdog.group(1) if watchdog else '?':>8} "
-                f"{missed:>6} {time.monotonic() - t0:5.0f}",
+                f"{missed:>6} {limit.group(1) if limit else '?':>5} {time.monotonic() - t0:5.0f}",
                 flush=True,
             )
     finally:

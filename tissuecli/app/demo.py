@@ -122,6 +122,11 @@ def run_demo(
         say("7. played the fitted tissue on the simulated display:")
         for line in summary_lines(summary):
             say(f"   {line}")
+        limit = summary.get("watchdog_periods") or 5
+        say(
+            f"   display watchdog {limit} periods ({limit:g} ms), as the simulated display "
+            "judged it against its port at start-up (the firmware's: 5)"
+        )
         faults.extend(classify_faults(summary, 1000.0))
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")

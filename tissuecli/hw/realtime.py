@@ -109,21 +109,33 @@ def wait_readable(fd: int, deadline: float) -> bool:
     return bool(ready)
 
 
+#: The interpreter's switch interval while a loop runs, s. A thread that wants the
+#: interpreter lock waits this long before asking its holder to let go: the default
+#: 5 ms is the display's whole watchdog, so a loop that woke while another thread of
+#: its process (the play log's writer, the thread waiting on the loop) held the lock
+#: answered 5 ms late.
+SWITCH_INTERVAL_S = 1e-4
+
+
 @contextlib.contextmanager
 def realtime() -> Iterator[None]:
-    """Keep the cyclic garbage collector out of a 1 kHz loop.
+    """Keep the cyclic garbage collector out of a 1 kHz loop, and hand the interpreter
+    lock back to it within :data:`SWITCH_INTERVAL_S`.
 
-    Its passes took 0.4-0.9 ms here, most of a period. The loops make no reference
-    cycles (reference counting frees everything they drop), so the collector is
-    paused for their duration and what existed before is frozen out of later passes.
+    The collector's passes took 0.4-0.9 ms here, most of a period. The loops make no
+    reference cycles (reference counting frees everything they drop), so the collector
+    is paused for their duration and what existed before is frozen out of later passes.
     """
     enabled = gc.isenabled()
+    interval = sys.getswitchinterval()
     gc.collect()
     gc.freeze()
     gc.disable()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         yield
     finally:
+        sys.setswitchinterval(interval)
         gc.unfreeze()
         if enabled:
             gc.enable()
@@ -138,6 +150,11 @@ SPIN_S = 3e-4
 #: and the kernel's default threaded interrupts are at 50, so a modest 10 leaves them
 #: (and anything a lab gives a higher priority) in front.
 FIFO_PRIORITY = 10
+#: Priority of the other threads of an elevated loop's process while it runs (the
+#: lowest real-time one): they share its interpreter lock, and one of them descheduled
+#: by an ordinary process while holding it stopped the loop for 5-20 ms (a priority
+#: inversion); at this priority they still yield to the loop and to every device loop.
+COMPANION_PRIORITY = 1
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
@@ -187,6 +204,8 @@ class Elevation:
         The one CPU the thread is pinned to, if any.
     refused : list of str
         What was asked and not granted, with the reason, one item each.
+    companions : int
+        Other threads of the process raised to :data:`COMPANION_PRIORITY` with it.
     """
 
     scheduler: str = "SCHED_OTHER"
@@ -194,6 +213,7 @@ class Elevation:
     memory_locked: bool = False
     cpu: int | None = None
     refused: list[str] = field(default_factory=list)
+    companions: int = 0
 
     @property
     def elevated(self) -> bool:
@@ -206,19 +226,25 @@ class Elevation:
             "memory_locked": self.memory_locked,
             "cpu": self.cpu,
             "refused": list(self.refused),
+            "companions": self.companions,
         }
 
 
 def elevate(
-    priority: int = FIFO_PRIORITY, cpu: int | None = -1, lock_memory: bool = True
+    priority: int = FIFO_PRIORITY,
+    cpu: int | None = -1,
+    lock_memory: bool = True,
+    companions: bool = True,
 ) -> tuple[Elevation, Callable[[], None]]:
     """Give the calling thread what real haptic loops run with, as far as allowed.
 
     SCHED_FIFO at ``priority`` (Linux schedules threads, so only the calling thread is
-    raised; the rest of the process stays ordinary), all pages locked in memory
-    (``mlockall``), and the thread pinned to one CPU (``cpu``: an index into the CPUs
-    allowed, -1 the last; None leaves it free). Each is tried on its own and a refusal
-    (not root, no CAP_SYS_NICE, RLIMIT_RTPRIO 0, another OS) is recorded, not raised.
+    raised), all pages locked in memory (``mlockall``), and the thread pinned to one CPU
+    (``cpu``: an index into the CPUs allowed, -1 the last; None leaves it free). With
+    ``companions`` the process's other threads, which share the loop's interpreter lock,
+    go to SCHED_FIFO :data:`COMPANION_PRIORITY` (see there). Each is tried on its own and
+    a refusal (not root, no CAP_SYS_NICE, RLIMIT_RTPRIO 0, another OS) is recorded, not
+    raised.
 
     Returns
     -------
@@ -243,6 +269,8 @@ def elevate(
             )
     else:
         got.refused.append("SCHED_FIFO (not on this OS)")
+    if companions and got.elevated:
+        got.companions = _raise_companions(undo)
     if lock_memory:
         try:
             libc = ctypes.CDLL(None, use_errno=True)
@@ -268,6 +296,31 @@ def elevate(
                 step()
 
     return got, restore
+
+
+def _raise_companions(undo: list[Callable[[], None]]) -> int:
+    """Raise the process's other threads to :data:`COMPANION_PRIORITY` (Linux: each
+    is a task of ``/proc/self/task``); push their undoing to ``undo``; how many."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return 0
+    own, raised = threading.get_native_id(), 0
+    for tid in tids:
+        if tid == own:
+            continue
+        try:
+            policy, param = os.sched_getscheduler(tid), os.sched_getparam(tid)
+            if policy != os.SCHED_OTHER:
+                continue  # a thread already given its own scheduling keeps it
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(COMPANION_PRIORITY))
+        except OSError:
+            continue  # ended meanwhile, or not allowed: it stays as it was
+        undo.append(lambda tid=tid, policy=policy, param=param: os.sched_setscheduler(
+            tid, policy, param
+        ))  # fmt: skip
+        raised += 1
+    return raised
 
 
 def fallback_message(elevation: Elevation, what: str = "the haptic loop") -> str | None:
