@@ -101,3 +101,50 @@ def test_a_loop_process_killed_is_said_in_one_error() -> None:
     proc.kill()
     with pytest.raises(DeviceLost, match="test loop process ended without a result"):
         proc.wait()
+
+
+def test_the_threads_sharing_an_elevated_loops_interpreter_are_raised_with_it() -> None:
+    """Another thread of the process (a log writer, the thread waiting on the loop) goes
+    to SCHED_FIFO 1 while the loop is elevated, and back after."""
+    if not hasattr(os, "sched_setscheduler"):
+        pytest.skip("no POSIX scheduling here")
+    release = threading.Event()
+    other = threading.Thread(target=release.wait, daemon=True)
+    other.start()
+    tid = other.native_id
+    assert tid is not None
+    try:
+
+        def body() -> tuple[Elevation, int, int]:
+            got, restore = elevate(lock_memory=False, cpu=None)
+            during = os.sched_getscheduler(tid)
+            restore()
+            return got, during, os.sched_getscheduler(tid)
+
+        got, during, after = _in_thread(body)
+    finally:
+        release.set()
+        other.join()
+    if not got.elevated:
+        pytest.skip(f"real-time scheduling not allowed here: {got.refused}")
+    assert during == os.SCHED_FIFO and after == os.SCHED_OTHER
+    assert got.companions >= 2  # the other thread and the main thread waiting on the loop
+    assert got.as_dict()["companions"] == got.companions
+
+
+def test_a_loop_gets_the_interpreter_lock_back_within_its_switch_interval() -> None:
+    import sys
+
+    before = sys.getswitchinterval()
+    with realtime.realtime():
+        assert sys.getswitchinterval() == pytest.approx(realtime.SWITCH_INTERVAL_S)
+    assert sys.getswitchinterval() == before
+
+
+def test_only_an_elevated_loop_spins(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(realtime, "cpu_to_spare", lambda: True)
+    assert realtime.spin_for(Elevation()) == 0.0
+    elevated = Elevation(scheduler="SCHED_FIFO", priority=10)
+    assert realtime.spin_for(elevated) == realtime.SPIN_S
+    monkeypatch.setattr(realtime, "cpu_to_spare", lambda: False)
+    assert realtime.spin_for(elevated) == 0.0  # a saturated machine: sleep, never spin

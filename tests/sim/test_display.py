@@ -1,0 +1,104 @@
+"""The simulated display's watchdog judged against its own port: the limit it states, how it
+was set, its bounds, and the firmware's limit kept when asked for."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from tissuecli.app.play import classify_faults, watchdog_periods
+from tissuecli.core.errors import EXIT_WATCHDOG, InputError
+from tissuecli.hw.link import open_device
+from tissuecli.render.profile import PAPER_DISPLAY
+from tissuecli.sim.display import (
+    ROUND_TRIP_MARGIN,
+    SIM_WATCHDOG_MAX_S,
+    WATCHDOG_PERIODS,
+    display_info,
+    run_simulated_display,
+    watchdog_limit,
+)
+from tissuecli.sim.port import VirtualPort
+from tissuecli.sim.process import SimulatorProcess
+
+
+def test_no_round_trip_timed_keeps_the_firmwares_limit() -> None:
+    periods, basis = watchdog_limit([], 1e-3)
+    assert periods == WATCHDOG_PERIODS and "as the firmware" in basis
+
+
+def test_the_limit_is_the_firmwares_plus_the_margin_over_the_longest_round_trip() -> None:
+    periods, basis = watchdog_limit([0.2e-3, 1.5e-3, 0.3e-3], 1e-3)
+    assert periods == WATCHDOG_PERIODS + math.ceil(ROUND_TRIP_MARGIN * 1.5)
+    assert f"watchdog {periods} periods ({periods:g} ms)" in basis
+    assert "1.50 ms longest" in basis and "0.30 ms median" in basis
+    assert f"at most {SIM_WATCHDOG_MAX_S * 1e3:g} ms" in basis
+
+
+@given(
+    st.lists(st.floats(0.0, 10.0, allow_nan=False), max_size=50),
+    st.sampled_from([1e-4, 5e-4, 1e-3, 2e-3, 0.1]),
+)
+def test_the_limit_never_falls_below_the_firmwares_nor_passes_its_bound(
+    trips: list[float], period: float
+) -> None:
+    periods, _ = watchdog_limit(trips, period)
+    assert WATCHDOG_PERIODS <= periods
+    assert periods <= max(WATCHDOG_PERIODS, int(SIM_WATCHDOG_MAX_S / period))
+
+
+def test_round_trips_through_the_port_are_timed_before_a_link_is_made(tmp_path: Path) -> None:
+    port = VirtualPort()
+    try:
+        trips = port.round_trips(20, interval_s=0.0)
+        assert len(trips) == 20 and all(0 < t < 0.6 for t in trips)
+        assert port.link is None
+        port.publish(tmp_path / "d")
+        assert (tmp_path / "d").is_symlink() and port.path == str(tmp_path / "d")
+    finally:
+        port.close()
+    assert not (tmp_path / "d").is_symlink()  # its own link removed on close
+
+
+def _stated(link: Path) -> dict:
+    device, info = open_device(str(link), "display")
+    device.close()
+    assert info is not None
+    return info
+
+
+def test_a_simulated_display_states_its_limit_judged_at_start_up(tmp_path: Path) -> None:
+    with SimulatorProcess("display", tmp_path / "d"):
+        info = _stated(tmp_path / "d")
+    assert WATCHDOG_PERIODS <= info["watchdog_periods"] <= SIM_WATCHDOG_MAX_S / 1e-3
+    assert watchdog_periods(info) == info["watchdog_periods"]
+
+
+def test_the_firmwares_limit_is_kept_when_asked_for(tmp_path: Path) -> None:
+    with SimulatorProcess("display", tmp_path / "d", ["--watchdog-periods", "5"]):
+        assert _stated(tmp_path / "d")["watchdog_periods"] == 5
+
+
+def test_a_watchdog_of_no_period_is_refused() -> None:
+    with pytest.raises(InputError, match="--watchdog-periods 0 must be 1 or more"):
+        run_simulated_display(None, watchdog_periods=0, duration_s=0.01)
+
+
+def test_a_display_that_states_no_limit_is_held_to_the_firmwares() -> None:
+    info = display_info(PAPER_DISPLAY, 1000.0)
+    assert watchdog_periods(info) == WATCHDOG_PERIODS
+    del info["watchdog_periods"]
+    assert watchdog_periods(info) == WATCHDOG_PERIODS
+    assert watchdog_periods({"watchdog_periods": "many"}) == WATCHDOG_PERIODS
+
+
+def test_a_watchdog_fault_names_the_limit_the_display_stated() -> None:
+    summary = {"frames": 1000, "loop_rate_hz": 1000.0, "watchdog_frames": 3}
+    [(code, text)] = classify_faults({**summary, "watchdog_periods": 23}, 1000.0)
+    assert code == EXIT_WATCHDOG and "stopped answering for 23 periods (23 ms)" in text
+    [(_, text)] = classify_faults(summary, 1000.0)
+    assert "stopped answering for 5 periods (5 ms)" in text
