@@ -34,7 +34,7 @@ from typing import Any
 
 from tissuecli.app.live import live
 from tissuecli.app.play import play
-from tissuecli.core.errors import DeviceLost
+from tissuecli.core.errors import DeviceError, DeviceLost
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.sim.process import SimulatorProcess
@@ -139,14 +139,17 @@ def main() -> None:
 def _live(tmp: Path, load: str, args: argparse.Namespace) -> str:
     """``live`` for ``args.live`` s on simulated devices: one row of figures."""
     tag = load.split()[0]
-    with SimulatorProcess("forceps", tmp / f"f-{tag}") as forceps:
-        disp = _display(tmp / f"dl-{tag}", args.display_fifo, args.display_other)
-        try:
-            s = live(str(forceps.link), str(disp.link), tmp / f"live-{tag}.h5", "s", args.live)
-        except DeviceLost as exc:
-            return f"{load:<8} lost: {exc}"
-        finally:
-            disp.stop()
+    try:
+        with SimulatorProcess("forceps", tmp / f"f-{tag}") as forceps:
+            disp = _display(tmp / f"dl-{tag}", args.display_fifo, args.display_other)
+            try:
+                s = live(
+                    str(forceps.link), str(disp.link), tmp / f"live-{tag}.h5", "s", args.live
+                )
+            finally:
+                disp.stop()
+    except (DeviceLost, DeviceError) as exc:
+        return f"{load:<8} lost: {exc}"
     r, p = s["render"] or {}, s["passivity"]
 
     def num(value: Any, scale: float = 1.0, fmt: str = "6.2f") -> str:

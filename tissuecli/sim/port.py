@@ -65,32 +65,39 @@ class VirtualPort:
         self._make_link(Path(link))
         self.link = Path(link)
 
-    def round_trips(self, probes: int = 100, interval_s: float = 1e-3) -> list[float]:
-        """Time ``probes`` round trips of one byte through the pseudo-terminal, s: from the
-        device side to the host side and back, ``interval_s`` apart, as a host answering
-        each frame at once would see them (the transfer alone, no host code).
+    def round_trips(
+        self, probes: int = 100, interval_s: float = 1e-3, budget_s: float = 0.5
+    ) -> list[float]:
+        """Time up to ``probes`` round trips of one byte through the pseudo-terminal, s:
+        from the device side to the host side and back, ``interval_s`` apart, as a host
+        answering each frame at once would see them (the transfer alone, no host code);
+        none is started after ``budget_s``, so a starved machine delays start-up by
+        about that much at most.
 
         Each direction goes through the kernel's tty buffer work, which runs in a
         kernel worker thread at ordinary priority (not in the writer's or the reader's
         context): on a busy machine it, not either loop, is what delays a frame. Run
         before a host can open the port (a port made without a link); a probe lost for
-        0.5 s counts as 0.5 s.
+        ``budget_s`` counts as that long.
         """
         got: list[float] = []
+        give_up = time.monotonic() + budget_s
         for _ in range(probes):
             t0 = time.monotonic()
+            if t0 > give_up:
+                break
             os.write(self.master, b"\x00")
-            if self._await(self._slave):
+            if self._await(self._slave, budget_s):
                 os.read(self._slave, 64)
                 os.write(self._slave, b"\x00")
-                if self._await(self.master):
+                if self._await(self.master, budget_s):
                     os.read(self.master, 64)
             got.append(time.monotonic() - t0)
             time.sleep(max(0.0, t0 + interval_s - time.monotonic()))
         return got
 
     @staticmethod
-    def _await(fd: int, timeout_s: float = 0.5) -> bool:
+    def _await(fd: int, timeout_s: float) -> bool:
         try:
             return bool(select.select([fd], [], [], timeout_s)[0])
         except InterruptedError:

@@ -13,6 +13,12 @@ from pathlib import Path
 
 from ..core.errors import DeviceError
 
+#: How long a simulated device may take to open its port, s: its interpreter and imports
+#: start at ordinary priority, 0.5 s on an idle machine, 5.7 s at a load average of 16.6
+#: and over 10 s with two busy processes added on this 2-core machine; and it times its
+#: port for up to 0.5 s (``VirtualPort.round_trips``).
+READY_TIMEOUT_S = 30.0
+
 
 class SimulatorProcess:
     """A simulated device in its own process, as ``tissuecli simulate KIND --link PATH``.
@@ -26,7 +32,7 @@ class SimulatorProcess:
         kind: str,
         link: str | os.PathLike[str],
         args: Sequence[str] = (),
-        ready_timeout_s: float = 10.0,
+        ready_timeout_s: float = READY_TIMEOUT_S,
     ) -> None:
         self.kind = kind
         self.link = Path(link)
