@@ -8,8 +8,8 @@ Usage::
 Each run is ``tissuecli demo --duration 2`` in a process of its own, with ``--busy``
 processes running ``while 1: pass`` beside it for the whole benchmark. Prints one
 row per run (exit status, loop rate, p99 and longest period, watchdog frames, periods
-without a frame) and the count of runs that exited 0, with the load average before and
-after.
+without a frame, the simulated display's watchdog limit in periods) and the count of runs
+that exited 0, with the load average before and after.
 """
 
 from __future__ import annotations

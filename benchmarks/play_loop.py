@@ -14,7 +14,8 @@ elevated scheduling (``+rt``: SCHED_FIFO 10, memory locked, one CPU, a spin thro
 expected frame). First on the machine as it is ("idle"), then with ``--busy``
 processes running ``while 1: pass``; the loops alternate run by run, so the figures of
 one load are side by side. The simulated display runs under SCHED_FIFO 11 of its own
-where the system allows it; ``--display-fifo`` raises it to SCHED_FIFO 20 and
+where the system allows it, and judges its watchdog against its port at start-up
+(``limit``: periods, 5 is the firmware's); ``--display-fifo`` raises it to SCHED_FIFO 20 and
 ``--display-other`` lowers it to ordinary scheduling, to compare.
 ``--live S`` then runs ``live`` for S seconds under each
 load (simulated forceps and display; the haptic loop in its own process, elevated),
@@ -68,7 +69,8 @@ def _row(load: str, label: str, run: int, s: dict[str, Any]) -> str:
         f"{load:<8} {label:<11} {run:>3} {s.get('loop_rate_hz') or 0:8.2f} "
         f"{s.get('period_p50_ms') or 0:7.2f} {s.get('period_p99_ms') or 0:7.2f} "
         f"{s.get('period_max_ms') or 0:7.2f} {s.get('watchdog_frames', 0):>8} "
-        f"{s.get('missed_periods', 0):>6} {rt.get('scheduler', 'n/a'):>11}"
+        f"{s.get('missed_periods', 0):>6} {s.get('watchdog_periods', 5):>5} "
+        f"{rt.get('scheduler', 'n/a'):>11}"
     )
 
 
@@ -91,7 +93,7 @@ def main() -> None:
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     head = (
         f"{'load':<8} {'loop':<11} {'run':>3} {'rate Hz':>8} {'p50 ms':>7} {'p99 ms':>7} "
-        f"{'max ms':>7} {'watchdog':>8} {'missed':>6} {'sched':>11}"
+        f"{'max ms':>7} {'watchdog':>8} {'missed':>6} {'limit':>5} {'sched':>11}"
     )
     lives: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -129,7 +131,7 @@ def main() -> None:
         print()
         print(
             f"{'load':<8} {'rate Hz':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
-            f"{'watchdog':>8} {'1st s':>6} {'rms N':>6} {'E mJ':>6} {'Emin mJ':>7} {'diss mJ':>7}"
+            f"{'watchdog':>8} {'limit':>5} {'1st s':>6} {'rms N':>6} {'E mJ':>6} {'Emin mJ':>7} {'diss mJ':>7}"
         )
         for line in lives:
             print(line)
@@ -159,7 +161,8 @@ def _live(tmp: Path, load: str, args: argparse.Namespace) -> str:
         f"{load:<8} {num(r.get('loop_rate_hz'), fmt='8.2f')} "
         f"{num(r.get('period_p50_ms'), fmt='7.2f')} "
         f"{num(r.get('period_p99_ms'), fmt='7.2f')} {num(r.get('period_max_ms'), fmt='7.2f')} "
-        f"{r.get('watchdog_frames', 0):>8} {num(s['first_render_delay_s'])} "
+        f"{r.get('watchdog_frames', 0):>8} {r.get('watchdog_periods', 5):>5} "
+        f"{num(s['first_render_delay_s'])} "
         f"{num(s.get('tracking_rms_n'), fmt='6.3f')} {num(p['energy_observed_j'], 1e3)} "
         f"{num(p['energy_min_j'], 1e3, '7.3f')} {num(p['energy_dissipated_j'], 1e3, '7.3f')}"
     )
