@@ -39,14 +39,21 @@ def test_the_limit_is_the_firmwares_plus_the_margin_over_the_longest_round_trip(
     assert f"at most {SIM_WATCHDOG_MAX_S * 1e3:g} ms" in basis
 
 
+def test_a_saturated_machine_gives_the_bound_whatever_the_sample_showed() -> None:
+    periods, basis = watchdog_limit([0.1e-3, 0.2e-3], 1e-3, saturated=True)
+    assert periods == round(SIM_WATCHDOG_MAX_S / 1e-3)
+    assert "no CPU to spare" in basis and "0.20 ms longest" in basis
+
+
 @given(
     st.lists(st.floats(0.0, 10.0, allow_nan=False), max_size=50),
     st.sampled_from([1e-4, 5e-4, 1e-3, 2e-3, 0.1]),
+    st.booleans(),
 )
 def test_the_limit_never_falls_below_the_firmwares_nor_passes_its_bound(
-    trips: list[float], period: float
+    trips: list[float], period: float, saturated: bool
 ) -> None:
-    periods, _ = watchdog_limit(trips, period)
+    periods, _ = watchdog_limit(trips, period, saturated)
     assert WATCHDOG_PERIODS <= periods
     assert periods <= max(WATCHDOG_PERIODS, int(SIM_WATCHDOG_MAX_S / period))
 

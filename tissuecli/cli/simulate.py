@@ -256,7 +256,8 @@ def simulate_forceps(
     default=None,
     help="Cut the solenoid after this many periods without a SetVoltage (5 is the "
     "firmware's). Default: 5 plus 4 times the longest round trip through its port "
-    "timed at start-up, at most 50 ms, said on stderr when longer than 5.",
+    "timed at start-up, at most 50 ms (50 ms on a machine with no CPU to spare), said "
+    "on stderr when longer than 5.",
 )
 def simulate_display(
     link: str | None,
