@@ -131,7 +131,8 @@ def main() -> None:
         print()
         print(
             f"{'load':<8} {'rate Hz':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} "
-            f"{'watchdog':>8} {'limit':>5} {'1st s':>6} {'rms N':>6} {'E mJ':>6} {'Emin mJ':>7} {'diss mJ':>7}"
+            f"{'watchdog':>8} {'limit':>5} {'1st s':>6} {'rms N':>6} {'E mJ':>6} "
+            f"{'Emin mJ':>7} {'diss mJ':>7}"
         )
         for line in lives:
             print(line)

@@ -180,7 +180,7 @@ def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[in
         else ""
     )
     if num("watchdog_frames") > 0:
-        limit = num("watchdog_periods") or 5  # what the display stated, else the firmware's
+        limit = num("watchdog_periods") or WATCHDOG_PERIODS  # as the display stated it
         faults.append(
             (
                 EXIT_WATCHDOG,
@@ -387,7 +387,8 @@ def play(
         The summary: ``tracking_rms_m``, ``tracking_max_m``, ``tracking_bound_m``,
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
-        ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``commands_sent``,
+        ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``watchdog_periods``
+        (the display's stated watchdog limit), ``commands_sent``,
         ``clamped_commands`` (brought within [0, v_max] before sending),
         ``actuator_work_j``, ``realtime`` (what :func:`~tissuecli.hw.realtime.elevate`
         obtained), ``check`` and more; ``faults`` (what went wrong, see
