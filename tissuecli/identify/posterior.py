@@ -182,6 +182,7 @@ class ExactPosterior:
         self._inside: float | None = None
         self._inside_error = 0.0
         self._tail: float | None = None
+        self._mixture: tuple[Array, Array, Array, NDArray[np.intp]] | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
@@ -252,9 +253,24 @@ class ExactPosterior:
         cov = (self.Q * (s2 / (self.lam + s2))) @ self.Q.T * np.outer(scale, scale)
         return mu, cov
 
+    def conditionals(self, sigma: Array) -> tuple[Array, Array]:
+        """:meth:`conditional` at each of several noise levels: means (m, p) and
+        covariances (m, p, p), SI, in one product each."""
+        s2 = np.asarray(sigma, dtype=float)[:, None] ** 2
+        scale = self.ws / self.d
+        mus = scale * ((self.c / (self.lam + s2)) @ self.Q.T)
+        covs = np.matmul(self.Q * (s2 / (self.lam + s2))[:, None, :], self.Q.T)
+        return mus, covs * np.outer(scale, scale)
+
     def mixture(self) -> tuple[Array, Array, Array, NDArray[np.intp]]:
         """Weights (m,), means (m, p), covariances (m, p, p) and node indices (m,) of the
-        significant quadrature nodes."""
+        significant quadrature nodes (computed once: the summary and the exact draws
+        both need them)."""
+        if self._mixture is None:
+            self._mixture = self._mix()
+        return self._mixture
+
+    def _mix(self) -> tuple[Array, Array, Array, NDArray[np.intp]]:
         idx = np.flatnonzero(self.weights > 1e-12 * self.weights.max())
         w = self.weights[idx]
         if idx.size > MIXTURE_NODES:
@@ -262,12 +278,15 @@ class ExactPosterior:
             # pooled into one (at their weighted centre) change no moment or quantile
             # beyond rounding, and each summary costs a tenth
             bins = np.array_split(np.arange(idx.size), MIXTURE_NODES)
-            centre = [int(round(float(np.average(b, weights=w[b] + 1e-300)))) for b in bins]
-            w = np.array([w[b].sum() for b in bins])
-            idx = idx[centre]
-        parts = [self.conditional(float(np.exp(self.u[i]))) for i in idx]
+            starts = np.array([b[0] for b in bins])
+            ww = w + 1e-300
+            at = np.arange(idx.size, dtype=float)
+            centre = np.rint(np.add.reduceat(at * ww, starts) / np.add.reduceat(ww, starts))
+            w = np.add.reduceat(w, starts)
+            idx = idx[centre.astype(np.intp)]
+        mus, covs = self.conditionals(np.exp(self.u[idx]))
         w = w / w.sum()
-        return w, np.array([m for m, _ in parts]), np.array([c for _, c in parts]), idx
+        return w, mus, covs, idx
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
@@ -346,6 +365,17 @@ class ExactPosterior:
 
     def summary(self, rng: np.random.Generator, draws: int = 4000) -> Posterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
+        return self._summary(*self._summary_draws(rng, draws))
+
+    def _summary_draws(self, rng: np.random.Generator, draws: int = 4000) -> tuple[Array, Array]:
+        """The random numbers :meth:`summary` draws, in its order: a node for each draw
+        (draws,) and standard normals (draws, p)."""
+        w = self.mixture()[0]
+        pick = rng.choice(w.size, size=draws, p=w)
+        return pick, rng.standard_normal((draws, self.d.size))
+
+    def _summary(self, pick: Array, z: Array) -> Posterior:
+        """:meth:`summary` from its random numbers (:meth:`_summary_draws`)."""
         w, mus, covs, idx = self.mixture()
         inside = self.orthant_mass()
         ln_z = self.ln_evidence()
@@ -353,19 +383,16 @@ class ExactPosterior:
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
         cov = second - np.outer(mean, mean)
         sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
-        ci = np.array(
-            [
-                [_mixture_quantile(q, w, mus[:, j], sds[:, j]) for q in (0.025, 0.975)]
-                for j in range(mean.size)
-            ]
-        )
+        # every coefficient's two quantiles at once: (0.025, 0.975) for each
+        p = mean.size
+        q = np.tile([0.025, 0.975], p)
+        ci = _mixture_quantiles(q, w, np.repeat(mus, 2, axis=1), np.repeat(sds, 2, axis=1))
+        ci = ci.reshape(p, 2)
         sig = np.exp(self.u[idx])
         cdf = np.cumsum(w)
         sigma_ci = (float(np.interp(0.025, cdf, sig)), float(np.interp(0.975, cdf, sig)))
         # draws for plots: pick a node, then a Gaussian draw; the bound is applied by rejection
-        pick = rng.choice(w.size, size=draws, p=w)
         chol = _matrix_roots(covs)
-        z = rng.standard_normal((draws, mean.size))
         beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], z)
         samples = np.column_stack([beta, sig[pick]])
         samples = samples[np.all(beta[:, self.prior.bounded] >= 0, axis=1)]
@@ -386,14 +413,21 @@ class ExactPosterior:
         """The posterior as exact as it is known: the closed form where the positivity
         bound cuts no more than ``cut`` of it, else exact draws under the bound
         (:meth:`truncated`). ``diagnostics["exact"]`` says whether either applied; if
-        not (the bound keeps too little for rejection), a sampler is needed."""
-        post = self.summary(rng)
-        if post.outside > cut:
-            draws = self.truncated(rng)
-            if draws is None:
+        not (the bound keeps too little for rejection), a sampler is needed.
+
+        The closed form's summary is formed only if it is the answer; its random
+        numbers are drawn either way, so the generator's stream (and every draw after
+        it) is what it would be had it been formed."""
+        draws = self._summary_draws(rng)
+        if 1.0 - self.orthant_mass() > cut:
+            exact = self.truncated(rng)
+            if exact is None:
+                post = self._summary(*draws)
                 post.diagnostics["exact"] = False
                 return post
-            post = draws
+            post = exact
+        else:
+            post = self._summary(*draws)
         post.diagnostics["exact"] = True
         return post
 
@@ -477,33 +511,57 @@ _SQRT2PI = math.sqrt(2.0 * math.pi)
 
 
 def _mixture_quantile(q: float, w: Array, mu: Array, sd: Array) -> float:
-    """The ``q`` quantile of the Gaussian mixture ``sum_i w_i N(mu_i, sd_i^2)``.
+    """The ``q`` quantile of the Gaussian mixture ``sum_i w_i N(mu_i, sd_i^2)``
+    (:func:`_mixture_quantiles` for one)."""
+    mu, sd = np.asarray(mu, dtype=float), np.asarray(sd, dtype=float)
+    return float(_mixture_quantiles(np.array([q]), w, mu[:, None], sd[:, None])[0])
+
+
+def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
+    """The ``q[j]`` quantile of each Gaussian mixture ``sum_i w_i N(mu_ij, sd_ij^2)``.
 
     Newton's method on the CDF (its slope is the mixture's density), kept inside a
     bracket that shrinks with every step and bisected when Newton leaves it; stops
-    at ``1e-14 + 4 eps |x|``, Brent's default tolerance.
+    at ``1e-14 + 4 eps |x|``, Brent's default tolerance. All mixtures at once, each
+    stopping at its own step.
+
+    Parameters
+    ----------
+    q : ndarray, shape (k,)
+    w : ndarray, shape (m,)
+        The components' weights (sum 1).
+    mu, sd : ndarray, shape (m, k)
+        Each mixture's component means and SDs.
+
+    Returns
+    -------
+    ndarray, shape (k,)
     """
-    lo = float(np.min(mu - 10 * sd))
-    hi = float(np.max(mu + 10 * sd))
-    if hi <= lo:
-        return float(mu[0])
-    x = min(max(float(w @ mu), lo), hi)
+    lo = np.min(mu - 10 * sd, axis=0)
+    hi = np.max(mu + 10 * sd, axis=0)
+    out = np.array(mu[0], dtype=float)
+    active = hi > lo
+    x = np.minimum(np.maximum(w @ mu, lo), hi)
+    tol = 4 * np.finfo(float).eps
     for _ in range(200):
+        if not active.any():
+            return out
         z = (x - mu) / sd
-        excess = float(w @ normal_cdf(z)) - q
-        if excess > 0:
-            hi = x
-        else:
-            lo = x
-        density = float(w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI)))
-        step = excess / density if density > 0 else math.inf
+        excess = w @ normal_cdf(z) - q
+        above = excess > 0
+        hi = np.where(above, x, hi)
+        lo = np.where(above, lo, x)
+        density = w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI))
+        with np.errstate(divide="ignore"):
+            step = np.where(density > 0, excess / np.where(density > 0, density, 1.0), math.inf)
         new = x - step
-        if not lo < new < hi:
-            new = 0.5 * (lo + hi)
-        if abs(new - x) <= 1e-14 + 4 * np.finfo(float).eps * abs(new):
-            return new
-        x = new
-    return x
+        new = np.where((lo < new) & (new < hi), new, 0.5 * (lo + hi))
+        done = active & (np.abs(new - x) <= 1e-14 + tol * np.abs(new))
+        out[done] = new[done]
+        active &= ~done
+        x = np.where(active, new, x)
+    out[active] = x[active]
+    return out
 
 
 def _matrix_roots(covs: Array) -> Array:
