@@ -447,22 +447,34 @@ class ExactPosterior:
         w, mus, covs, idx = self.mixture()
         chol = _matrix_roots(covs)
         bounded = self.prior.bounded
+        # the bounds a draw may plausibly cross are checked on every draw; the whole
+        # coefficient vector (and every bound) only on the draws that pass them
+        mu_m, cov_m = self._modal()
+        z_m = mu_m / np.sqrt(np.clip(np.diag(cov_m), 1e-300, None))
+        near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
+        if near.size == 0:
+            near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
+        sig = np.exp(self.u[idx])
         kept: list[Array] = []
         have, total = 0, 0
         batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
         while have < draws and total < 20 * batch:
             counts = rng.multinomial(batch, w)
-            pick = np.repeat(np.arange(w.size), counts)
             z = rng.standard_normal((batch, mus.shape[1]))
-            beta = np.empty_like(z)
+            parts: list[Array] = []
             start = 0
             for i, k in enumerate(counts):  # node by node: one small product each
                 if k:
-                    beta[start : start + k] = mus[i] + z[start : start + k] @ chol[i].T
+                    zi = z[start : start + k]
+                    first = mus[i, near] + zi @ chol[i, near].T
+                    zi = zi[np.all(first >= 0, axis=1)]
+                    beta = mus[i] + zi @ chol[i].T
+                    beta = beta[np.all(beta[:, bounded] >= 0, axis=1)]
+                    parts.append(np.column_stack([beta, np.full(beta.shape[0], sig[i])]))
                     start += k
-            ok = np.all(beta[:, bounded] >= 0, axis=1)
-            kept.append(np.column_stack([beta[ok], np.exp(self.u[idx])[pick[ok]]]))
-            have += int(ok.sum())
+            got = np.concatenate(parts)
+            kept.append(got)
+            have += got.shape[0]
             total += batch
         if have < 100:
             return None
@@ -483,6 +495,10 @@ class ExactPosterior:
             diagnostics={"draws": int(samples.shape[0]), "acceptance": have / total},
         )
 
+
+#: bounds whose coefficient's modal mean lies fewer posterior SDs inside them are
+#: checked on every rejection draw, the others only on the draws that pass those
+NEAR_SDS = 8.0
 
 #: most nodes of sigma's quadrature a posterior's summary mixes
 MIXTURE_NODES = 32
