@@ -106,6 +106,10 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
     if one is not None:
         return one, 0.0
     chol, h = _prioritised_cholesky(corr, h)
+    dims = h.size - 1  # the shifts are drawn for every variable, whichever are kept
+    chol, h = _without_sure_tail(chol, h)
+    if h.size == 1:
+        return float(log_normal_cdf(np.array([h[0] / chol[0, 0]]))[0]), 0.0
     # the direct products while every factor stays far from underflow (half the cost);
     # in logarithms beyond
     log_space = bool(np.min(h) < -LINEAR_LIMIT)
@@ -115,10 +119,11 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
     points = FIRST_POINTS
     while True:
         k = np.arange(1, points + 1)[:, None]
-        lattice = (k * root) % 1.0
+        lattice = k * root
+        lattice -= np.floor(lattice)  # exact, as % 1.0 is, and cheaper
         # every shift's estimate in one pass (the shifts drawn in the order one call
         # per shift would draw them)
-        estimates = sov(chol, h, lattice, rng.random((SHIFTS, h.size - 1)))
+        estimates = sov(chol, h, lattice, rng.random((SHIFTS, dims))[:, : h.size - 1])
         top = float(np.max(estimates))
         if not log_space and not (np.all(np.isfinite(estimates)) and top > -LINEAR_FLOOR):
             log_space, sov = True, _sov_log  # a product underflowed: again in logarithms
@@ -161,11 +166,40 @@ def _one_bound(h: Array) -> float | None:
     return ln_keep
 
 
+#: a standardised limit beyond which the normal CDF is 1 to the last bit
+SURE = 9.0
+#: the largest |quantile| a lattice point can be drawn at: ``Phi^-1`` of the smallest
+#: probability a point of :data:`MAX_POINTS` per shift reaches is about -4.4; far
+#: more is allowed, so that no point of any shift can come near
+QUANTILE_BOUND = 40.0
+
+
+def _without_sure_tail(chol: Array, h: Array) -> tuple[Array, Array]:
+    """The prioritised factor and limits without the trailing variables whose
+    conditional factor is 1 to the last bit at any draw of the earlier ones: limits
+    beyond :data:`SURE` even with every earlier draw at :data:`QUANTILE_BOUND` against
+    them. The lattice's estimate is the same to the last bit without them (each factor
+    multiplies it by 1.0) at less cost; at least one variable is kept."""
+    keep = h.size
+    while keep > 1:
+        i = keep - 1
+        worst = h[i] - QUANTILE_BOUND * float(np.sum(np.abs(chol[i, :i])))
+        if not worst / chol[i, i] > SURE:
+            break
+        keep -= 1
+    return chol[:keep, :keep], h[:keep]
+
+
 def _shifted(lattice: Array, shifts: Array) -> Array:
     """The baker's-transformed points of every shift, shape (shifts * points, d): the
     first shift's points first."""
-    u = (lattice[None, :, :] + shifts[:, None, :]) % 1.0
-    return np.abs(2 * u - 1).reshape(-1, lattice.shape[1])  # the baker's transform periodises
+    u = lattice[None, :, :] + shifts[:, None, :]
+    # (lattice + shift) mod 1 for both in [0, 1): u - 1 is exact where u >= 1 (Sterbenz),
+    # as fmod is, and takes a fraction of its time
+    u -= u >= 1.0
+    u *= 2.0
+    u -= 1.0
+    return np.abs(u, out=u).reshape(-1, lattice.shape[1])  # the baker's transform periodises
 
 
 def _sov_linear(chol: Array, h: Array, lattice: Array, shifts: Array) -> Array:
