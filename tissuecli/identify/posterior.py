@@ -454,40 +454,35 @@ class ExactPosterior:
         near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
         if near.size == 0:
             near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
-        sig = np.exp(self.u[idx])
+        node_sigma = np.exp(self.u[idx])
         kept: list[Array] = []
         have, total = 0, 0
         batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
         while have < draws and total < 20 * batch:
             counts = rng.multinomial(batch, w)
             z = rng.standard_normal((batch, mus.shape[1]))
-            parts: list[Array] = []
-            start = 0
-            for i, k in enumerate(counts):  # node by node: one small product each
-                if k:
-                    zi = z[start : start + k]
-                    first = mus[i, near] + zi @ chol[i, near].T
-                    zi = zi[np.all(first >= 0, axis=1)]
-                    beta = mus[i] + zi @ chol[i].T
-                    beta = beta[np.all(beta[:, bounded] >= 0, axis=1)]
-                    parts.append(np.column_stack([beta, np.full(beta.shape[0], sig[i])]))
-                    start += k
-            got = np.concatenate(parts)
-            kept.append(got)
-            have += got.shape[0]
+            # every draw against the near bounds, node by node (one small product each)
+            first = _by_node(counts, z, mus[:, near], chol[:, near, :])
+            ok = np.all(first >= 0, axis=1)
+            pick = np.repeat(np.arange(w.size), counts)[ok]
+            beta = _by_node(np.bincount(pick, minlength=w.size), z[ok], mus, chol)
+            ok = np.all(beta[:, bounded] >= 0, axis=1)
+            kept.append(np.column_stack([beta[ok], node_sigma[pick[ok]]]))
+            have += int(ok.sum())
             total += batch
         if have < 100:
             return None
         samples = np.concatenate(kept)[:draws]
         beta, sig = samples[:, :-1], samples[:, -1]
         cov = np.atleast_2d(np.cov(beta, rowvar=False))
+        ci = np.percentile(samples, [2.5, 97.5], axis=0).T  # the coefficients', then sigma's
         return Posterior(
             mean=beta.mean(axis=0),
             sd=beta.std(axis=0, ddof=1),
-            ci95=np.percentile(beta, [2.5, 97.5], axis=0).T,
+            ci95=ci[:-1],
             cov=cov,
             sigma_mean=float(sig.mean()),
-            sigma_ci95=(float(np.percentile(sig, 2.5)), float(np.percentile(sig, 97.5))),
+            sigma_ci95=(float(ci[-1, 0]), float(ci[-1, 1])),
             ln_evidence=self.ln_evidence(),
             outside=1.0 - inside,
             method="exact-draws",
@@ -577,6 +572,19 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
         active &= ~done
         x = np.where(active, new, x)
     out[active] = x[active]
+    return out
+
+
+def _by_node(counts: NDArray[np.intp], z: Array, mus: Array, roots: Array) -> Array:
+    """``mus[i] + roots[i] z`` for each row of ``z`` (k, p), its rows grouped by node:
+    the first ``counts[0]`` of node 0, and so on; shape (k, q) for ``mus`` (m, q) and
+    ``roots`` (m, q, p)."""
+    out = np.empty((z.shape[0], mus.shape[1]))
+    start = 0
+    for i in np.flatnonzero(counts):
+        stop = start + int(counts[i])
+        out[start:stop] = mus[i] + z[start:stop] @ roots[i].T
+        start = stop
     return out
 
 
