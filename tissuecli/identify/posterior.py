@@ -223,8 +223,9 @@ class ExactPosterior:
         w = np.full(nodes, self.u[1] - self.u[0])
         w[[0, -1]] *= 0.5
         lw = self.f + np.log(w)
-        self.ln_z_untruncated = float(logsumexp(lw) - np.log(prior.ln_sigma_range))
-        self.weights = np.exp(lw - logsumexp(lw))
+        total = logsumexp(lw)
+        self.ln_z_untruncated = float(total - np.log(prior.ln_sigma_range))
+        self.weights = np.exp(lw - total)
         if not (np.all(np.isfinite(self.weights)) and math.isfinite(self.ln_z_untruncated)):
             raise FitError(
                 "the posterior of the noise level is not finite (the session's forces or "
