@@ -534,8 +534,8 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
 
     Newton's method on the CDF (its slope is the mixture's density), kept inside a
     bracket that shrinks with every step and bisected when Newton leaves it; stops
-    at ``1e-14 + 4 eps |x|``, Brent's default tolerance. All mixtures at once, each
-    stopping at its own step.
+    when a step is below ``1e-14 + 4 eps |x|``, Brent's default tolerance. All
+    mixtures at once, each stopping at its own step.
 
     Parameters
     ----------
@@ -566,9 +566,13 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
         density = w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI))
         with np.errstate(divide="ignore"):
             step = np.where(density > 0, excess / np.where(density > 0, density, 1.0), math.inf)
-        new = x - step
-        new = np.where((lo < new) & (new < hi), new, 0.5 * (lo + hi))
-        done = active & (np.abs(new - x) <= 1e-14 + tol * np.abs(new))
+        newton = x - step
+        # a Newton step below the tolerance is convergence, even one that rounding puts
+        # on the bracket's edge (bisecting then went back 40 steps to where it was)
+        still = np.abs(newton - x) <= 1e-14 + tol * np.abs(newton)
+        new = np.where((lo < newton) & (newton < hi), newton, 0.5 * (lo + hi))
+        new = np.where(still, newton, new)
+        done = active & (still | (np.abs(new - x) <= 1e-14 + tol * np.abs(new)))
         out[done] = new[done]
         active &= ~done
         x = np.where(active, new, x)
