@@ -46,6 +46,7 @@ from .estimator import Estimator
 from .identifiable import PREFERENCE, Design, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
+from .priors import law_prior, prior_conflict, scales_from, session_scales
 from .shapes import (
     ShapeGrid,
     hermite_nodes,
@@ -59,6 +60,19 @@ from .shapes import (
 )
 
 Array = NDArray[np.float64]
+
+# the names other modules import from here, wherever they are defined now
+__all__ = [
+    "CUT_THRESHOLD",
+    "DECISIVE",
+    "BayesianFit",
+    "ModelResult",
+    "law_prior",
+    "linear_laws",
+    "parse_forms",
+    "scales_from",
+    "session_scales",
+]
 
 #: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
 DECISIVE = float(np.log(100.0))
@@ -175,7 +189,8 @@ class BayesianFit(Estimator):
     force_scale : float, optional
         N. Sets the priors: each term of the law is expected to stay within this
         force at the session's typical closure, speed and acceleration. By default
-        five times the largest force of the session (:func:`session_scales`).
+        five times the largest force of the session
+        (:func:`~tissuecli.identify.priors.session_scales`).
     decisive : float
         ln Bayes factor behind the best beyond which a form is not sampled.
     seed : int
@@ -302,7 +317,7 @@ class BayesianFit(Estimator):
         )
         best_ls = next((m for m in linear if m.name == best_name), None)
         if best_ls is not None:
-            warnings.extend(_prior_conflict(best_ls, firsts[best_name].beta, scales))
+            warnings.extend(prior_conflict(best_ls, firsts[best_name].beta, scales))
         # How much one sample counts. The filter that smooths the force makes white
         # noise correlated over tau_g = (sum g)^2 / sum g^2 samples: a likelihood
         # tempered by 1 / tau_g is that of the prewhitened residuals to second order,
@@ -961,61 +976,6 @@ class BayesianFit(Estimator):
 
     def _position_noise_sd(self) -> float:
         return self.sigma_x_
-
-
-def session_scales(kin: Kinematics, force_scale: float | None = None) -> MotionScales:
-    """A session's typical closure, speed and acceleration (RMS of the filtered ones) and
-    force scale (five times its largest force, or ``force_scale``): the priors' yardsticks.
-
-    Priors in these physical units let a law of any size be fitted, a 100 kg stage as
-    readily as a liver, while each coefficient stays weakly informed: its term may
-    reach five times the session's largest force at the session's typical motion.
-    """
-
-    def ms(u: Array) -> float:
-        return float(np.mean(np.square(u))) if u.size else 0.0
-
-    peak = float(np.max(np.abs(kin.force))) if kin.force.size else 0.0
-    return scales_from(ms(kin.x), ms(kin.v), ms(kin.a), peak, force_scale)
-
-
-def scales_from(
-    ms_x: float, ms_v: float, ms_a: float, peak_force: float, force_scale: float | None = None
-) -> MotionScales:
-    """:class:`MotionScales` from the mean squares of the filtered closure (m^2), speed
-    (m^2/s^2) and acceleration (m^2/s^4) and the largest filtered force (N): what
-    :func:`session_scales` computes from a whole session, and the online fit from its
-    running sums."""
-
-    def root(u: float) -> float:
-        value = float(np.sqrt(u)) if u > 0 else 0.0
-        return value if value > 0 and np.isfinite(value) else 1.0
-
-    force = force_scale if force_scale else 5.0 * peak_force
-    return MotionScales(x=root(ms_x), v=root(ms_v), a=root(ms_a), force=force or 1.0)
-
-
-def law_prior(law: Law, scales: MotionScales) -> Prior:
-    """The prior of a law's coefficients for a session of these scales (each term may
-    reach the force scale at the typical motion; passive coefficients non-negative)."""
-    return Prior(scales=law.prior_scales(scales), passive=law.passive)
-
-
-def _prior_conflict(law: Law, beta: Array, scales: MotionScales) -> list[str]:
-    """A warning when the best least-squares fit lies far outside the priors: a law that
-    explains the data only with terms beyond five times the largest force is suspect."""
-    if not np.all(np.isfinite(beta)):
-        raise FitError("the least-squares fit is not finite; check the session for extreme values")
-    ratio = np.abs(beta) / law.prior_scales(scales)
-    j = int(np.argmax(ratio))
-    if ratio[j] <= 10:
-        return []
-    t = law.terms[j]
-    return [
-        f"the data put {t.symbol} ({t.name}) at {beta[j]:.3g} {t.unit}, {ratio[j]:.0f} prior "
-        f"scales: its term alone would reach {ratio[j] * scales.force:.3g} N; the law "
-        f"{law.name} may not suit this session"
-    ]
 
 
 def _outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str]:
