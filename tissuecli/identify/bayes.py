@@ -26,8 +26,6 @@ from ..core.terms import (
     MAX_BRANCHES,
     Law,
     MotionScales,
-    paper_laws,
-    parse_law,
     searched,
     term,
 )
@@ -43,6 +41,7 @@ from .design import (
     term_noise_path,
 )
 from .estimator import Estimator
+from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, Design, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
@@ -98,35 +97,6 @@ WEIGHT_SLACK = 2.0
 
 #: draws of the shape's chain whose conditional posteriors make the coefficients' one
 SHAPE_MIXTURE = 8
-
-
-def linear_laws() -> list[Law]:
-    """Every law linear in its coefficients that the default search enumerates: stiffness
-    x, x^3 or both; damping xdot or xdot|xdot|; with or without dry friction; with or
-    without an offset; all with inertia (24 laws)."""
-    out = []
-    for stiffness in (("x",), ("x^3",), ("x", "x^3")):
-        for damping in ("xdot", "xdot|xdot|"):
-            for friction in ((), ("sign(xdot)",)):
-                for offset in ((), ("offset",)):
-                    out.append(Law.of([*stiffness, damping, *friction, "xddot", *offset]))
-    return out
-
-
-def parse_forms(spec: str | Sequence[str | Law] | None) -> list[Law]:
-    """The candidate laws: ``"all"``/None or ``"linear"`` (the 24 of :func:`linear_laws`;
-    ``all`` then searches relaxation and contact from the best of them), ``"paper"``
-    (the paper's four), one law (``x,xdot`` or ``x+x^3+xdot+offset+xddot``,
-    ``x+maxwell+xdot+xddot``), or a list of them."""
-    if spec is None or spec in ("all", "linear"):
-        return linear_laws()
-    if spec == "paper":
-        return paper_laws()
-    specs = [spec] if isinstance(spec, (str, Law)) else list(spec)
-    laws = [item if isinstance(item, Law) else parse_law(item) for item in specs]
-    if not laws:
-        raise FitError("no law to fit; give --forms all, paper or a law such as x,xdot")
-    return list(dict.fromkeys(laws))
 
 
 @dataclass

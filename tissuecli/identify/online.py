@@ -36,10 +36,10 @@ from numpy.typing import ArrayLike, NDArray
 from ..core.errors import FitError, InputError
 from ..core.terms import Law, MotionScales
 from ..core.tissue import Tissue
-from .bayes import parse_forms
 from .contact import ENTER_SD, LEAVE_SD, SMOOTH_S
 from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
 from .design import column_key, design
+from .forms import parse_forms
 from .posterior import ExactPosterior, SufficientStats
 from .priors import law_prior, scales_from
 from .spectrum import convolve_valid
