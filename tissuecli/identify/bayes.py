@@ -13,7 +13,7 @@ import itertools
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,14 +25,12 @@ from ..core.session import Session
 from ..core.terms import (
     MAX_BRANCHES,
     Law,
-    MotionScales,
     searched,
     term,
 )
 from .derivatives import Differentiator, Kinematics
 from .design import (
     design,
-    eiv_correction,
     lstsq_scaled_cond,
     noise_path,
     position_noise_sd,
@@ -44,8 +42,20 @@ from .estimator import Estimator
 from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, Design, examine
 from .noise import data_weight, filter_tau, residual_tau
-from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
+from .posterior import CHECK_NATS, ExactPosterior, Posterior
 from .priors import law_prior, prior_conflict, scales_from, session_scales
+from .scoring import (
+    CUT_THRESHOLD,
+    NOT_EVALUATED,
+    Context,
+    FirstPass,
+    ModelResult,
+    exact_result,
+    first_pass,
+    law_stats,
+    not_evaluated,
+    result_of,
+)
 from .shapes import (
     ShapeGrid,
     hermite_nodes,
@@ -80,8 +90,6 @@ DECISIVE = float(np.log(100.0))
 #: a residual SD below this fraction of the force range is rounding, not sensor noise
 NOISE_FREE = 1e-6
 
-#: posterior mass beyond the positivity bounds above which the posterior is sampled
-CUT_THRESHOLD = 1e-3
 
 #: shape parameters up to which a grid (and a Laplace approximation) marginalises the
 #: shape; beyond, emcee samples it
@@ -97,46 +105,6 @@ WEIGHT_SLACK = 2.0
 
 #: draws of the shape's chain whose conditional posteriors make the coefficients' one
 SHAPE_MIXTURE = 8
-
-
-@dataclass
-class ModelResult:
-    """The fit of one law."""
-
-    model: Law
-    ln_evidence: float = float("nan")
-    probability: float = float("nan")
-    posterior: Posterior | None = None
-    ln_evidence_sampler: float | None = None
-    status: str = "exact"  # exact | emcee | skipped | not evaluated
-    reason: str = ""
-    cond: float = float("nan")
-    cond_scaled: float = float("nan")
-    residual_rms: float = float("nan")
-    #: blocked cross-validation: RMS of the force each of CV_BLOCKS contiguous blocks
-    #: leaves to the law fitted (least squares) to the others, N
-    cv_rms: float = float("nan")
-    flags: list[str] = field(default_factory=list)
-    gram: Array = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # A^T A
-    correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
-    stats: SufficientStats | None = field(default=None, repr=False)
-    prior: Prior | None = field(default=None, repr=False)
-    #: for a law with shape parameters: their posterior (mean, sd, ci95 by name, SI),
-    #: the range searched, and the law as fitted before binding
-    shape_posterior: dict[str, dict[str, Any]] | None = None
-    shape_ranges: dict[str, tuple[float, float]] | None = None
-    family: Law | None = field(default=None, repr=False)
-    #: the law bound at its least-squares shape and that fit's residual RMS (N):
-    #: what BIC compares (the posterior's point may sit elsewhere on a flat shape)
-    least_squares: tuple[Law, float] | None = field(default=None, repr=False)
-    #: with more than MAX_GRID_SHAPES shape parameters: the shape sampler's diagnostics
-    #: (``status`` pending, sampled or skipped, and emcee's figures once sampled)
-    shape_sampler: dict[str, Any] | None = None
-    sample_shape: Callable[[], None] | None = field(default=None, repr=False, compare=False)
-
-    @property
-    def name(self) -> str:
-        return (self.family or self.model).name
 
 
 class BayesianFit(Estimator):
@@ -269,11 +237,11 @@ class BayesianFit(Estimator):
         linear = [m for m in models if not m.shape_names]
         shaped = [m for m in models if m.shape_names]
         x_full = session.position
-        firsts = {m.name: _first_pass(m, kin, x_full, y, sigma_x, columns, paths) for m in linear}
+        firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths) for m in linear}
         if not firsts:  # shaped laws only: their middle node stands in for the residuals
             m0 = shaped[0]
             nodes = shape_grid(m0, kin).nodes
-            firsts = {m0.name: _first_pass(m0.bind(nodes[len(nodes) // 2]), kin, x_full, y,
+            firsts = {m0.name: first_pass(m0.bind(nodes[len(nodes) // 2]), kin, x_full, y,
                                            sigma_x, columns)}  # fmt: skip
         # the least-squares fit that explains the data best (by BIC): a warning if it
         # lies far outside the priors
@@ -312,7 +280,8 @@ class BayesianFit(Estimator):
         del A
         collapsed = weight == weight_filter
 
-        fit = _Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng)
+        fit = Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng,
+                      scored=self._tick, chain_progress=self._progress_for)  # fmt: skip
         self._scored = 0
         self._known = len(linear) + len(shaped)
         self._progress.stage("structure search", self._known)
@@ -371,7 +340,7 @@ class BayesianFit(Estimator):
         self.warnings_ = warnings
         return self
 
-    def _drop_unidentified(self, results: list[ModelResult], fit: _Context) -> list[ModelResult]:
+    def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
         """Never keep a term the fit itself reports as not identified: while the most
         probable law has such terms, its probability passes to the best (by evidence)
         of its sub-laws whose terms are all identified, the law without the unidentified
@@ -397,9 +366,9 @@ class BayesianFit(Estimator):
                     if law.shape_names:
                         new = self._exact_shaped(law, fit)
                     else:
-                        fp = _first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
+                        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
                                          fit.columns, fit.paths)  # fmt: skip
-                        new = self._exact(law, fp, fit)
+                        new = exact_result(law, fp, fit)
                     new.probability = 0.0
                     new.flags.extend(_identifiability(new))
                     results.append(new)
@@ -422,7 +391,7 @@ class BayesianFit(Estimator):
         return results
 
     def _residual_weight(
-        self, results: list[ModelResult], fit: _Context, measured: float
+        self, results: list[ModelResult], fit: Context, measured: float
     ) -> tuple[float, float]:
         """The residual autocorrelation time (samples) of the law with the most evidence
         and the data weight its residuals support (:func:`data_weight`)."""
@@ -469,49 +438,6 @@ class BayesianFit(Estimator):
         step = session.adc.step("position") if session.adc is not None else 0.0
         return max(position_noise_sd(session.position, fs, trusted), step / np.sqrt(12))
 
-    def _stats(
-        self, model: Law, fp: _FirstPass, fit: _Context
-    ) -> tuple[SufficientStats, Prior, Array | None, list[str]]:
-        """The tempered statistics and prior of one law, and the flags of its noise
-        correction."""
-        corr = fp.correction
-        uncorrected = corr is not None and not _correctable(fp, corr)
-        if uncorrected:
-            corr = None  # noise dominates a column: the correction would be meaningless
-        G = fp.gram - corr if corr is not None else fp.gram
-        w, n = fit.weight, fit.y.size
-        rss = fp.rss if corr is None else max(_corrected_rss(fp, corr), 0.0)
-        st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n, w * rss)
-        prior = law_prior(model, fit.scales)
-        flags = []
-        if uncorrected:
-            flags.append(
-                "position noise dominates a column: left uncorrected, so M (and "
-                "perhaps S) are biased towards zero"
-            )
-        return st, prior, corr, flags
-
-    def _exact(self, model: Law, fp: _FirstPass, fit: _Context) -> ModelResult:
-        """The closed-form posterior and evidence of one law."""
-        st, prior, corr, flags = self._stats(model, fp, fit)
-        exact = ExactPosterior(st, prior)
-        why = exact.untrusted()
-        post = exact.bounded(fit.rng, CUT_THRESHOLD)
-        if corr is not None:
-            # the correction rests on an estimated noise level: say when it matters
-            shift = post.mean - fp.beta
-            for j in np.flatnonzero(np.abs(shift) > post.sd):
-                flags.append(
-                    f"{model.symbols[j]} moved {100 * shift[j] / post.mean[j]:+.1f} % by the "
-                    f"position-noise correction (noise {fit.sigma_x * 1e6:.3g} um); its "
-                    "interval does not include that correction's own uncertainty"
-                )
-        self._tick(model.name)
-        res = _result(model, post, fp, fit, st, prior, corr, flags)
-        if why:
-            _not_evaluated(res, why)
-        return res
-
     def _tick(self, name: str) -> None:
         """One more law scored: the progress counts it against the laws known so far
         (the search beyond the linear laws learns its length as it goes)."""
@@ -519,7 +445,7 @@ class BayesianFit(Estimator):
         self._known = max(getattr(self, "_known", 0), self._scored)
         getattr(self, "_progress", SILENT).advance(self._scored, self._known, name)
 
-    def _exact_shaped(self, law: Law, fit: _Context) -> ModelResult:
+    def _exact_shaped(self, law: Law, fit: Context) -> ModelResult:
         """A law with shape parameters: its exact evidence at every node of the shape's
         quadrature grid, weighted by the prior's masses. Where the posterior is sharper
         than the grid (most sessions: thousands of samples pin a time constant to a few
@@ -545,7 +471,7 @@ class BayesianFit(Estimator):
             fp = fit.shaped_passes.get(key)
             if fp is None:
                 fp = fit.shaped_passes[key] = light(node)
-            st, prior, corr, flags = self._stats(bound, fp, fit)
+            st, prior, corr, flags = law_stats(bound, fp, fit)
             exact = ExactPosterior(st, prior, nodes=nodes)
             return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
 
@@ -647,7 +573,7 @@ class BayesianFit(Estimator):
                 try:
                     draws, diag = sample_shapes(
                         target, grid.interior(start), start_cov, grid.inside, fit.rng,
-                        progress=self._progress_for(res),
+                        progress=self._progress_for(res.name),
                     )  # fmt: skip
                 except FitError as e:  # keep the Laplace summary, and say why
                     res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
@@ -689,7 +615,7 @@ class BayesianFit(Estimator):
 
             res.sample_shape = sample
         if why:
-            _not_evaluated(res, why)
+            not_evaluated(res, why)
         self._tick(law.name)
         return res
 
@@ -699,7 +625,7 @@ class BayesianFit(Estimator):
         point: dict[str, float],
         post: Posterior,
         evaluate: Callable[[dict[str, float]], tuple[float, tuple[Any, ...]]],
-        fit: _Context,
+        fit: Context,
     ) -> ModelResult:
         """The result of a law with shape parameters, bound at ``point``.
 
@@ -712,20 +638,20 @@ class BayesianFit(Estimator):
         if post.diagnostics.get("shape_nodes", 1) > 1:
             post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
             post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
-        return _result(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
+        return result_of(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
 
     def _candidates(
         self,
         linear: list[Law],
         shaped: list[Law],
-        firsts: dict[str, _FirstPass],
-        fit: _Context,
+        firsts: dict[str, FirstPass],
+        fit: Context,
     ) -> tuple[list[ModelResult], list[str]]:
         """Every candidate law scored at ``fit``'s weight: the linear ones, the search's
         (default forms) and the laws with shape parameters asked for; and what the
         search could not do."""
         found: list[str] = []
-        results = [self._exact(m, firsts[m.name], fit) for m in linear]
+        results = [exact_result(m, firsts[m.name], fit) for m in linear]
         if self.forms in (None, "all"):
             results += self._search(results, fit, found)
         results += [self._exact_shaped(m, fit) for m in shaped]
@@ -764,7 +690,7 @@ class BayesianFit(Estimator):
             res.sample_shape = None
 
     def _search(
-        self, linear: list[ModelResult], fit: _Context, warnings: list[str]
+        self, linear: list[ModelResult], fit: Context, warnings: list[str]
     ) -> list[ModelResult]:
         """Laws beyond the linear ones, built from the best of them and scored by exact
         evidence (a greedy search; docs/estimators.md): the terms that declare
@@ -786,7 +712,7 @@ class BayesianFit(Estimator):
         return tried
 
     def _grow(
-        self, best: ModelResult, fit: _Context, warnings: list[str], tried: list[ModelResult]
+        self, best: ModelResult, fit: Context, warnings: list[str], tried: list[ModelResult]
     ) -> bool:
         """The search's steps from one linear law, appending what they score to ``tried``;
         False if the session resolves no relaxation (no other stem will either)."""
@@ -893,7 +819,8 @@ class BayesianFit(Estimator):
                 continue
             from .sampling import run_emcee, stepping_stone  # scipy.stats and emcee, if needed
 
-            res.posterior = run_emcee(res.stats, res.prior, rng, progress=self._progress_for(res))  # type: ignore[arg-type]
+            progress = self._progress_for(res.name)
+            res.posterior = run_emcee(res.stats, res.prior, rng, progress=progress)  # type: ignore[arg-type]
             res.status = "emcee"
             res.reason = (
                 f"sampled: the positivity bound cuts {100 * cut:.2g} % of the closed-form posterior"
@@ -912,10 +839,11 @@ class BayesianFit(Estimator):
             if not res.posterior.diagnostics.get("converged", True):
                 res.flags.append("chain shorter than 50 autocorrelation times")
 
-    def _progress_for(self, res: ModelResult) -> Callable[[int, float], None] | None:
+    def _progress_for(self, name: str) -> Callable[[int, float], None] | None:
+        """The callback a chain tells its steps for the law of this name, or None."""
         if self.progress is None:
             return None
-        progress, name = as_progress(self.progress), res.name
+        progress = as_progress(self.progress)
         return lambda steps, tau: progress(name, steps, tau)
 
     def _coefficients(self) -> tuple[Law, Array]:
@@ -989,7 +917,7 @@ def _expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
 
 
 class _ShapedPass:
-    """:func:`_first_pass` of one law at many values of its shape parameters.
+    """:func:`first_pass` of one law at many values of its shape parameters.
 
     The columns without shape parameters, their products with each other and with the
     force, and their noise paths do not change from one shape to the next: they are
@@ -997,7 +925,7 @@ class _ShapedPass:
     (what makes sampling the shape affordable).
     """
 
-    def __init__(self, law: Law, fit: _Context) -> None:
+    def __init__(self, law: Law, fit: Context) -> None:
         self.law, self.fit = law, fit
         terms = law.terms
         self.fixed = [j for j, t in enumerate(terms) if not t.shapes]
@@ -1016,7 +944,7 @@ class _ShapedPass:
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
 
-    def __call__(self, node: dict[str, float]) -> _FirstPass:
+    def __call__(self, node: dict[str, float]) -> FirstPass:
         fit, bound = self.fit, self.law.bind(node)
         p, fixed, moving = len(bound.terms), self.fixed, self.moving
         S = np.column_stack(
@@ -1031,7 +959,7 @@ class _ShapedPass:
         lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
         cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
         if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
-            return _first_pass(
+            return first_pass(
                 bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
             )
         beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
@@ -1051,7 +979,7 @@ class _ShapedPass:
             D = np.column_stack([dd for _, dd in paths])
             DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
             correction = fit.sigma_x**2 * (K @ K.T) * DtD
-        return _FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
+        return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
 
     def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
         """A (p, p) matrix of products from its blocks: fixed with fixed, moving with
@@ -1064,78 +992,6 @@ class _ShapedPass:
         out[np.ix_(fixed, moving)] = mf.T
         out[np.ix_(moving, moving)] = mm
         return out
-
-
-@dataclass
-class _FirstPass:
-    """What the fit keeps of one form's design matrix: its sufficient statistics."""
-
-    gram: Array
-    b: Array
-    yy: float
-    beta: Array
-    rss: float
-    cond: float
-    cond_scaled: float
-    correction: Array | None
-
-
-@dataclass
-class _Context:
-    """What every law's fit of one session shares."""
-
-    kin: Kinematics
-    x_full: Array
-    y: Array
-    sigma_x: float
-    weight: float
-    scales: MotionScales
-    columns: dict[str, Array]
-    paths: dict[str, tuple[Array, Array]]
-    rng: np.random.Generator
-    #: first passes of laws with shape parameters, by law and shape: they do not depend
-    #: on the data weight, so a fit scored again at another weight reuses them
-    shaped_passes: dict[tuple[str, tuple[float, ...]], _FirstPass] = field(default_factory=dict)
-
-
-def _result(
-    model: Law,
-    post: Posterior,
-    fp: _FirstPass,
-    fit: _Context,
-    st: SufficientStats,
-    prior: Prior,
-    corr: Array | None,
-    flags: list[str],
-    family: Law | None = None,
-) -> ModelResult:
-    """A law's result from its posterior and its least-squares pass over ``fit``."""
-    return ModelResult(
-        model=model,
-        ln_evidence=post.ln_evidence,
-        posterior=post,
-        cond=fp.cond,
-        cond_scaled=fp.cond_scaled,
-        residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
-        gram=fp.gram,
-        correction=corr,
-        stats=st,
-        prior=prior,
-        flags=flags,
-        family=family,
-    )
-
-
-#: the status of a law whose evidence could not be trusted (never chosen)
-NOT_EVALUATED = "not evaluated"
-
-
-def _not_evaluated(res: ModelResult, why: str) -> None:
-    """Mark a law's evidence as untrusted: it ranks below every evaluated law and is
-    never chosen; its estimate stays in the posterior for the record."""
-    res.status = NOT_EVALUATED
-    res.reason = f"not evaluated: {why}"
-    res.ln_evidence = -math.inf
 
 
 def _bic(res: ModelResult, n: int) -> float:
@@ -1164,63 +1020,6 @@ def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
 def _logsumexp(a: Array) -> float:
     top = float(np.max(a))
     return top + float(np.log(np.sum(np.exp(a - top)))) if np.isfinite(top) else top
-
-
-def _correctable(fp: _FirstPass, corr: Array) -> bool:
-    """Whether the errors-in-variables correction leaves a proper regression: ``A^T A - C``
-    positive definite, and a corrected residual of at least a tenth of the raw one (the
-    correction takes off what position noise adds to the residual; taking off nearly
-    all of it, or more, says the noise is as large as the motion)."""
-    G = fp.gram - corr
-    if np.any(np.linalg.eigvalsh(G) <= 0):
-        return False
-    return _corrected_rss(fp, corr) > 0.1 * fp.rss
-
-
-def _corrected_rss(fp: _FirstPass, corr: Array) -> float:
-    """The residual sum of squares of the errors-in-variables corrected fit, N^2:
-    ``rss - beta_c^T C beta`` (``yy - beta_c^T b`` cancels to rounding when the law
-    explains all but a millionth of ``yy``)."""
-    beta_c = np.linalg.lstsq(fp.gram - corr, fp.b, rcond=None)[0]
-    return fp.rss - float(beta_c @ corr @ fp.beta)
-
-
-def _first_pass(
-    model: Law,
-    kin: Kinematics,
-    x_full: Array,
-    y: Array,
-    sigma_x: float,
-    columns: dict[str, Array] | None = None,
-    paths: dict[str, tuple[Array, Array]] | None = None,
-) -> _FirstPass:
-    A = design(model, kin, x_full, sigma_x, columns)
-    gram = A.T @ A
-    b = A.T @ y
-    # least squares on unit-norm columns through the Gram matrix (one O(n p^2) product
-    # instead of a second factorisation of A), unless it is too ill-conditioned for that
-    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
-    cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
-    if cond_scaled < 1e5:
-        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
-    else:
-        beta, cond_scaled = lstsq_scaled_cond(A, y)
-    r = y - A @ beta
-    # the raw condition number from the Gram matrix's eigenvalues: a report figure,
-    # exact to rounding up to about 1e7, and "large" beyond
-    lam = np.linalg.eigvalsh(gram)
-    cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
-    return _FirstPass(
-        gram=gram,
-        b=b,
-        yy=float(y @ y),
-        beta=beta,
-        rss=float(r @ r),
-        cond=cond,
-        cond_scaled=cond_scaled,
-        correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
-    )
 
 
 #: contiguous blocks of the blocked cross-validation reported beside the evidence
@@ -1259,7 +1058,7 @@ def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
     return math.sqrt(ss / m)
 
 
-def _predictive_guard(results: list[ModelResult], fit: _Context) -> list[str]:
+def _predictive_guard(results: list[ModelResult], fit: Context) -> list[str]:
     """Score each evaluated law by blocked cross-validation (``cv_rms``) and say when a
     law predicts the held-out blocks clearly better than the chosen one: evidence and
     prediction then disagree, and the choice rests on the priors."""
