@@ -22,10 +22,7 @@ from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
 from ..core.terms import (
-    MAX_BRANCHES,
     Law,
-    searched,
-    term,
 )
 from .derivatives import Differentiator, Kinematics
 from .design import (
@@ -35,7 +32,7 @@ from .design import (
 )
 from .estimator import Estimator
 from .forms import linear_laws, parse_forms
-from .identifiable import PREFERENCE, Design, examine
+from .identifiable import PREFERENCE, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS
 from .priors import law_prior, prior_conflict, scales_from, session_scales
@@ -48,11 +45,10 @@ from .scoring import (
     exact_result,
     first_pass,
 )
+from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
 from .shapes import (
-    resolvable,
     shape_grid,
-    tau_range,
 )
 
 Array = NDArray[np.float64]
@@ -78,10 +74,6 @@ DECISIVE = float(np.log(100.0))
 NOISE_FREE = 1e-6
 
 
-#: each further relaxation branch needs the resolvable range of time constants to
-#: span this factor more (k branches: BRANCH_SPREAD**k)
-BRANCH_SPREAD = 4.0
-
 #: the data weight the best law's residuals support may fall this far below the
 #: filter's before the laws are scored again at it
 WEIGHT_SLACK = 2.0
@@ -93,8 +85,9 @@ class BayesianFit(Estimator):
     Parameters
     ----------
     forms : str, Law or list of them
-        ``"all"`` (the 24 linear laws of :func:`linear_laws`, then a greedy search
-        adding contact and up to three relaxation branches), ``"linear"`` (the 24
+        ``"all"`` (the 24 linear laws of :func:`linear_laws`, then the structure search,
+        by default greedy, adding contact and up to three relaxation branches),
+        ``"linear"`` (the 24
         alone), ``"paper"`` (the paper's four), or laws such as ``"x,xdot"`` or
         ``"x+x^3+xdot+offset+xddot"``.
     sampler : {"auto", "emcee"}
@@ -118,6 +111,9 @@ class BayesianFit(Estimator):
     progress : Progress or callable, optional
         Told the stages (filtering, the structure search law by law, sampling); a bare
         callable is called ``progress(form, steps, tau)`` while sampling.
+    search : {"greedy", "exhaustive"} or Search
+        The structure search of ``forms="all"`` (:mod:`~tissuecli.identify.search`): by
+        name (a registered :class:`~tissuecli.identify.search.Search`) or an instance.
 
     Attributes
     ----------
@@ -159,6 +155,7 @@ class BayesianFit(Estimator):
         seed: int = 0,
         grasps: str | Sequence[int] = "all",
         progress: Progress | Callable[[str, int, float], None] | None = None,
+        search: str | Search = "greedy",
     ) -> None:
         self.forms = forms
         self.grasps = grasps
@@ -169,6 +166,7 @@ class BayesianFit(Estimator):
         self.decisive = decisive
         self.seed = seed
         self.progress = progress
+        self.search = search
 
     def fit(self, session: Session) -> BayesianFit:
         """Fit every candidate law to ``session``; returns self with the fitted
@@ -182,6 +180,7 @@ class BayesianFit(Estimator):
         """
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
+        self._strategy = search_strategy(self.search)
         models = parse_forms(self.forms)
         self._progress = as_progress(self.progress)
         self._progress.stage("filtering and finding grasps")
@@ -343,12 +342,7 @@ class BayesianFit(Estimator):
             if any(n in ("x", "x^3", "contact") for n in names):
                 law = Law.of(names)
                 if law.name not in by_name:
-                    if law.shape_names:
-                        new = exact_shaped(law, fit)
-                    else:
-                        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x,
-                                         fit.columns, fit.paths)  # fmt: skip
-                        new = exact_result(law, fp, fit)
+                    new = self._score(law, fit)
                     new.probability = 0.0
                     new.flags.extend(_identifiability(new))
                     results.append(new)
@@ -425,6 +419,13 @@ class BayesianFit(Estimator):
         self._known = max(getattr(self, "_known", 0), self._scored)
         getattr(self, "_progress", SILENT).advance(self._scored, self._known, name)
 
+    def _score(self, law: Law, fit: Context) -> ModelResult:
+        """One law scored at ``fit``'s weight: its shape marginalised if it has one."""
+        if law.shape_names:
+            return exact_shaped(law, fit)
+        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths)
+        return exact_result(law, fp, fit)
+
     def _candidates(
         self,
         linear: list[Law],
@@ -438,7 +439,10 @@ class BayesianFit(Estimator):
         found: list[str] = []
         results = [exact_result(m, firsts[m.name], fit) for m in linear]
         if self.forms in (None, "all"):
-            results += self._search(results, fit, found)
+            scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size)
+            tried, notes = self._strategy.run(results, lambda law: self._score(law, fit), scope)
+            results += tried
+            found += notes
         results += [exact_shaped(m, fit) for m in shaped]
         return results, list(dict.fromkeys(found))
 
@@ -474,98 +478,6 @@ class BayesianFit(Estimator):
             else:
                 res.sample_shape()
             res.sample_shape = None
-
-    def _search(
-        self, linear: list[ModelResult], fit: Context, warnings: list[str]
-    ) -> list[ModelResult]:
-        """Laws beyond the linear ones, built from the best of them and scored by exact
-        evidence (a greedy search; docs/estimators.md): the terms that declare
-        ``search = "replace"`` (Hunt-Crossley contact) in place of its stiffness and
-        damping; then, to the better of the two, the ``"grow"`` terms (relaxation
-        branches) one at a time (up to three, one on a contact law) while each raises
-        the evidence; after each, ``"prune"`` terms the new one makes redundant are taken
-        out while that raises the evidence."""
-        # from the law the evidence prefers, and from the one that fits best by BIC:
-        # on a misfit's correlated residuals the two part, and only the second may be
-        # the stem of the law that fits
-        n = fit.y.size
-        stems = {r.name: r for r in (max(linear, key=lambda r: r.ln_evidence),
-                                     min(linear, key=lambda r: _bic(r, n)))}  # fmt: skip
-        tried: list[ModelResult] = []
-        for best in stems.values():
-            if not self._grow(best, fit, warnings, tried):
-                break
-        return tried
-
-    def _grow(
-        self, best: ModelResult, fit: Context, warnings: list[str], tried: list[ModelResult]
-    ) -> bool:
-        """The search's steps from one linear law, appending what they score to ``tried``;
-        False if the session resolves no relaxation (no other stem will either)."""
-        done = {r.family.name for r in tried if r.family is not None}
-
-        def score(names: list[str]) -> ModelResult:
-            law = Law.of(names)
-            if law.name in done:
-                return next(r for r in tried if r.family is not None and r.family.name == law.name)
-            res = exact_shaped(law, fit)
-            tried.append(res)
-            done.add(law.name)
-            return res
-
-        def prune(res: ModelResult) -> ModelResult:
-            improved = True
-            while improved:
-                improved = False
-                names = [t.name for t in res.family.terms]  # type: ignore[union-attr]
-                for extra in searched("prune"):
-                    fewer = [n for n in names if n != extra]
-                    stiff = any(term(n).role == "stiffness" for n in fewer)
-                    if extra not in names or not stiff:
-                        continue
-                    trial = score(fewer)
-                    if trial.ln_evidence > res.ln_evidence:
-                        res, improved = trial, True
-                        break
-            return res
-
-        keep = [t.name for t in best.model.terms if t.role in ("friction", "inertia", "offset")]
-        # a term of closure and speed together (contact damping, (x - x0)^n xdot) is, at
-        # one speed, the closure term itself
-        design_: Design | None = getattr(self, "design_", None)
-        speed = design_ is None or (
-            "xdot" not in design_.unexcited and design_.representative("xdot") == "xdot"
-        )
-        replace = [n for n in searched("replace") if speed or term(n).variable != "xv"]
-        contact = prune(score([*replace, *keep]))
-        base = contact if contact.ln_evidence > best.ln_evidence else best
-        if not resolvable(fit.kin):
-            lo, hi = tau_range(fit.kin)
-            warnings.append(
-                f"relaxation not searched: the session resolves time constants only between "
-                f"{lo:.3g} s and {hi:.3g} s; record longer or with faster motion"
-            )
-            return False
-        lo, hi = tau_range(fit.kin)
-        # branches one at a time while each raises the evidence; a contact law takes one
-        # (its exponent and contact point already make it the costliest to sample)
-        most = 1 if base is contact else MAX_BRANCHES
-        current = base
-        for k in range(1, most + 1):
-            if hi < BRANCH_SPREAD**k * lo:
-                warnings.append(
-                    f"relaxation branch {k} not searched: the session resolves time constants "
-                    f"only between {lo:.3g} s and {hi:.3g} s, too narrow a range for {k} "
-                    "distinct ones"
-                )
-                break
-            names = [t.name for t in (current.family or current.model).terms]
-            trial = max((score([*names, g]) for g in searched("grow")),
-                        key=lambda r: r.ln_evidence)  # fmt: skip
-            if trial.ln_evidence <= current.ln_evidence:
-                break
-            current = prune(trial)
-        return True
 
     def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
         """Run emcee where no exact posterior is known (or on request): for the chosen
@@ -700,14 +612,6 @@ def _expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
         return sigma  # no correction, or the fit left this form uncorrected
     extra = float(post.mean @ best.correction @ post.mean) / max(n, 1)
     return float(np.sqrt(sigma**2 + max(extra, 0.0)))
-
-
-def _bic(res: ModelResult, n: int) -> float:
-    """Schwarz's criterion of a law's least-squares fit over ``n`` samples; its shape
-    parameters count as parameters."""
-    k = len(res.model.terms) + len(res.model.shape_names)
-    rms = res.least_squares[1] if res.least_squares is not None else res.residual_rms
-    return n * math.log(max(rms**2, 1e-300)) + k * math.log(n)
 
 
 #: contiguous blocks of the blocked cross-validation reported beside the evidence
