@@ -34,8 +34,8 @@ from .estimator import Estimator
 from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, examine
 from .noise import data_weight, filter_tau, residual_tau
-from .posterior import CHECK_NATS
 from .priors import law_prior, prior_conflict, scales_from, session_scales
+from .sampling import DECISIVE, sample_posteriors, sample_shape_posteriors
 from .scoring import (
     CUT_THRESHOLD,
     NOT_EVALUATED,
@@ -65,9 +65,6 @@ __all__ = [
     "scales_from",
     "session_scales",
 ]
-
-#: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
-DECISIVE = float(np.log(100.0))
 
 
 #: a residual SD below this fraction of the force range is rounding, not sensor noise
@@ -280,8 +277,9 @@ class BayesianFit(Estimator):
         del columns
         self._progress.stage("sampling")
         ranked = [r for r in results if r.status != NOT_EVALUATED] or results
-        self._sample_shapes(ranked)
-        self._sample(ranked, rng)
+        sample_shape_posteriors(ranked, sampler=self.sampler, decisive=self.decisive)
+        sample_posteriors(ranked, rng, sampler=self.sampler, decisive=self.decisive,
+                          progress_for=self._progress_for)  # fmt: skip
         results = self._set_aside(results, warnings)
         ln_z = np.array([r.ln_evidence for r in results])
         prob = np.exp(ln_z - ln_z.max())
@@ -445,97 +443,6 @@ class BayesianFit(Estimator):
             found += notes
         results += [exact_shaped(m, fit) for m in shaped]
         return results, list(dict.fromkeys(found))
-
-    def _sample_shapes(self, results: list[ModelResult]) -> None:
-        """Run emcee over the shape of the chosen law if it has more than
-        :data:`~tissuecli.identify.shaped.MAX_GRID_SHAPES` shape parameters. A runner-up
-        keeps its Laplace summary (its evidence, what ranks it, is the same estimate
-        either way) unless every law not decisively behind is to be sampled
-        (``sampler="emcee"``)."""
-        top = max(r.ln_evidence for r in results)
-        for res in results:
-            if res.sample_shape is None:
-                continue
-            behind = top - res.ln_evidence
-            reason = ""
-            if behind > self.decisive:
-                reason = (
-                    f"ln Bayes factor {behind:.1f} behind the best "
-                    f"(> {self.decisive:.1f}, decisive)"
-                )
-            elif behind > 0 and self.sampler == "auto":
-                reason = (
-                    f"a runner-up (ln Bayes factor {behind:.1f} behind the best): its Laplace "
-                    "summary stands; --sampler emcee samples it"
-                )
-            if reason:
-                res.shape_sampler = {
-                    **(res.shape_sampler or {}),
-                    "status": "skipped",
-                    "reason": reason,
-                }
-                res.reason += f"; shape not sampled: {reason}"
-            else:
-                res.sample_shape()
-            res.sample_shape = None
-
-    def _sample(self, results: list[ModelResult], rng: np.random.Generator) -> None:
-        """Run emcee where no exact posterior is known (or on request): for the chosen
-        law only, unless on request (runners-up keep the closed form, their evidence
-        exact), and never for forms decisively behind; say for each form how its
-        posterior was found."""
-        top = max(r.ln_evidence for r in results)
-        for res in results:
-            assert res.posterior is not None
-            behind = top - res.ln_evidence
-            exact = res.posterior.diagnostics.get("exact", False)
-            cut = res.posterior.outside
-            if exact and self.sampler == "auto":
-                how = (
-                    "exact posterior (closed form); positivity bound cuts "
-                    f"{res.posterior.outside:.1e} of it"
-                    if res.posterior.outside <= CUT_THRESHOLD
-                    else f"exact posterior with the positivity bound, which cuts "
-                    f"{100 * cut:.2g} % of the closed form: independent draws by rejection"
-                )
-                # a law with shape parameters keeps how its shape was integrated
-                res.reason = f"{res.reason}; {how}" if res.family is not None else how
-                continue
-            runner_up = behind > 0 and self.sampler == "auto"
-            if (behind > self.decisive or runner_up) and len(results) > 1:
-                res.status = "skipped"
-                text = (
-                    f"not sampled: ln Bayes factor {behind:.1f} behind the best "
-                    f"(> {self.decisive:.1f}, decisive)"
-                    if behind > self.decisive
-                    else f"not sampled: a runner-up (ln Bayes factor {behind:.1f} behind the "
-                    "best), so its intervals are the closed form's, which the positivity "
-                    f"bound cuts by {100 * cut:.2g} %; its evidence is exact; --sampler emcee "
-                    "samples it"
-                )
-                res.reason = f"{res.reason}; {text}" if res.family is not None else text
-                continue
-            from .sampling import run_emcee, stepping_stone  # scipy.stats and emcee, if needed
-
-            progress = self._progress_for(res.name)
-            res.posterior = run_emcee(res.stats, res.prior, rng, progress=progress)  # type: ignore[arg-type]
-            res.status = "emcee"
-            res.reason = (
-                f"sampled: the positivity bound cuts {100 * cut:.2g} % of the closed-form posterior"
-                if self.sampler == "auto"
-                else "sampled on request (--sampler emcee)"
-            )
-            if self.sampler == "emcee":
-                res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)  # type: ignore[arg-type]
-                gap = res.ln_evidence_sampler - res.ln_evidence
-                if not abs(gap) <= CHECK_NATS:  # two estimates of one evidence
-                    res.flags.append(
-                        f"the sampler's ln evidence (stepping-stone) differs from the closed "
-                        f"form's by {gap:+.1f} nats (more than {CHECK_NATS:g}): one of them "
-                        "is wrong; compare the law with its neighbours before trusting it"
-                    )
-            if not res.posterior.diagnostics.get("converged", True):
-                res.flags.append("chain shorter than 50 autocorrelation times")
 
     def _progress_for(self, name: str) -> Callable[[int, float], None] | None:
         """The callback a chain tells its steps for the law of this name, or None."""
