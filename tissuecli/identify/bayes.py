@@ -2,6 +2,14 @@
 exact posteriors and evidences where they exist, emcee where the positivity bounds
 cut the posterior, posterior probabilities of the forms, and diagnostics.
 
+:class:`BayesianFit` puts the parts together: the candidate laws
+(:mod:`~tissuecli.identify.forms`), their priors (:mod:`~tissuecli.identify.priors`),
+each law scored by exact evidence (:mod:`~tissuecli.identify.scoring`, and
+:mod:`~tissuecli.identify.shaped` for laws with shape parameters), the structure
+search (:mod:`~tissuecli.identify.search`), the chains where no closed form applies
+(:mod:`~tissuecli.identify.sampling`) and what the fit says about its choice
+(:mod:`~tissuecli.identify.diagnostics`). Here: the data weight and the choice.
+
 The estimator has the scikit-learn shape (keyword hyperparameters, ``fit(session)``
 returning self, fitted attributes ending in ``_``, :meth:`BayesianFit.predict`).
 It works on arrays; reading and writing files is the caller's business.
@@ -9,7 +17,6 @@ It works on arrays; reading and writing files is the caller's business.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -21,14 +28,16 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
-from ..core.terms import (
-    Law,
-)
-from .derivatives import Differentiator, Kinematics
-from .design import (
-    design,
-    lstsq_scaled_cond,
-    position_noise_sd,
+from ..core.terms import Law
+from .derivatives import Differentiator
+from .design import design, lstsq_scaled_cond, position_noise_sd
+from .diagnostics import (
+    blocked_cv_rms,
+    expected_residual_sd,
+    identifiability,
+    outlier_warnings,
+    predictive_guard,
+    unidentified,
 )
 from .estimator import Estimator
 from .forms import linear_laws, parse_forms
@@ -47,9 +56,7 @@ from .scoring import (
 )
 from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
-from .shapes import (
-    shape_grid,
-)
+from .shapes import shape_grid
 
 Array = NDArray[np.float64]
 
@@ -57,8 +64,10 @@ Array = NDArray[np.float64]
 __all__ = [
     "CUT_THRESHOLD",
     "DECISIVE",
+    "NOT_EVALUATED",
     "BayesianFit",
     "ModelResult",
+    "blocked_cv_rms",
     "law_prior",
     "linear_laws",
     "parse_forms",
@@ -286,12 +295,12 @@ class BayesianFit(Estimator):
         prob /= prob.sum()
         for r, p in zip(results, prob, strict=True):
             r.probability = float(p)
-            r.flags.extend(_identifiability(r))
+            r.flags.extend(identifiability(r))
         if self.forms in (None, "all", "linear"):
             results = self._drop_unidentified(results, fit)
         results.sort(key=lambda r: (-r.probability, -r.ln_evidence))
         best = results[0]
-        warnings.extend(_predictive_guard(results, fit))
+        warnings.extend(predictive_guard(results, fit))
         warnings.extend(f"{best.name}: {f}" for f in best.flags)
         span = float(np.ptp(y))
         if best.posterior.sigma_mean < NOISE_FREE * span:  # type: ignore[union-attr]
@@ -302,7 +311,7 @@ class BayesianFit(Estimator):
                 "(synthetic?), so its intervals reflect rounding, not measurement noise"
             )
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
-        warnings.extend(_outlier_warnings(kin, fitted))
+        warnings.extend(outlier_warnings(kin, fitted))
 
         self.session_ = session
         self.kinematics_ = kin
@@ -313,7 +322,7 @@ class BayesianFit(Estimator):
         self.n_eff_ = y.size * weight
         self.results_ = results
         self.best_ = best
-        self.expected_residual_sd_ = _expected_residual_sd(best, sigma_x, y.size)
+        self.expected_residual_sd_ = expected_residual_sd(best, sigma_x, y.size)
         self.warnings_ = warnings
         return self
 
@@ -330,7 +339,7 @@ class BayesianFit(Estimator):
 
         for _ in range(4):
             best = max(results, key=lambda r: (r.probability, r.ln_evidence))
-            bad = _unidentified(best)
+            bad = unidentified(best)
             if not bad or best.status == NOT_EVALUATED:
                 break
             terms = (best.family or best.model).terms
@@ -342,13 +351,13 @@ class BayesianFit(Estimator):
                 if law.name not in by_name:
                     new = self._score(law, fit)
                     new.probability = 0.0
-                    new.flags.extend(_identifiability(new))
+                    new.flags.extend(identifiability(new))
                     results.append(new)
                     by_name[new.name] = new
             mine = Counter(names_of(best))
             subs = [
                 r for r in results
-                if r is not best and r.status != NOT_EVALUATED and not _unidentified(r)
+                if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
                 and not Counter(names_of(r)) - mine
             ]  # fmt: skip
             if not subs:
@@ -479,140 +488,3 @@ class BayesianFit(Estimator):
 
     def _position_noise_sd(self) -> float:
         return self.sigma_x_
-
-
-def _outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str]:
-    """Raw force samples beyond ``z`` noise SDs of the fit: glitches (ADC spikes, a knock)
-    the Gaussian noise model does not explain, and which pull every parameter.
-
-    Raw, not filtered, residuals: filtering smears a spike over the kernel, and at
-    high rates with a coarse position ADC the filtered residual carries the
-    quantisation of position (plateaus of K q / 2 at every turn of the jaw), which is
-    not a glitch but stood at 50 filtered-noise SDs.
-    """
-    r = kin.force_raw - fitted
-    scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # robust SD
-    if not scale > 0:
-        return []
-    bad = np.flatnonzero(np.abs(r) > z * scale)
-    if bad.size == 0:
-        return []
-    t = kin.time[bad]
-    return [
-        f"{bad.size} force sample(s) lie beyond {z:g} noise SDs of the fit, first at "
-        f"t = {t[0]:.3f} s: a glitching sensor or a knock; the parameters absorb it, so "
-        "inspect the residuals in the report and fit a clean stretch"
-    ]
-
-
-def _expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
-    """Residual SD the best form expects (N): force noise plus position noise through the law.
-
-    With the errors-in-variables correction the posterior noise SD is the force noise
-    alone; noise on position reaches the residuals through the design columns too, adding
-    ``beta^T C beta / n`` to their variance (C: the correction subtracted from A^T A).
-    """
-    post = best.posterior
-    assert post is not None
-    sigma = float(post.sigma_mean)
-    if sigma_x <= 0 or best.correction is None:
-        return sigma  # no correction, or the fit left this form uncorrected
-    extra = float(post.mean @ best.correction @ post.mean) / max(n, 1)
-    return float(np.sqrt(sigma**2 + max(extra, 0.0)))
-
-
-#: contiguous blocks of the blocked cross-validation reported beside the evidence
-CV_BLOCKS = 5
-#: a law predicting held-out blocks this much better than the chosen one is reported
-CV_MARGIN = 1.1
-
-
-def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
-    """RMS of what each of ``blocks`` contiguous blocks leaves to the least-squares fit
-    of the others (N): a prediction score of a law on data its coefficients never saw,
-    from the Gram matrix of each block, formed once.
-
-    Parameters
-    ----------
-    A : ndarray, shape (m, p)
-        The law's design matrix at the fitted samples.
-    y : ndarray, shape (m,)
-        The filtered force, N.
-    """
-    m = y.size
-    if m < 2 * blocks * max(A.shape[1], 1):
-        return float("nan")
-    edges = np.linspace(0, m, blocks + 1).astype(int)
-    d = np.linalg.norm(A, axis=0)
-    d[d == 0] = 1.0
-    As = A / d
-    parts = [(As[a:b].T @ As[a:b], As[a:b].T @ y[a:b]) for a, b in itertools.pairwise(edges)]
-    G = sum(g for g, _ in parts)
-    c = sum(v for _, v in parts)
-    ss = 0.0
-    for (a, b), (g, v) in zip(itertools.pairwise(edges), parts, strict=True):
-        beta = np.linalg.lstsq(G - g, c - v, rcond=1e-12)[0]
-        r = y[a:b] - As[a:b] @ beta
-        ss += float(r @ r)
-    return math.sqrt(ss / m)
-
-
-def _predictive_guard(results: list[ModelResult], fit: Context) -> list[str]:
-    """Score each evaluated law by blocked cross-validation (``cv_rms``) and say when a
-    law predicts the held-out blocks clearly better than the chosen one: evidence and
-    prediction then disagree, and the choice rests on the priors."""
-    for r in results:
-        if r.status == NOT_EVALUATED:
-            continue
-        A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        r.cv_rms = blocked_cv_rms(A, fit.y)
-    best = results[0]
-    scored = [r for r in results if math.isfinite(r.cv_rms)]
-    if not scored or not math.isfinite(best.cv_rms):
-        return []
-    top = min(scored, key=lambda r: r.cv_rms)
-    if top is best or best.cv_rms <= CV_MARGIN * top.cv_rms:
-        return []
-    return [
-        f"{top.name} predicts held-out blocks better than the chosen {best.name} "
-        f"(blocked cross-validation RMS {top.cv_rms:.3g} N against {best.cv_rms:.3g} N): "
-        "evidence and prediction disagree"
-    ]
-
-
-def _unidentified(r: ModelResult) -> set[int]:
-    """Indices of the terms whose coefficient :func:`_identifiability` calls not
-    identified."""
-    out = set()
-    for j, t in enumerate(r.model.terms):
-        if any(f.startswith(f"{t.symbol} not identified") for f in r.flags):
-            out.add(j)
-    return out
-
-
-def _identifiability(r: ModelResult) -> list[str]:
-    """Flags for coefficients the data do not pin down."""
-    flags = []
-    post = r.posterior
-    assert post is not None and r.prior is not None
-    scales = r.prior.scales
-    for j, t in enumerate(r.model.terms):
-        lo, hi = post.ci95[j]
-        vague = post.sd[j] > 0.3 * scales[j]
-        if vague or (
-            t.passive and (lo <= 0.02 * max(hi, 1e-300) or post.sd[j] > 0.5 * abs(post.mean[j]))
-        ):
-            what = (
-                "too little acceleration content"
-                if t.role == "inertia"
-                else "too little excitation"
-            )
-            flags.append(
-                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
-            )
-        elif t.passive and post.sd[j] > 0.25 * abs(post.mean[j]):
-            flags.append(
-                f"{t.symbol} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
-                "of its value"
-            )
-    return flags
