@@ -93,9 +93,8 @@ class BayesianFit(Estimator):
     forms : str, Law or list of them
         ``"all"`` (the 24 linear laws of :func:`linear_laws`, then the structure search,
         by default greedy, adding contact and up to three relaxation branches),
-        ``"linear"`` (the 24
-        alone), ``"paper"`` (the paper's four), or laws such as ``"x,xdot"`` or
-        ``"x+x^3+xdot+offset+xddot"``.
+        ``"linear"`` (the 24 alone), ``"paper"`` (the paper's four), or laws such as
+        ``"x,xdot"`` or ``"x+x^3+xdot+offset+xddot"``.
     sampler : {"auto", "emcee"}
         ``auto`` samples only where the exact posterior does not apply (the
         positivity bound cuts it); ``emcee`` samples every form not skipped,
