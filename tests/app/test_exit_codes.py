@@ -20,9 +20,9 @@ from click.testing import CliRunner
 import tissuecli.app.demo as app_demo
 import tissuecli.app.live as app_live
 import tissuecli.app.play as app_play
+from tissuecli import formats
 from tissuecli.app.faults import live_faults
 from tissuecli.app.summaries import live_lines
-from tissuecli import formats
 from tissuecli.cli import cli
 from tissuecli.core.errors import (
     EXIT_DEVICE_LOST,

@@ -45,7 +45,7 @@ from ..render.passivity import PassivityController
 from ..render.profile import DisplayProfile
 from .faults import live_faults
 from .loopstats import jsonable
-from .play import HostLoop, Rendering, _open_display
+from .play import HostLoop, Rendering, open_display
 from .record import RecordStatus, SampleBlock, record
 
 #: The forceps silent this long (no sample block) and the display goes to 0 V, s.
@@ -146,7 +146,8 @@ def _live_loop(
 ) -> dict[str, Any]:
     """The haptic loop of ``live``, in its own process: open the display, tell the
     parent its profile, render what it hands over until it stops or goes."""
-    link, info, profile = _open_display(display_url, baudrate, rate_hz, profile)
+    link = open_display(display_url, baudrate=baudrate, rate_hz=rate_hz, profile=profile)
+    info, profile = link.info or {}, link.profile
     try:
         parent.send(("opened", profile))
         rendering = LiveRendering(profile, rate_hz)

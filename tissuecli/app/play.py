@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING, Any
 
 from ..core.errors import (
     EXIT_NOT_RENDERED,
-    DeviceError,
     DeviceLost,
     InputError,
     RenderError,
@@ -32,7 +31,8 @@ from ..core.tissue import Tissue
 from ..formats.jsonfile import write_json
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_profile, read_tissue
-from ..hw.link import DEFAULT_BAUD, Link, open_device
+from ..hw.device import Device, Display, device_class
+from ..hw.link import DEFAULT_BAUD
 from ..hw.protocol import Encoder, SetVoltage
 from ..hw.realtime import (
     SPIN_S,
@@ -57,8 +57,6 @@ from ..render.profile import (
     PAPER_DISPLAY,
     DisplayProfile,
     clamp_volts,
-    exceeded_limits,
-    profile_from_dict,
 )
 from .faults import classify_faults
 from .loopstats import PlayFigures, jsonable, silence_figures
@@ -218,6 +216,7 @@ def play(
     loop: str = "thread",
     realtime: bool = True,
     on_message: Callable[[str], None] | None = None,
+    device: str = "display",
 ) -> dict[str, Any]:
     """Render ``tissue`` on the display at ``url`` for ``duration_s`` seconds.
 
@@ -257,6 +256,9 @@ def play(
         through each expected frame; ignored by ``"plain"``.
     on_message : callable, optional
         Told, once per process, when elevated scheduling was refused.
+    device : str
+        The kind of display (a :class:`~tissuecli.hw.device.Display` class registered
+        under that name; a loop process finds only those its module registers on import).
 
     Returns
     -------
@@ -303,6 +305,7 @@ def play(
         idle_timeout_s=idle_timeout_s,
         status_interval_s=status_interval_s,
         realtime=realtime and loop != "plain",
+        device=device,
     )
     if loop == "process":
         proc = LoopProcess(
@@ -368,11 +371,13 @@ def _render(
     in_thread: bool,
     realtime: bool,
     on_message: Callable[[str], None] | None,
+    device: str = "display",
     inbox: Parent | None = None,
 ) -> dict[str, Any]:
     """:func:`play` from opening the display on, in this process (its loop in a thread
     of its own if ``in_thread``)."""
-    link, info, profile = _open_display(url, baudrate, rate_hz, profile)
+    link = open_display(url, kind=device, baudrate=baudrate, rate_hz=rate_hz, profile=profile)
+    info, profile = link.info or {}, link.profile
     log_file: PlayLog | None = None
     player: HostLoop | None = None
     stream: Stream | None = None
@@ -468,40 +473,24 @@ def _render(
     return summary
 
 
-def _open_display(
-    url: str, baudrate: int, rate_hz: float, profile: DisplayProfile | None
-) -> tuple[Link, dict[str, Any], DisplayProfile]:
-    """Open and identify a display; its link, Info and the profile to use."""
-    link, info = open_device(url, "display", baudrate=baudrate, timeout=0.02)
-    assert info is not None  # open_device refuses a silent display
-    try:
-        device_rate = info.get("rate_hz")
-        if isinstance(device_rate, (int, float)) and abs(device_rate - rate_hz) > 1e-6 * rate_hz:
-            raise DeviceError(
-                f"the display at {url} runs its loop at {device_rate:g} Hz; "
-                f"pass --rate {device_rate:g}"
-            )
-        reported = info.get("profile")
-        limits = (
-            profile_from_dict(reported, source=f"profile reported by {url}")
-            if isinstance(reported, Mapping)
-            else None
-        )
-        if profile is None:
-            profile = limits if limits is not None else PAPER_DISPLAY
-        elif limits is not None:
-            # the display's own limits rule: a file may ask less, never more
-            over = exceeded_limits(profile, limits)
-            if over:
-                raise DeviceError(
-                    f"--profile asks more than the display at {url} reports: "
-                    + "; ".join(over)
-                    + "; lower them to the display's, or give no --profile"
-                )
-        return link, info, profile
-    except BaseException:
-        link.close()
-        raise
+def open_display(
+    url: str,
+    *,
+    kind: str = "display",
+    baudrate: int = DEFAULT_BAUD,
+    rate_hz: float | None = None,
+    profile: DisplayProfile | None = None,
+) -> Display:
+    """Open and identify the display of ``kind`` (a registered
+    :class:`~tissuecli.hw.device.Display` class) at ``url``, checked against the loop's
+    rate; its :attr:`~tissuecli.hw.device.Display.profile` is the one to render with."""
+    cls = device_class(kind)
+    if not (isinstance(cls, type) and issubclass(cls, Display)):
+        raise InputError(f"a {kind} is not a display; {cls.role}")
+    display: Display = cls(url, baudrate=baudrate, timeout=0.02).open(
+        rate_hz=rate_hz, profile=profile
+    )
+    return display
 
 
 class Rendering:
@@ -534,15 +523,16 @@ class HostLoop:
 
     Parameters
     ----------
-    link : Link
-        The open display.
+    link : Device
+        The open display (:class:`~tissuecli.hw.device.Display` or any device that
+        streams Encoder frames and takes SetVoltage commands).
     rendering : Rendering or Controller
         What computes each answer (a bare controller is wrapped in :class:`Rendering`).
     """
 
     def __init__(
         self,
-        link: Link,
+        link: Device,
         rendering: Rendering | Controller | None,
         profile: DisplayProfile,
         rate_hz: float,
@@ -725,7 +715,7 @@ class HostLoop:
                 "duration_s": self.elapsed,
                 "frames": f.frames,
                 "frames_lost": stream.seqs.lost,
-                "frames_bad": self.link.decoder.bad_frames,
+                "frames_bad": self.link.bad_frames,
                 "missed_periods": self.missed,
                 "watchdog_frames": f.watchdog,
                 "loop_rate_hz": f.loop_rate(),
@@ -739,7 +729,7 @@ class HostLoop:
             "duration_s": self.elapsed,
             "frames": figures.pop("frames"),
             "frames_lost": stream.seqs.lost,
-            "frames_bad": self.link.decoder.bad_frames,
+            "frames_bad": self.link.bad_frames,
             "missed_periods": self.missed,
             "clamped_commands": self.clamped,
             **figures,
