@@ -593,9 +593,12 @@ class HostLoop:
         self.spin_s = SPIN_S if self.elevation.elevated and cpu_to_spare() else 0.0
         if self.auto_silence:
             elevated = self.elevation.elevated
-            stream.idle_timeout_s = DISPLAY_SILENCE_S if elevated else DISPLAY_SILENCE_UNELEVATED_S
-            stream.limit_note = f"; the limit is {stream.idle_timeout_s * 1e3:g} ms for a loop " + (
-                "under SCHED_FIFO" if elevated else "without real-time scheduling"
+            stream.idle_timeout_s = (
+                DISPLAY_SILENCE_S if elevated else DISPLAY_SILENCE_UNELEVATED_S
+            )
+            stream.limit_note = (
+                f"; the limit is {stream.idle_timeout_s * 1e3:g} ms for a loop "
+                + ("under SCHED_FIFO" if elevated else "without real-time scheduling")
             )
         try:
             summary = self._loop(stream, duration_s, on_status, period, fd)
