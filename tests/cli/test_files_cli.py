@@ -158,7 +158,8 @@ def test_import_of_counts_with_a_calibration_equals_import_in_si(tmp_path):
     counts_x = (x - cal["position"]["offset"]) / cal["position"]["gain"]
     _csv(tmp_path / "counts.csv", zip(t * 1e3, counts_f, counts_x, strict=True), "t_ms,adc0,adc1")
     h5 = tmp_path / "g.h5"
-    assert run("import", str(tmp_path / "si.csv"), "--out", str(h5), "--session", "si").exit_code == 0
+    r = run("import", str(tmp_path / "si.csv"), "--out", str(h5), "--session", "si")
+    assert r.exit_code == 0, r.output
     args = ["import", str(tmp_path / "counts.csv"), "--out", str(h5), "--session", "counts"]
     cols = ["--columns", "force=adc0,position=adc1", "--calibration", str(tmp_path / "cal.json")]
     r = run(*args, *cols)
