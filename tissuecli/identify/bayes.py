@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
-from ..core.terms import Law
+from ..core.terms import Law, term
 from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
@@ -343,9 +343,9 @@ class BayesianFit(Estimator):
                 break
             terms = (best.family or best.model).terms
             names = [t.name for j, t in enumerate(terms) if j not in bad]
-            if "contact*xdot" in names and "contact" not in names:
-                names.remove("contact*xdot")
-            if any(n in ("x", "x^3", "contact") for n in names):
+            # a term that needs one left out goes with it (contact damping, contact)
+            names = [n for n in names if all(r in names for r in term(n).requires)]
+            if any(term(n).role == "stiffness" for n in names):
                 law = Law.of(names)
                 if law.name not in by_name:
                     new = self._score(law, fit)
