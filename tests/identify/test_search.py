@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import pytest
 
 from tissuecli.core.errors import FitError
-from tissuecli.core.terms import TERMS, Law, searched
+from tissuecli.core.terms import TERMS, Law, Maxwell, register, searched, unregister
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.scoring import ModelResult
 from tissuecli.identify.search import (
@@ -18,9 +18,9 @@ from tissuecli.identify.search import (
     GreedySearch,
     Scope,
     Search,
-    register,
     search_strategy,
 )
+from tissuecli.identify.search import register as register_search
 from tissuecli.sim.families import FAMILIES
 from tissuecli.sim.synth import random_session
 
@@ -44,8 +44,11 @@ class _Scorer:
     """A scoring callable with made-up evidence: each relaxation branch is worth
     ``gains[k]`` nats, contact ``contact`` nats; it counts the calls per law."""
 
-    def __init__(self, gains: list[float], contact: float = -50.0) -> None:
+    def __init__(
+        self, gains: list[float], contact: float = -50.0, bonus: dict[str, float] | None = None
+    ) -> None:
         self.gains, self.contact, self.calls = gains, contact, Counter[str]()
+        self.bonus = bonus or {}
 
     def __call__(self, law: Law) -> ModelResult:
         self.calls[law.name] += 1
@@ -53,6 +56,7 @@ class _Scorer:
         k = names.count("maxwell")
         ln_z = sum(self.gains[:k]) + (self.contact if "contact" in names else 0.0)
         ln_z -= 5.0 * sum(n in ("offset", "x^3") for n in names)  # what pruning removes
+        ln_z += sum(self.bonus.get(n, 0.0) for n in names)
         return ModelResult(model=law, family=law, ln_evidence=ln_z, residual_rms=1.0)
 
 
@@ -140,7 +144,7 @@ class OneBranch(Search):
 
 @pytest.fixture
 def one_branch_search() -> Iterator[type[Search]]:
-    register(OneBranch)
+    register_search(OneBranch)
     try:
         yield OneBranch
     finally:
@@ -167,7 +171,7 @@ def test_a_search_without_a_name_is_not_registered():
         pass
 
     with pytest.raises(FitError, match="Nameless has no name"):
-        register(Nameless)
+        register_search(Nameless)
 
 
 @pytest.mark.slow
@@ -178,3 +182,29 @@ def test_exhaustive_fit_finds_at_least_the_evidence_greedy_finds(one_branch):
     assert every.best_.ln_evidence >= greedy.best_.ln_evidence - 1e-6
     assert every.best_.name.count("maxwell") == 1
     assert len(every.results_) + len(every.not_evaluated_) > len(greedy.results_)
+
+
+class Creep(Maxwell):
+    """A grown term that a law may hold twice."""
+
+    name, max_count = "creep", 2
+
+
+@pytest.fixture
+def creep() -> Iterator[dict[str, object]]:
+    register(Creep)
+    try:
+        yield {n: t for n, t in TERMS.items() if n != "maxwell"}
+    finally:
+        unregister("creep")
+
+
+def test_a_grown_term_is_added_no_more_times_than_a_law_may_hold_it(one_branch, creep):
+    _, scope = one_branch
+    for search in (GreedySearch(registry=creep), ExhaustiveSearch(registry=creep)):  # type: ignore[arg-type]
+        assert search.terms("grow") == ["creep"]
+        # creep worth 10 nats: a greedy search would take another if a law could hold it
+        score = _Scorer(gains=[], bonus={"creep": 10.0})
+        tried, _ = search.run([_linear(STEM, 0.0)], score, scope)
+        assert "x+creep+creep+xdot+xddot" in {r.name for r in tried}
+        assert all(r.name.count("creep") <= 2 for r in tried)

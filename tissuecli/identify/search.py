@@ -193,9 +193,10 @@ class GreedySearch(Search):
     """Greedy search by exact evidence (docs/estimators.md), from each stem: the terms
     that declare ``search = "replace"`` (Hunt-Crossley contact) in place of its
     stiffness and damping; then, to the better of the two, the ``"grow"`` terms
-    (relaxation branches) one at a time (up to three, one on a contact law) while each
-    raises the evidence; after each, ``"prune"`` terms the new one makes redundant are
-    taken out while that raises the evidence."""
+    (relaxation branches) one at a time (up to three, one on a contact law, and each no
+    more often than a law may hold it) while each raises the evidence; after each,
+    ``"prune"`` terms the new one makes redundant are taken out while that raises the
+    evidence."""
 
     name = "greedy"
 
@@ -243,8 +244,10 @@ class GreedySearch(Search):
                 notes.append(why)
                 break
             names = [t.name for t in (current.family or current.model).terms]
-            trial = max((score([*names, g]) for g in self.terms("grow")),
-                        key=lambda r: r.ln_evidence)  # fmt: skip
+            grow = [g for g in self.terms("grow") if names.count(g) < term(g).max_count]
+            if not grow:
+                break
+            trial = max((score([*names, g]) for g in grow), key=lambda r: r.ln_evidence)
             if trial.ln_evidence <= current.ln_evidence:
                 break
             current = self._prune(trial, score)
@@ -301,7 +304,8 @@ class ExhaustiveSearch(Search):
                     for k in range(most + 1):
                         for extra in itertools.combinations_with_replacement(grow, k):
                             law = [*fewer, *extra]
-                            if any(n in replace or n in grow for n in law):
+                            many = any(law.count(g) > term(g).max_count for g in extra)
+                            if not many and any(n in replace or n in grow for n in law):
                                 score(law)
 
     def _pruned(self, names: list[str]) -> Iterable[list[str]]:
