@@ -32,11 +32,10 @@ from ..core.errors import FitError
 from ..core.progress import Progress, as_progress
 from ..core.session import Session
 from ..core.terms import Law
-from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult
+from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
 from .derivatives import Frozen
 from .design import design, eiv_correction
 from .posterior import ExactPosterior, SufficientStats
-from .priors import law_prior
 
 Array = NDArray[np.float64]
 
