@@ -3,6 +3,7 @@ library routines they replace and to closed forms."""
 
 from __future__ import annotations
 
+import gc
 import math
 
 import numpy as np
@@ -297,3 +298,8 @@ def test_recent_columns_answer_only_their_own_session_within_their_bound() -> No
         cache.put(("column", 0.0, name), kin, x, np.zeros(10))  # type: ignore[arg-type]
     assert cache.get(("column", 0.0, "a"), kin, x) is None  # type: ignore[arg-type]
     assert cache.get(("column", 0.0, "d"), kin, x) is not None  # type: ignore[arg-type]
+    assert cache.nbytes <= 3 * 80
+    del kin
+    gc.collect()  # a finished fit's columns go when the next fit keeps its first
+    cache.put(("column", 0.0, "e"), other, x, np.zeros(10))  # type: ignore[arg-type]
+    assert cache.nbytes == 80

@@ -204,6 +204,8 @@ class RecentColumns:
         size = int(sum(np.asarray(v).nbytes for v in parts))
         full = (*key, id(kin), id(x_full))
         with self._lock:
+            if self._items and next(reversed(self._items.values()))[0]() is not kin:
+                self._drop_dead()  # a new fit: what finished fits left is of no use
             old = self._items.pop(full, None)
             if old is not None:
                 self._bytes -= old[3]
@@ -213,6 +215,15 @@ class RecentColumns:
             while self._bytes > self.max_bytes:
                 self._bytes -= self._items.popitem(last=False)[1][3]
         return value
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held."""
+        return self._bytes
+
+    def _drop_dead(self) -> None:
+        for key in [k for k, v in self._items.items() if v[0]() is None or v[1]() is None]:
+            self._bytes -= self._items.pop(key)[3]
 
     def clear(self) -> None:
         with self._lock:
