@@ -31,7 +31,6 @@ from ..formats.catalogue import LABELS, Catalogue, Fit, FitRows, fit_rows
 from ..formats.params import _finite as finite_tree
 from ..formats.params import document
 from ..formats.sessions import is_session_file, session_names
-from ..identify.outcome import fit_session
 from .transfer import load_session
 
 #: file suffixes a folder is searched for (sessions and every recording ``import`` reads)
@@ -250,6 +249,9 @@ def run_task(task: Task) -> Done:
     thread; a failure is returned, not raised, so the batch goes on."""
     from threadpoolctl import threadpool_limits
 
+    # loaded here, not with this module: a parent that only dispatches never needs it
+    from ..identify.outcome import fit_session
+
     try:
         data = task.data
         if data is None:
@@ -341,9 +343,12 @@ class LokyExecutor(Executor):
                 finished, running = wait(running, return_when=FIRST_COMPLETED)
                 for f in finished:
                     yield f.result()
-        finally:
+        except BaseException:
+            # stopped (Ctrl-C, a signal, --on-error stop): no fit is left running
             for f in running:
                 f.cancel()
+            pool.shutdown(wait=False, kill_workers=True)
+            raise
 
 
 class DaskExecutor(Executor):
