@@ -17,6 +17,7 @@ import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -240,6 +241,19 @@ class Done:
     seconds: float = 0.0
 
 
+#: whether this process's BLAS is pinned to one thread for good (a loky worker's is)
+_pinned = False
+
+
+def _pin_blas() -> None:
+    """A loky worker's start: BLAS pinned to one thread once, not at every fit."""
+    global _pinned
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    _pinned = True
+
+
 def _internal(exc: Exception) -> str:
     return f"internal error: {type(exc).__name__}: {exc}"
 
@@ -267,7 +281,7 @@ def run_task(task: Task) -> Done:
         return Done(task.index, data.name, content, key, own, skipped=True)
     t0 = time.perf_counter()
     try:
-        with threadpool_limits(limits=1):
+        with threadpool_limits(limits=1) if not _pinned else nullcontext():
             outcome = fit_session(data, **task.settings)
         doc = finite_tree(document(outcome))
         law = doc.get("law") or {}
@@ -328,7 +342,9 @@ class LokyExecutor(Executor):
         # BLAS pinned to 1 thread in each worker before it starts (as joblib's
         # inner_max_num_threads); futures waited on, not polled, so that the parent
         # sleeps while the workers fit
-        pool = get_reusable_executor(max_workers=self.jobs, env=dict.fromkeys(BLAS_VARS, "1"))
+        pool = get_reusable_executor(
+            max_workers=self.jobs, env=dict.fromkeys(BLAS_VARS, "1"), initializer=_pin_blas
+        )
         window = 2 * self.jobs
         running: set[Future[Done]] = set()
         todo = iter(tasks)
