@@ -164,7 +164,7 @@ def _clock_line(
     positive = sampled[sampled > 0]
     if positive.size == 0 and not np.any(t[1:] > t[:-1]):
         raise InputError("time never increases; check the time column and its unit")
-    typical = float(np.median(positive)) if positive.size else float(t[-1] - t[0]) / (n - 1)
+    typical = _median(positive) if positive.size else float(t[-1] - t[0]) / (n - 1)
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
     count = total = 0.0
     backward = 0
@@ -181,7 +181,7 @@ def _clock_line(
         for _ in range(3):  # count with the period, refit the period, count again
             k = None  # the last try's numbers go before the next are made
             k = counting(t, period, q)
-            slope, offset, worst, rms = _fit_clock(k, t)
+            slope, offset, worst, rms = _fit_clock(k, t, period)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
             period = slope
@@ -261,18 +261,23 @@ def _multiples(t: Array, q: float, origin: float = 0.0) -> bool:
     return bool(np.all(off <= tolerance))
 
 
-def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, float, float]:
+def _fit_clock(k: NDArray[np.int64], t: Array, period: float) -> tuple[float, float, float, float]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
     slope (s per sample), the offset (s), and the largest and RMS residual (s). The
-    residuals are worked out block by block, never held whole."""
+    residuals are worked out block by block, never held whole; ``period`` (s) is the
+    first guess of the slope."""
     keep: NDArray[np.bool_] | None = None
+    slope, offset = period, float(t[0])
     stride = max(1, t.size // (1 << 20))
     worst = total = 0.0
     for _ in range(3):
-        slope, offset = _line(k, t, keep)
+        slope, offset = _line(k, t, keep, (slope, offset))
         # the spread from every stamp, or from an even sample of a million of them
         sample = _residuals(k[::stride], t[::stride], slope, offset)
-        mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+        spread = sample - _median(sample)
+        np.abs(spread, out=spread)
+        mad = 1.4826 * _median(spread)
+        del spread
         bound = max(4 * mad, 1e-9 * abs(slope))
         inside = np.empty(t.size, dtype=bool)
         worst = total = 0.0  # of this line's residuals: the last line's are the answer
@@ -296,6 +301,17 @@ def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, float, flo
     return float(slope), float(offset), worst, float(np.sqrt(total / t.size))
 
 
+def _median(a: Array) -> float:
+    """The median of finite values ``a`` (np.median's, without its check for NaN, which
+    loads numpy.ma, and with one partial sort)."""
+    n = a.size
+    half = n // 2
+    if n % 2:
+        return float(np.partition(a, half)[half])
+    part = np.partition(a, (half - 1, half))
+    return 0.5 * (float(part[half - 1]) + float(part[half]))
+
+
 def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> Array:
     """``t - (offset + slope k)``."""
     line = k * slope
@@ -303,42 +319,36 @@ def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> A
     return np.subtract(t, line, out=line)
 
 
-def _centred_line(
+def _line(
     k: NDArray[np.int64],
     t: Array,
     keep: NDArray[np.bool_] | None,
-    line: tuple[float, float] = (0.0, 0.0),
+    guess: tuple[float, float],
 ) -> tuple[float, float]:
-    """Slope and offset of the least-squares line of ``t - (line[1] + line[0] k)`` on
-    ``k``, in one pass block by block: sums of ``k`` about its middle (so that the
-    products stay small), the other sums plain."""
+    """Slope and offset of the least-squares line of ``t`` on ``k`` over the stamps
+    `keep` marks (all if None), in one pass block by block: the line of the residuals
+    about ``guess`` (slope, offset), which are small, so that no sum of large products
+    rounds them away, with ``k`` about its middle."""
+    slope0, offset0 = guess
     pivot = 0.5 * (float(k[0]) + float(k[-1]))
-    count = sk = st = skk = skt = 0.0
+    count = sk = sr = skk = skr = 0.0
     for i in range(0, t.size, BLOCK):
         kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
         if keep is not None:
             kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
-        if line != (0.0, 0.0):
-            tt = tt - (line[1] + line[0] * kk)
+        r = kk * -slope0
+        r += tt
+        r -= offset0
         dk = kk - pivot
         count += dk.size
         sk += float(np.sum(dk))
-        st += float(np.sum(tt))
+        sr += float(np.sum(r))
         skk += float(dk @ dk)
-        skt += float(dk @ tt)
-    kbar, tbar = sk / count, st / count
+        skr += float(dk @ r)
+    kbar, rbar = sk / count, sr / count
     sxx = skk - sk * kbar
-    slope = (skt - sk * tbar) / sxx if sxx > 0 else 0.0
-    return slope, tbar - slope * (kbar + pivot)
-
-
-def _line(k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None) -> tuple[float, float]:
-    """Slope and offset of the least-squares line of ``t`` on ``k`` over the stamps
-    `keep` marks (all if None): centred sums taken block by block, then refined once on
-    the residuals (which the sums of large products would otherwise round)."""
-    slope, offset = _centred_line(k, t, keep)
-    ds, do = _centred_line(k, t, keep, (slope, offset))
-    return slope + ds, offset + do
+    ds = (skr - sk * rbar) / sxx if sxx > 0 else 0.0
+    return slope0 + ds, offset0 + rbar - ds * (kbar + pivot)
 
 
 def _limit(dt: float, q: float) -> float:
