@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import codecs
 import io
+import math
 import os
 import re
 from collections import Counter
@@ -386,23 +387,24 @@ class Layout:
         # a blank line is skipped by the parser without a word: every line must be a row
         if invalid or m != count + (not body.endswith(b"\n")):
             return None
-        values = np.full((m, len(columns)), np.nan)
+        values = np.empty((m, len(columns)))
         text: dict[int, list[str]] = {}
         for j, c in enumerate(columns):
             column = table.column(names[c])
             if not self.numeric[c]:
+                values[:, j] = np.nan
                 text[c] = [str(v).strip() for v in column.to_pylist()]
                 continue
             if column.null_count:
                 return None  # empty fields: junk lines, counted one by one
             row = 0
             for chunk in column.chunks:  # the values' own buffer (to_numpy loads pandas)
-                values[row : row + len(chunk), j] = np.frombuffer(
-                    chunk.buffers()[1], np.float64, len(chunk), chunk.offset * 8
-                )
+                v = np.frombuffer(chunk.buffers()[1], np.float64, len(chunk), chunk.offset * 8)
+                # a finite sum says every value is finite, without an array of flags
+                if not math.isfinite(float(np.sum(v))) and not np.isfinite(v).all():
+                    return None  # NaN or Inf: junk lines, counted one by one
+                values[row : row + len(chunk), j] = v
                 row += len(chunk)
-        if not np.isfinite(values[:, [self.numeric[c] for c in columns]]).all():
-            return None  # NaN or Inf: junk lines, counted one by one
         return Block(values, np.arange(first_line, first_line + m, dtype=np.int64), text)
 
     def _slow(self, body: bytes, first_line: int, columns: list[int]) -> Block:
