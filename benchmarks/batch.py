@@ -18,8 +18,8 @@ classifier (the design's group values and spreads). ``cpu`` fits the study in a 
 process with ``--jobs 1`` and ``--jobs 2`` and reports the CPU time each process used per
 session fitted: the parent's (its start and imports, reading, hashing, storing,
 dispatching) and the workers' (theirs too).
-CPU time does not depend on the machine's load as wall time does, so these figures say on
-a busy machine what limits the speed-up on an idle one.
+CPU time depends far less on the machine's load than wall time does, so these figures say
+on a busy machine where a batch's work is.
 """
 
 from __future__ import annotations
