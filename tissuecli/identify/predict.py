@@ -8,8 +8,27 @@ motion without the lag or the flattening of a low-pass filter), and the measured
 force is left as recorded. Filtering both as a fit does (``filtered=True``) compares
 like with like, but predicts a smoothed force: what the filter removed is lost, and
 on held-out data of known law that put the prediction 2-20 times further from the
-true force than the measured force's noise floor, where the same law on
-Savitzky-Golay kinematics lands at 0.5-1.4 times it.
+true force than the measured force's noise floor.
+
+Three things make the law's force the best estimate of the true one:
+
+- **Each derivative its own smoothing.** Position noise reaches the law through x, xdot
+  and xddot, amplified by the derivative's order, and a law weighs each by its own
+  coefficient: one window for all three left the acceleration's noise (times M) or the
+  speed's (times S) several times the force's noise floor. Each order's Savitzky-Golay
+  window is chosen where the law's force agrees best with the measured force. The
+  force's noise is independent of the position's, so that agreement is the distance to
+  the true force plus a constant: a measure of the prediction's error that needs no
+  truth. An estimator chooses on the force it was fitted to (a held-out part's own
+  force is never read); a parameter file with another recording chooses on that
+  recording.
+- **Free jaws carry no tissue.** Where the session alternates grasps with free jaw
+  motion (:func:`~tissuecli.identify.contact.find_contact`, as a fit finds them), the
+  tissue's terms are zero outside the grasps and the force is the law's offset alone
+  (the sensor's): the law was fitted in contact and says nothing of open jaws.
+- **Dry friction at a turn.** Near zero speed the estimated speed has either sign; the
+  friction column is the mean of its two directions over the speed estimate's error
+  (:meth:`~tissuecli.core.terms.Term.expected`), not the sign of the estimate.
 """
 
 from __future__ import annotations
@@ -24,8 +43,9 @@ from ..core.errors import FitError
 from ..core.session import Session
 from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
+from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
-from .design import design
+from .design import design, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare
 from .spectrum import convolve_valid
 
@@ -107,6 +127,7 @@ def predict_band(
     differentiator_name: str | Differentiator = "gaussian",
     filtered: bool = False,
     smoother: Differentiator | None = None,
+    tune: NDArray[np.bool_] | None = None,
 ) -> Prediction:
     """Predict the force of every sample of ``session`` (all of it: grasps and free
     motion alike) with ``tissue``'s law; a law with memory starts from rest at the
@@ -127,8 +148,12 @@ def predict_band(
     filtered : bool
         Predict the force filtered as in a fit, and filter the measured force alike.
     smoother : Differentiator, optional
-        The kinematics estimate of the unfiltered prediction: a Savitzky-Golay
-        smoother whose window follows the position's signal band, by default.
+        The kinematics estimate of the unfiltered prediction, one window for every
+        order; by default a Savitzky-Golay window chosen for each order (see the
+        module's docstring).
+    tune : ndarray of bool, shape (n,), optional
+        The samples of ``session`` whose measured force chooses those windows (the
+        fitted part of a session whose end is held out); by default every sample.
 
     Returns
     -------
@@ -155,7 +180,13 @@ def predict_band(
         noise = noise_sd
     else:
         grid, usable = _grid(session)
-        A = _raw_design(tissue, grid, usable, smoother or SavitzkyGolay())
+        free = _free_jaws(grid)
+        if smoother is not None:
+            A = _raw_design(tissue, grid, usable, smoother)
+        else:
+            chooses = _on_grid_mask(session, grid, tune) & ~free
+            A = _tuned_design(tissue, grid, usable, free, chooses)
+        A[free] *= _kept_free(tissue)
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
         if noise_sd is not None:
@@ -252,6 +283,144 @@ def _ends(
         out[1][where] = p.polyval(u, p.polyder(c, 1))
         out[2][where] = p.polyval(u, p.polyder(c, 2))
     return out[0], out[1], out[2]
+
+
+def _free_jaws(grid: Session) -> NDArray[np.bool_]:
+    """Grid samples with the jaws free of the tissue: outside every grasp where the
+    session alternates grasps with free motion, none where it is one contact."""
+    contact = find_contact(grid)
+    if contact.all_contact or not contact.grasps:
+        return np.zeros(len(grid), bool)
+    return ~contact.mask
+
+
+def _kept_free(tissue: Tissue) -> Array:
+    """1 for each term that stays with the jaws free (a sensor's offset), else 0;
+    shape (p,)."""
+    return np.array([0.0 if t.rendered else 1.0 for t in tissue.law.terms])
+
+
+def _on_grid_mask(
+    session: Session, grid: Session, tune: NDArray[np.bool_] | None
+) -> NDArray[np.bool_]:
+    """``tune`` (one flag per sample of ``session``) at the grid's samples, by the nearest
+    sample in time; every grid sample when none."""
+    if tune is None:
+        return np.ones(len(grid), bool)
+    tune = np.asarray(tune, bool)
+    if tune.shape != session.time.shape:
+        raise FitError(f"tune has {tune.size} flags for a session of {len(session)} samples")
+    t = session.time
+    i = np.clip(np.searchsorted(t, grid.time), 1, t.size - 1)
+    nearer_left = (grid.time - t[i - 1]) <= (t[i] - grid.time)
+    return tune[np.where(nearer_left, i - 1, i)]
+
+
+#: candidate Savitzky-Golay windows per order, from the shortest the polynomial allows to
+#: this many times the signal band's window (geometrically spaced)
+WINDOWS = 12
+WIDEST = 16.0
+
+
+def _tuned_design(
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    free: NDArray[np.bool_],
+    chooses: NDArray[np.bool_],
+    order: int = 3,
+) -> Array:
+    """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a window
+    for each order (x, xdot, xddot) chosen where the law's force is closest to the
+    measured force over the ``chooses`` samples (coordinate by coordinate, the
+    acceleration first, twice over). Out of ``free`` samples only."""
+    t, x, f = grid.time, grid.position, grid.force
+    n = x.size
+    dt = float(np.median(np.diff(t)))
+    base = SavitzkyGolay(polyorder=order)
+    w0 = base.kernels(x, dt, usable)[0][0].size
+    if w0 > n:
+        raise FitError(
+            f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
+        )
+    least = order + 2 + (order + 1) % 2
+    top = max(min(int(WIDEST * w0), n), least)
+    windows = sorted({w0} | {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)})
+    windows = [w for w in windows if least <= w <= n]
+    sigma_x = position_noise_sd(x, 1.0 / dt, usable)
+    cache: dict[tuple[int, int], tuple[Array, float]] = {}
+
+    def estimate(k: int, w: int) -> tuple[Array, float]:
+        """Order k's estimate with window w, and its noise gain (the kernel's norm)."""
+        if (k, w) not in cache:
+            kernel = _savgol(w, order, k, dt)
+            cache[k, w] = (_smoothed(x, kernel, w, order, k, dt), float(np.linalg.norm(kernel)))
+        return cache[k, w]
+
+    def columns(ws: tuple[int, int, int]) -> Array:
+        (xs, _), (vs, gain_v), (acc, _) = (estimate(k, w) for k, w in enumerate(ws))
+        sd_v = sigma_x * gain_v
+        cols = [
+            term.expected(vs, sd_v**2) if term.variable == "v" else term.series(dt, xs, vs, acc)
+            for term in tissue.law.terms
+        ]
+        A = np.column_stack(cols)
+        A[_reaches_hole(usable, max(ws))] = np.nan
+        return A
+
+    keep = _kept_free(tissue)
+    ref = chooses & np.isfinite(f)
+
+    def error(ws: tuple[int, int, int]) -> float:
+        A = columns(ws)
+        A[free] *= keep
+        r = (A @ tissue.coef - f)[ref]
+        r = r[np.isfinite(r)]
+        return float(np.mean(r**2)) if r.size else np.inf
+
+    reads = {t.variable for t in tissue.law.terms}
+    ws = (w0, w0, w0)
+    if ref.sum() > 4 * w0:  # enough measured force to choose on
+        best = error(ws)
+        for _ in range(2):
+            for k in (2, 1, 0):
+                if k == 2 and "a" not in reads or k == 1 and not reads & {"v", "xv", "h"}:
+                    continue
+                for w in windows:
+                    trial = tuple(w if j == k else ws[j] for j in range(3))
+                    e = error(trial)  # type: ignore[arg-type]
+                    if e < best:
+                        best, ws = e, trial  # type: ignore[assignment]
+    return columns(ws)
+
+
+def _reaches_hole(usable: NDArray[np.bool_], w: int) -> NDArray[np.bool_]:
+    """Samples whose centred window of ``w`` samples holds one not ``usable``."""
+    if usable.all():
+        return np.zeros(usable.size, bool)
+    holes = np.concatenate([[0], np.cumsum(~usable)])
+    i = np.arange(usable.size)
+    lo, hi = np.clip(i - w // 2, 0, usable.size), np.clip(i + w // 2 + 1, 0, usable.size)
+    return (holes[hi] - holes[lo]) > 0
+
+
+def _savgol(w: int, order: int, k: int, dt: float) -> Array:
+    from scipy.signal import savgol_coeffs
+
+    return np.asarray(savgol_coeffs(w, min(order, w - 1), deriv=k, delta=dt, use="conv"))
+
+
+def _smoothed(x: Array, kernel: Array, w: int, order: int, k: int, dt: float) -> Array:
+    """The order-``k`` Savitzky-Golay estimate at every sample: centred windows, and at
+    either end the end window's polynomial (as scipy's ``savgol_filter(mode="interp")``)."""
+    h = w // 2
+    out = np.concatenate([np.full(h, np.nan), convolve_valid(x, kernel), np.full(h, np.nan)])
+    s = (np.arange(w) - h) * dt
+    p = np.polynomial.polynomial
+    for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
+        c = p.polyfit(s, x[lo : lo + w], min(order, w - 1))
+        out[where] = p.polyval((where - (lo + h)) * dt, p.polyder(c, k) if k else c)
+    return out
 
 
 def _samples_on(session: Session, grid: Session) -> Callable[[Array], Array]:
