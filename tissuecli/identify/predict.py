@@ -316,10 +316,16 @@ def _on_grid_mask(
     return tune[np.where(nearer_left, i - 1, i)]
 
 
-#: candidate Savitzky-Golay windows per order, from the shortest the polynomial allows to
-#: this many times the signal band's window (geometrically spaced)
-WINDOWS = 12
+#: candidate Savitzky-Golay smoothers for each derivative: these polynomial degrees (a
+#: higher one follows a fast tap over a wider window), WINDOWS windows from the
+#: shortest the degree allows to WIDEST times the window of the position's signal band
+DEGREES = (3, 5, 7)
+WINDOWS = 16
 WIDEST = 16.0
+#: the smoothers are chosen on at most this many samples (the last of those given)
+TUNE_SAMPLES = 200_000
+
+Smoother = tuple[int, int]  # (degree, window in samples)
 
 
 def _tuned_design(
@@ -328,70 +334,111 @@ def _tuned_design(
     usable: NDArray[np.bool_],
     free: NDArray[np.bool_],
     chooses: NDArray[np.bool_],
-    order: int = 3,
 ) -> Array:
-    """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a window
-    for each order (x, xdot, xddot) chosen where the law's force is closest to the
-    measured force over the ``chooses`` samples (coordinate by coordinate, the
-    acceleration first, twice over). Out of ``free`` samples only."""
-    t, x, f = grid.time, grid.position, grid.force
+    """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a smoother
+    (degree and window) for each derivative (x, xdot, xddot), chosen where the law's
+    force is closest to the measured force over the ``chooses`` samples: derivative by
+    derivative, the acceleration first, twice over. Tissue terms are zero on ``free``
+    samples."""
+    t, x = grid.time, grid.position
     n = x.size
     dt = float(np.median(np.diff(t)))
-    base = SavitzkyGolay(polyorder=order)
-    w0 = base.kernels(x, dt, usable)[0][0].size
+    w0 = SavitzkyGolay().kernels(x, dt, usable)[0][0].size
     if w0 > n:
         raise FitError(
             f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
         )
-    least = order + 2 + (order + 1) % 2
-    top = max(min(int(WIDEST * w0), n), least)
-    windows = sorted({w0} | {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)})
-    windows = [w for w in windows if least <= w <= n]
     sigma_x = position_noise_sd(x, 1.0 / dt, usable)
-    cache: dict[tuple[int, int], tuple[Array, float]] = {}
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    ref = chooses & np.isfinite(grid.force)
+    if np.count_nonzero(ref) > 4 * w0:  # enough measured force to choose on
+        last = int(np.flatnonzero(ref)[-1]) + 1
+        part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
+        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
+    return _columns(tissue, grid, usable, chosen, sigma_x)
 
-    def estimate(k: int, w: int) -> tuple[Array, float]:
-        """Order k's estimate with window w, and its noise gain (the kernel's norm)."""
-        if (k, w) not in cache:
-            kernel = _savgol(w, order, k, dt)
-            cache[k, w] = (_smoothed(x, kernel, w, order, k, dt), float(np.linalg.norm(kernel)))
-        return cache[k, w]
 
-    def columns(ws: tuple[int, int, int]) -> Array:
-        (xs, _), (vs, gain_v), (acc, _) = (estimate(k, w) for k, w in enumerate(ws))
-        sd_v = sigma_x * gain_v
-        cols = [
-            term.expected(vs, sd_v**2) if term.variable == "v" else term.series(dt, xs, vs, acc)
-            for term in tissue.law.terms
-        ]
-        A = np.column_stack(cols)
-        A[_reaches_hole(usable, max(ws))] = np.nan
-        return A
+def _choose(
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    free: NDArray[np.bool_],
+    ref: NDArray[np.bool_],
+    part: slice,
+    w0: int,
+    sigma_x: float,
+) -> list[Smoother]:
+    """The smoothers of :func:`_tuned_design`, chosen on the samples ``part``."""
+    n = part.stop - part.start
+    sub = grid.replace(grid.time[part], grid.force[part], grid.position[part])
+    use, off, keep = usable[part], free[part], ref[part]
+    kept_free = _kept_free(tissue)
+    f = sub.force
+    candidates = []
+    for degree in DEGREES:
+        least = degree + 2 + (degree + 1) % 2
+        top = min(int(WIDEST * w0), n)
+        if least > top:
+            continue
+        grid_w = {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)} | {w0}
+        candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
+    cache: dict[tuple[int, Smoother], tuple[Array, float]] = {}
 
-    keep = _kept_free(tissue)
-    ref = chooses & np.isfinite(f)
-
-    def error(ws: tuple[int, int, int]) -> float:
-        A = columns(ws)
-        A[free] *= keep
-        r = (A @ tissue.coef - f)[ref]
+    def error(smoothers: list[Smoother]) -> float:
+        A = _columns(tissue, sub, use, smoothers, sigma_x, cache)
+        A[off] *= kept_free
+        r = (A @ tissue.coef - f)[keep]
         r = r[np.isfinite(r)]
         return float(np.mean(r**2)) if r.size else np.inf
 
-    reads = {t.variable for t in tissue.law.terms}
-    ws = (w0, w0, w0)
-    if ref.sum() > 4 * w0:  # enough measured force to choose on
-        best = error(ws)
-        for _ in range(2):
-            for k in (2, 1, 0):
-                if k == 2 and "a" not in reads or k == 1 and not reads & {"v", "xv", "h"}:
-                    continue
-                for w in windows:
-                    trial = tuple(w if j == k else ws[j] for j in range(3))
-                    e = error(trial)  # type: ignore[arg-type]
-                    if e < best:
-                        best, ws = e, trial  # type: ignore[assignment]
-    return columns(ws)
+    reads = {term.variable for term in tissue.law.terms}
+    needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
+              if reads & what]  # fmt: skip
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    best = error(chosen)
+    for _ in range(2):
+        for k in needed:
+            for c in candidates:
+                trial = [c if j == k else chosen[j] for j in range(3)]
+                e = error(trial)
+                if e < best:
+                    best, chosen = e, trial
+    return chosen
+
+
+def _columns(
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    smoothers: list[Smoother],
+    sigma_x: float,
+    cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
+) -> Array:
+    """The law's regressors on the kinematics of ``smoothers`` (x, xdot, xddot), shape
+    (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
+    sample not ``usable``."""
+    x = grid.position
+    dt = float(np.median(np.diff(grid.time)))
+    cache = {} if cache is None else cache
+    est = []
+    for k, (degree, w) in enumerate(smoothers):
+        if (k, (degree, w)) not in cache:
+            kernel = _savgol(w, degree, k, dt)
+            cache[k, (degree, w)] = (
+                _smoothed(x, kernel, w, degree, k, dt),
+                float(np.linalg.norm(kernel)),
+            )
+        est.append(cache[k, (degree, w)])
+    (xs, _), (vs, gain_v), (acc, _) = est
+    # the speed estimate's error, for terms that bend on its scale (dry friction)
+    var_v = (sigma_x * gain_v) ** 2
+    cols = [
+        term.expected(vs, var_v) if term.variable == "v" else term.series(dt, xs, vs, acc)
+        for term in tissue.law.terms
+    ]
+    A = np.column_stack(cols)
+    A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
+    return A
 
 
 def _reaches_hole(usable: NDArray[np.bool_], w: int) -> NDArray[np.bool_]:
@@ -404,21 +451,23 @@ def _reaches_hole(usable: NDArray[np.bool_], w: int) -> NDArray[np.bool_]:
     return (holes[hi] - holes[lo]) > 0
 
 
-def _savgol(w: int, order: int, k: int, dt: float) -> Array:
+def _savgol(w: int, degree: int, k: int, dt: float) -> Array:
+    """The Savitzky-Golay kernel of the ``k``-th derivative, for ``np.convolve``."""
     from scipy.signal import savgol_coeffs
 
-    return np.asarray(savgol_coeffs(w, min(order, w - 1), deriv=k, delta=dt, use="conv"))
+    return np.asarray(savgol_coeffs(w, min(degree, w - 1), deriv=k, delta=dt, use="conv"))
 
 
-def _smoothed(x: Array, kernel: Array, w: int, order: int, k: int, dt: float) -> Array:
-    """The order-``k`` Savitzky-Golay estimate at every sample: centred windows, and at
-    either end the end window's polynomial (as scipy's ``savgol_filter(mode="interp")``)."""
+def _smoothed(x: Array, kernel: Array, w: int, degree: int, k: int, dt: float) -> Array:
+    """The ``k``-th derivative's Savitzky-Golay estimate at every sample: centred windows,
+    and at either end the end window's polynomial (as scipy's
+    ``savgol_filter(mode="interp")``)."""
     h = w // 2
     out = np.concatenate([np.full(h, np.nan), convolve_valid(x, kernel), np.full(h, np.nan)])
     s = (np.arange(w) - h) * dt
     p = np.polynomial.polynomial
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
-        c = p.polyfit(s, x[lo : lo + w], min(order, w - 1))
+        c = p.polyfit(s, x[lo : lo + w], min(degree, w - 1))
         out[where] = p.polyval((where - (lo + h)) * dt, p.polyder(c, k) if k else c)
     return out
 
