@@ -33,7 +33,9 @@ Three things make the law's force the best estimate of the true one:
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +43,7 @@ from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from ..core.session import Session
+from ..core.terms import Term
 from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
 from .contact import find_contact
@@ -355,7 +358,7 @@ def _tuned_design(
         last = int(np.flatnonzero(ref)[-1]) + 1
         part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
         chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
-    return _columns(tissue, grid, usable, chosen, sigma_x)
+    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x)
 
 
 def _choose(
@@ -384,10 +387,21 @@ def _choose(
         candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
     cache: dict[tuple[int, Smoother], tuple[Array, float]] = {}
 
+    terms = tissue.law.terms
+    # the derivatives each term's column reads: it is recomputed only when they change
+    reads_of = {"x": (0,), "v": (1,), "a": (2,), "xv": (0, 1), "h": (0, 1), "1": ()}
+    forces: dict[tuple[int, tuple[Smoother, ...]], Array] = {}
+
     def error(smoothers: list[Smoother]) -> float:
-        A = _columns(tissue, sub, use, smoothers, sigma_x, cache)
-        A[off] *= kept_free
-        r = (A @ tissue.coef - f)[keep]
+        total = np.zeros(n)
+        for j, term in enumerate(terms):
+            key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
+            if key not in forces:
+                col = _columns((term,), sub, use, smoothers, sigma_x, cache)[:, 0]
+                col[off] *= kept_free[j]
+                forces[key] = tissue.coef[j] * col
+            total += forces[key]
+        r = (total - f)[keep]
         r = r[np.isfinite(r)]
         return float(np.mean(r**2)) if r.size else np.inf
 
@@ -407,15 +421,15 @@ def _choose(
 
 
 def _columns(
-    tissue: Tissue,
+    terms: Sequence[Term],
     grid: Session,
     usable: NDArray[np.bool_],
     smoothers: list[Smoother],
     sigma_x: float,
     cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
 ) -> Array:
-    """The law's regressors on the kinematics of ``smoothers`` (x, xdot, xddot), shape
-    (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
+    """The regressors of ``terms`` on the kinematics of ``smoothers`` (x, xdot, xddot),
+    shape (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
     sample not ``usable``."""
     x = grid.position
     dt = float(np.median(np.diff(grid.time)))
@@ -423,18 +437,14 @@ def _columns(
     est = []
     for k, (degree, w) in enumerate(smoothers):
         if (k, (degree, w)) not in cache:
-            kernel = _savgol(w, degree, k, dt)
-            cache[k, (degree, w)] = (
-                _smoothed(x, kernel, w, degree, k, dt),
-                float(np.linalg.norm(kernel)),
-            )
+            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt)
         est.append(cache[k, (degree, w)])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
     var_v = (sigma_x * gain_v) ** 2
     cols = [
         term.expected(vs, var_v) if term.variable == "v" else term.series(dt, xs, vs, acc)
-        for term in tissue.law.terms
+        for term in terms
     ]
     A = np.column_stack(cols)
     A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
@@ -451,25 +461,33 @@ def _reaches_hole(usable: NDArray[np.bool_], w: int) -> NDArray[np.bool_]:
     return (holes[hi] - holes[lo]) > 0
 
 
-def _savgol(w: int, degree: int, k: int, dt: float) -> Array:
-    """The Savitzky-Golay kernel of the ``k``-th derivative, for ``np.convolve``."""
-    from scipy.signal import savgol_coeffs
-
-    return np.asarray(savgol_coeffs(w, min(degree, w - 1), deriv=k, delta=dt, use="conv"))
-
-
-def _smoothed(x: Array, kernel: Array, w: int, degree: int, k: int, dt: float) -> Array:
-    """The ``k``-th derivative's Savitzky-Golay estimate at every sample: centred windows,
-    and at either end the end window's polynomial (as scipy's
-    ``savgol_filter(mode="interp")``)."""
+@functools.lru_cache(maxsize=256)
+def _fit_matrix(w: int, degree: int) -> Array:
+    """The least-squares polynomial fit of ``w`` samples, shape (degree + 1, w): its
+    coefficients (in the window's time over its half-width, from the centre) from the
+    samples. One matrix gives every derivative's kernel and the end windows' fits."""
     h = w // 2
+    u = (np.arange(w) - h) / max(h, 1)
+    return np.linalg.pinv(np.vander(u, min(degree, w - 1) + 1, increasing=True))
+
+
+def _smoothed(x: Array, w: int, degree: int, k: int, dt: float) -> tuple[Array, float]:
+    """The ``k``-th derivative's Savitzky-Golay estimate at every sample (centred windows;
+    at either end the end window's polynomial, as scipy's ``savgol_filter(mode="interp")``)
+    and the norm of its kernel (the gain of white noise)."""
+    h = w // 2
+    fit = _fit_matrix(w, degree)
+    scale = math.factorial(k) / (max(h, 1) * dt) ** k
+    if k >= fit.shape[0]:
+        return np.zeros_like(x), 0.0
+    kernel = scale * fit[k][::-1]
     out = np.concatenate([np.full(h, np.nan), convolve_valid(x, kernel), np.full(h, np.nan)])
-    s = (np.arange(w) - h) * dt
     p = np.polynomial.polynomial
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
-        c = p.polyfit(s, x[lo : lo + w], min(degree, w - 1))
-        out[where] = p.polyval((where - (lo + h)) * dt, p.polyder(c, k) if k else c)
-    return out
+        c = fit @ x[lo : lo + w]
+        u = (where - (lo + h)) / max(h, 1)
+        out[where] = p.polyval(u, p.polyder(c, k)) / (max(h, 1) * dt) ** k
+    return out, float(np.linalg.norm(kernel))
 
 
 def _samples_on(session: Session, grid: Session) -> Callable[[Array], Array]:
