@@ -585,8 +585,9 @@ class Coulomb(Term):
         erf(sqrt(pi) z / 2) that mean is tanh(u / V), the smoothing speed widened to
         V = sqrt(V_SMOOTH^2 + pi var / 2): exact at var = 0, within 0.04 of the exact
         mean at any var. A second-order expansion (the default) is no use here: the
-        step's curvature, 1/V_SMOOTH^2, made a column of +-40 at a turn from a column
-        of +-1. A spread cannot be taken out of a step: a negative ``var`` counts as 0."""
+        step's curvature, of order 1/V_SMOOTH^2, turned a spread of 10 mm/s at a turn
+        into a column of +-30 where it is +-1. A spread cannot be taken out of a step:
+        a negative ``var`` counts as 0."""
         spread = np.maximum(np.asarray(var, dtype=float), 0.0)
         return np.tanh(np.asarray(u, dtype=float) / np.sqrt(V_SMOOTH**2 + 0.5 * np.pi * spread))
 
