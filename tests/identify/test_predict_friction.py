@@ -75,3 +75,26 @@ def test_the_held_out_part_s_own_force_is_never_read() -> None:
     _, est, rest, _ = _fitted(2)
     other = rest.replace(rest.time, rest.force[::-1].copy(), rest.position)
     np.testing.assert_array_equal(est.predict(rest), est.predict(other))
+
+
+def test_free_jaws_carry_the_sensor_s_offset_alone() -> None:
+    """Grasps apart by free jaw motion: outside them the tissue's terms are zero (the law
+    was fitted in contact), and the force is the law's offset."""
+    from tissuecli.core.terms import Law
+    from tissuecli.core.tissue import Tissue
+    from tissuecli.identify.predict import predict_band
+
+    t = np.arange(8000) / 1000.0
+    x = 3e-3 * np.sin(2 * np.pi * 0.5 * t) - 1e-3  # closure; contact where x > 0
+    v = np.gradient(x, t)
+    tissue = Tissue(Law.of(["x", "xdot", "sign(xdot)", "offset"]), 350.0, 0.5, 0.05, 0.2)
+    touching = x > 0
+    law = 350.0 * x + 0.5 * v + 0.05 * np.tanh(v / 1e-3)
+    truth = 0.2 + np.where(touching, np.maximum(law, 0.0), 0.0)
+    rng = np.random.default_rng(3)
+    s = Session(t, truth + rng.normal(0, 2e-3, t.size), x + rng.normal(0, 1e-6, t.size))
+    pred = predict_band(tissue, s).predicted
+    free = x < -0.5e-3  # well clear of the contact's edges
+    np.testing.assert_allclose(pred[free], 0.2)
+    inside = x > 0.5e-3
+    assert np.sqrt(np.mean((pred[inside] - truth[inside]) ** 2)) < 2e-3
