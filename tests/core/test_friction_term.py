@@ -18,7 +18,7 @@ def test_the_mean_over_a_normal_spread_is_within_its_stated_bound(sd: float) -> 
     term = _coulomb()
     e = np.random.default_rng(0).standard_normal(100_000)
     u = np.linspace(-4, 4, 17) * max(sd, V_SMOOTH)
-    exact = np.array([np.mean(term((ui + sd * e))) for ui in u])
+    exact = np.array([np.mean(term(ui + sd * e)) for ui in u])
     # the docstring's bound, 0.04, plus the Monte Carlo mean's 3 SDs (1 / sqrt(1e5))
     assert np.max(np.abs(term.expected(u, sd**2) - exact)) < 0.04 + 0.01
 
