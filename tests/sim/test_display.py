@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from tissuecli.app.play import classify_faults, watchdog_periods
+from tissuecli.app.faults import classify_faults
+from tissuecli.app.play import watchdog_periods
 from tissuecli.core.errors import EXIT_WATCHDOG, InputError
 from tissuecli.hw.link import open_device
 from tissuecli.render.profile import PAPER_DISPLAY
