@@ -44,7 +44,7 @@ from .design import (
 )
 from .estimator import Estimator
 from .identifiable import PREFERENCE, Design, examine
-from .noise import data_weight, filter_tau, residual_tau
+from .noise import corrected_curvature, data_weight, filter_tau, residual_tau
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, Prior, SufficientStats
 from .shapes import (
     ShapeGrid,
@@ -493,10 +493,12 @@ class BayesianFit(Estimator):
         uncorrected = corr is not None and not _correctable(fp, corr)
         if uncorrected:
             corr = None  # noise dominates a column: the correction would be meaningless
-        G = fp.gram - corr if corr is not None else fp.gram
+        G, b, yy, rss = fp.gram, fp.b, fp.yy, fp.rss
+        if corr is not None:  # centred on the corrected fit, with its sampling covariance
+            rss = max(_corrected_rss(fp, corr), 0.0)
+            G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, rss)
         w, n = fit.weight, fit.y.size
-        rss = fp.rss if corr is None else max(_corrected_rss(fp, corr), 0.0)
-        st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n, w * rss)
+        st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
         prior = law_prior(model, fit.scales)
         flags = []
         if uncorrected:
