@@ -283,7 +283,9 @@ def _triangle(kind: str) -> Callable[..., Scene]:
 def _relaxation_law(
     rng: np.random.Generator, K: float, branches: int, hold_s: float, shortest_s: float = 0.05
 ) -> Tissue:
-    taus = sorted(math.exp(rng.uniform(math.log(shortest_s), math.log(hold_s / 4)))
+    # a hold cut short (by a cap on the samples) still draws a time constant it can show
+    longest = max(hold_s / 4, shortest_s)
+    taus = sorted(math.exp(rng.uniform(math.log(shortest_s), math.log(longest)))
                   for _ in range(branches))  # fmt: skip
     if branches == 2 and taus[1] < 8 * taus[0]:
         taus[1] = min(8 * taus[0], hold_s / 3)
