@@ -104,7 +104,10 @@ def corrected_curvature(
     gc_s = (gram - correction) / np.outer(d, d)
     beta_s = np.linalg.solve(gc_s, b / d)
     h_s = gc_s @ np.linalg.solve(gram_s, gc_s)
-    h_s = 0.5 * (h_s + h_s.T) * (rss_corrected / rss if rss > 0 else 1.0)
+    # a correction that took the whole residual (never applied in a full fit) keeps the
+    # curvature proper
+    ratio = rss_corrected / rss if rss > 0 and rss_corrected > 0 else 1.0
+    h_s = 0.5 * (h_s + h_s.T) * ratio
     G = h_s * np.outer(d, d)
     b_c = (h_s @ beta_s) * d
     yy = rss_corrected + float(beta_s @ h_s @ beta_s)
