@@ -102,8 +102,10 @@ def corrected_curvature(
     d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))  # unit-norm columns: x^3 is 1e-6 of x
     gram_s = gram / np.outer(d, d)
     gc_s = (gram - correction) / np.outer(d, d)
-    beta_s = np.linalg.solve(gc_s, b / d)
-    h_s = gc_s @ np.linalg.solve(gram_s, gc_s)
+    # pseudo-inverses: a shape node can make two columns one (a branch slower than the
+    # session is a spring), which leaves these singular where the posterior is not
+    beta_s = np.linalg.lstsq(gc_s, b / d, rcond=None)[0]
+    h_s = gc_s @ np.linalg.pinv(gram_s, hermitian=True) @ gc_s
     # a correction that took the whole residual (never applied in a full fit) keeps the
     # curvature proper
     ratio = rss_corrected / rss if rss > 0 and rss_corrected > 0 else 1.0
