@@ -3,7 +3,7 @@
 The paper's four forms on 12-bit sessions (10 s at 1 kHz, the simulator's sensors:
 5 mN of force noise, 5 um of position noise), at 20 um of position noise and at 8 bits,
 each fitted with its own form (the default search chooses the same form on these
-sessions and gives the same intervals); then the lab protocols the stability bounds
+sessions and nearly the same intervals); then the lab protocols the stability bounds
 are stated for, drawn over the stress space and fitted with the truth's law. For each
 coefficient: the share of intervals that hold the truth and the RMS of
 ``(mean - truth) / sd`` (1 when the intervals are calibrated).
