@@ -64,7 +64,7 @@ from storage_faults import Tmpfs  # noqa: E402
 from tests.app.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
 from tests.formats.test_inputs import REPRODUCED, _params  # noqa: E402
 from tests.formats.test_malformed_files import _replace, _session_file  # noqa: E402
-from tissuecli.app.play import play_faults  # noqa: E402
+from tissuecli.app.faults import play_faults  # noqa: E402
 from tissuecli.core.errors import TissueError  # noqa: E402
 from tissuecli.core.tissue import DEFAULT_TISSUE  # noqa: E402
 from tissuecli.formats.jsonfile import write_json  # noqa: E402

@@ -21,6 +21,8 @@ import tissuecli.app.demo as app_demo
 import tissuecli.app.live as app_live
 import tissuecli.app.play as app_play
 from tissuecli import formats
+from tissuecli.app.faults import live_faults
+from tissuecli.app.summaries import live_lines
 from tissuecli.cli import cli
 from tissuecli.core.errors import (
     EXIT_DEVICE_LOST,
@@ -204,7 +206,7 @@ class TestFaultsSetTheExitCode:
             "rendered": None,
             "stop_reason": "duration reached",
         }
-        classified = app_live.live_faults(summary, 1000.0)
+        classified = live_faults(summary, 1000.0)
         summary["faults"] = [text for _, text in classified]
         summary["exit_code"] = worst_fault({code for code, _ in classified})
         return summary
@@ -249,7 +251,7 @@ class TestFaultsSetTheExitCode:
             "M": 0.0500123,
             "units": {"K": "N/m", "S": "N s/m", "M": "kg"},
         }
-        text = "\n".join(app_live.summary_lines(summary))
+        text = "\n".join(live_lines(summary))
         assert "{" not in text and "'" not in text, text
         assert "online estimate: x+xdot+xddot (97 %): K 350.1 +- 10 N/m" in text
         assert "rendered: x+xdot+xddot: K = 350.1 N/m, S = 3.012 N s/m, M = 0.05001 kg" in text

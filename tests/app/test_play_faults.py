@@ -15,14 +15,9 @@ import pytest
 from click.testing import CliRunner
 
 import tissuecli.app.play as app_play
-from tissuecli.app.play import (
-    MAX_MISSED_FRACTION,
-    TRACKING_ALLOWANCE_M,
-    PlayFaults,
-    play_faults,
-    play_file,
-    summary_lines,
-)
+from tissuecli.app.faults import MAX_MISSED_FRACTION, TRACKING_ALLOWANCE_M, play_faults
+from tissuecli.app.play import PlayFaults, play_file
+from tissuecli.app.summaries import play_lines
 from tissuecli.cli import cli
 from tissuecli.core.errors import EXIT_WATCHDOG, RenderError
 from tissuecli.core.terms import Law
@@ -86,11 +81,11 @@ def test_rules_stop_at_their_limits():
     assert play_faults({"frames": 0, "tracking_bound_m": None}, 1000.0) == []
 
 
-def test_faults_are_shown_loudly_in_the_summary_lines():
-    lines = summary_lines({**CLEAN, "faults": ["the loop ran at 915.0 Hz"]})
+def test_faults_are_shown_loudly_in_the_play_lines():
+    lines = play_lines({**CLEAN, "faults": ["the loop ran at 915.0 Hz"]})
     assert "FAULT: the loop ran at 915.0 Hz" in lines
     assert lines[-1].startswith("the display did not render the tissue as checked")
-    assert not any("FAULT" in line for line in summary_lines({**CLEAN, "faults": []}))
+    assert not any("FAULT" in line for line in play_lines({**CLEAN, "faults": []}))
 
 
 # --------------------------------------------------------------------------- a stalling loop

@@ -141,14 +141,14 @@ class _Wire:
 
 
 def test_every_command_is_clamped_before_it_is_sent_and_counted():
-    from tissuecli.app.play import _Player
+    from tissuecli.app.play import HostLoop
     from tissuecli.render.check import check
     from tissuecli.render.controller import Controller
 
     tissue = Tissue(LINEAR, 600.0, 3.0, 0.05)
     gains = check(tissue, PAPER_DISPLAY, 1000.0).gains
     wire = _Wire()
-    player = _Player(
+    player = HostLoop(
         wire,  # type: ignore[arg-type]
         Controller(tissue, PAPER_DISPLAY, 1000.0, gains),
         PAPER_DISPLAY,

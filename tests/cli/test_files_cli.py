@@ -140,3 +140,38 @@ def test_export_needs_session_when_there_are_several(tmp_path):
     run("import", str(path), "--out", str(h5), "--session", "one")
     run("import", str(path), "--out", str(h5), "--session", "two")
     assert_clean_error(run("export", str(h5), "--csv", str(tmp_path / "o.csv")), "--session")
+
+
+def test_import_of_counts_with_a_calibration_equals_import_in_si(tmp_path):
+    """``import --calibration`` reads the same file as ``record --calibration``: force and
+    position columns of ADC counts turned to N and m by its gains and offsets."""
+    t = np.arange(200) * 1e-3
+    x = 1e-3 + 1e-3 * np.sin(t * 7)
+    f = 300 * x
+    _csv(tmp_path / "si.csv", zip(t, f, x, strict=True))
+    cal = {
+        "force": {"gain": 0.02, "offset": -0.5, "unit": "N"},
+        "position": {"gain": -5e-6, "offset": 2e-3, "unit": "m"},
+    }
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    counts_f = (f - cal["force"]["offset"]) / cal["force"]["gain"]
+    counts_x = (x - cal["position"]["offset"]) / cal["position"]["gain"]
+    _csv(tmp_path / "counts.csv", zip(t * 1e3, counts_f, counts_x, strict=True), "t_ms,adc0,adc1")
+    h5 = tmp_path / "g.h5"
+    r = run("import", str(tmp_path / "si.csv"), "--out", str(h5), "--session", "si")
+    assert r.exit_code == 0, r.output
+    args = ["import", str(tmp_path / "counts.csv"), "--out", str(h5), "--session", "counts"]
+    cols = ["--columns", "force=adc0,position=adc1", "--calibration", str(tmp_path / "cal.json")]
+    r = run(*args, *cols)
+    assert r.exit_code == 0, r.output
+    assert "counts (--calibration)" in r.output
+    a, b = formats.read_session(h5, "si"), formats.read_session(h5, "counts")
+    for name in ("time", "force", "position"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-12)
+    # --units may name the time unit only: the calibration makes force and position SI
+    r = run(*args[:-1], "counts-2", *cols, "--units", "force=gf")
+    assert r.exit_code == 1 and "time only" in r.output
+    assert_clean_error(r)
+    # the calibration file is an input: never written over
+    r = run("import", str(tmp_path / "counts.csv"), "--out", str(tmp_path / "cal.json"), *cols)
+    assert r.exit_code == 1 and json.loads((tmp_path / "cal.json").read_text()) == cal

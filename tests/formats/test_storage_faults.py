@@ -317,7 +317,7 @@ def test_record_checks_free_space_before_opening_the_device(
         raise AssertionError("the device was opened")
 
     with monkeypatch.context() as m:
-        m.setattr(record_module, "open_device", no_device)
+        m.setattr(record_module.Forceps, "open", no_device)
         with pytest.raises(StorageError, match="not enough free space"):
             record_module.record(str(sim.link), out, "s", duration_s=1.0)
     # enough for HDF5, not for 10 s at the device's 10 kHz: refused once the rate is known
@@ -337,7 +337,7 @@ def test_play_checks_the_log_before_opening_the_display(
     def no_display(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("the display was opened")
 
-    monkeypatch.setattr(play_module, "_open_display", no_display)
+    monkeypatch.setattr(play_module, "open_display", no_display)
     tissue = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05)
     _free(monkeypatch, 500_000)
     with pytest.raises(StorageError, match="not enough free space for the play log"):

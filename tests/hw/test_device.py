@@ -13,9 +13,18 @@ import pytest
 
 from tissuecli.core.errors import DeviceError
 from tissuecli.hw import device as hw_device
-from tissuecli.hw.device import DEVICES, Device, Display, Forceps, device_class, register
+from tissuecli.hw.device import (
+    DEVICES,
+    Device,
+    Display,
+    Forceps,
+    TextLogger,
+    device_class,
+    register,
+)
 from tissuecli.hw.link import check_info, open_device
 from tissuecli.hw.protocol import Encoder, Sample
+from tissuecli.hw.text import Line
 
 from ..app.fakedevice import TICKS, FakeForceps, good_info, sample_frames
 
@@ -23,7 +32,8 @@ from ..app.fakedevice import TICKS, FakeForceps, good_info, sample_frames
 def test_the_built_in_devices_are_registered_with_their_frames() -> None:
     assert device_class("forceps") is Forceps and Forceps.frame_type is Sample
     assert device_class("display") is Display and Display.frame_type is Encoder
-    with pytest.raises(DeviceError, match="known kinds: display, forceps"):
+    assert device_class("text-logger") is TextLogger and TextLogger.frame_type is Line
+    with pytest.raises(DeviceError, match="known kinds: display, forceps, text-logger"):
         device_class("toaster")
 
 

@@ -20,7 +20,7 @@ import math
 import os
 import re
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +33,8 @@ from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG
 from ..core.units import UNITS, parse_quantity, unit_in_header
 from ..formats.jsonfile import write_json
 from ..formats.outputs import Output, check_outputs
-from ..hw.link import DEFAULT_BAUD, Link, open_device
+from ..hw.device import Device, Display, Forceps
+from ..hw.link import DEFAULT_BAUD
 from ..hw.protocol import Encoder, Sample, SetVoltage
 from ..hw.realtime import StopFlag, elevate, realtime
 from ..hw.stream import Stream
@@ -46,7 +47,7 @@ from ..identify.calibration import (
     off_stops,
     slow_force_warning,
 )
-from ..render.profile import PAPER_DISPLAY, PROFILE_UNITS, DisplayProfile, profile_from_dict
+from ..render.profile import PAPER_DISPLAY, PROFILE_UNITS, DisplayProfile
 
 Array = NDArray[np.float64]
 StrPath = str | os.PathLike[str]
@@ -214,9 +215,10 @@ class ForcepsReader:
         if frames < 1:
             raise InputError(f"--frames {frames} must be at least 1")
         self.frames = frames
-        self.link, self.info = open_device(
-            url, "forceps", baudrate=baudrate, require_info=False, uses_calibration=False
+        self.link: Device = Forceps(url, baudrate=baudrate).open(
+            require_info=False, uses_calibration=False
         )
+        self.info = self.link.info
         rate = (self.info or {}).get("rate_hz")
         self.rate_hz = float(rate) if isinstance(rate, (int, float)) else None
         #: how often the force really changes, if it repeats on the line (see read)
@@ -378,7 +380,7 @@ class DisplayBench:
     since every frame says which voltage the display applied.
     """
 
-    def __init__(self, link: Link, rate_hz: float, clock_hz: float, resolution: float) -> None:
+    def __init__(self, link: Device, rate_hz: float, clock_hz: float, resolution: float) -> None:
         self.link, self.rate_hz, self.clock_hz = link, rate_hz, clock_hz
         self.resolution = resolution
         self.seq = 0
@@ -491,16 +493,12 @@ def calibrate_display(
     if not (hold_s >= 0.2 and ring_s >= 0.2):
         raise InputError("--hold and --ring must be at least 0.2 s")
     say = on_step or (lambda line: None)
-    link, info = open_device(url, "display", baudrate=baudrate, timeout=0.01)
-    assert info is not None
+    link = Display(url, baudrate=baudrate, timeout=0.01).open()
+    info = link.info or {}
     try:
-        reported_raw = info.get("profile")
-        reported = (
-            profile_from_dict(reported_raw, source=f"profile reported by {url}")
-            if isinstance(reported_raw, Mapping)
-            else None
-        )
-        limits = reported or PAPER_DISPLAY
+        # what it reports, else the paper's
+        reported = link.profile if isinstance(info.get("profile"), dict) else None
+        limits = link.profile
         rate, clock = info.get("rate_hz"), info.get("clock_hz")
         rate_hz = float(rate) if isinstance(rate, (int, float)) else 1000.0
         clock_hz = float(clock) if isinstance(clock, (int, float)) else 1e6

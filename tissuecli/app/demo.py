@@ -16,9 +16,11 @@ from ..formats.sessions import list_sessions, session_names
 from ..render.check import check
 from ..render.profile import PAPER_DISPLAY
 from ..sim.process import SimulatorProcess
+from .faults import classify_faults
 from .fit import fit_file
-from .play import classify_faults, play, summary_lines
+from .play import play
 from .record import record
+from .summaries import play_lines
 from .transfer import export_csv
 
 
@@ -120,7 +122,7 @@ def run_demo(
                 tissue, str(disp.link), duration_s=min(duration_s, 5.0), log=log, loop="process"
             )
         say("7. played the fitted tissue on the simulated display:")
-        for line in summary_lines(summary):
+        for line in play_lines(summary):
             say(f"   {line}")
         faults.extend(classify_faults(summary, 1000.0))
         if workdir is None:

@@ -18,7 +18,7 @@ import math
 import os
 import signal
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime, timezone
 from typing import Any
@@ -26,9 +26,6 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import (
-    EXIT_LOST_DATA,
-    EXIT_OFF_RATE,
-    EXIT_WATCHDOG,
     DeviceError,
     DeviceLost,
     InputError,
@@ -46,7 +43,9 @@ from ..render.handover import TISSUE, read_tissue_message, tissue_message
 from ..render.law import Gains
 from ..render.passivity import PassivityController
 from ..render.profile import DisplayProfile
-from .play import HostLoop, Rendering, _jsonable, _open_display, classify_faults
+from .faults import live_faults
+from .loopstats import jsonable
+from .play import HostLoop, Rendering, open_display
 from .record import RecordStatus, SampleBlock, record
 
 #: The forceps silent this long (no sample block) and the display goes to 0 V, s.
@@ -147,7 +146,8 @@ def _live_loop(
 ) -> dict[str, Any]:
     """The haptic loop of ``live``, in its own process: open the display, tell the
     parent its profile, render what it hands over until it stops or goes."""
-    link, info, profile = _open_display(display_url, baudrate, rate_hz, profile)
+    link = open_display(display_url, baudrate=baudrate, rate_hz=rate_hz, profile=profile)
+    info, profile = link.info or {}, link.profile
     try:
         parent.send(("opened", profile))
         rendering = LiveRendering(profile, rate_hz)
@@ -177,7 +177,7 @@ def _live_loop(
     finally:
         link.close()
     return {
-        "render": _jsonable(render),
+        "render": jsonable(render),
         "passivity": rendering.pc.summary(),
         "first_render": rendering.first_render,
         "rendered": (
@@ -473,7 +473,7 @@ def live(
     classified = live_faults(summary, rate_hz)
     summary["faults"] = [text for _, text in classified]
     summary["exit_code"] = worst_fault({code for code, _ in classified})
-    return _jsonable(summary)
+    return jsonable(summary)
 
 
 def _offline_score(out: Any, session: str, trace: np.ndarray) -> dict[str, Any]:
@@ -501,111 +501,6 @@ def _offline_score(out: Any, session: str, trace: np.ndarray) -> dict[str, Any]:
         scored["tracking_rms_n"] = float(np.sqrt(np.mean(err**2)))
         scored["rendered_frames"] = n
     return scored
-
-
-def live_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[int, str]]:
-    """What went wrong in a ``live`` run: ``(exit status of its class, sentence)`` each.
-
-    The recording's lost, corrupt or rejected frames (``EXIT_LOST_DATA``), and the
-    display loop's own faults as ``play`` judges them (the watchdog, a loop off its
-    rate, missed periods, frames lost on the display's line; see
-    :func:`~tissuecli.app.play.classify_faults`). The tracking rules of ``play`` do not
-    apply: the display rests at 0 V until the estimate is confident.
-    """
-    rec = summary.get("recording") or {}
-    faults: list[tuple[int, str]] = []
-    lost = [
-        f"{n} {what}"
-        for n, what in (
-            (rec.get("lost_frames", 0), "frame(s) lost"),
-            (rec.get("bad_frames", 0), "corrupt"),
-            (rec.get("rejected_frames", 0), "rejected"),
-        )
-        if n
-    ]
-    if lost:
-        faults.append((EXIT_LOST_DATA, "the recording lost data: " + ", ".join(lost)))
-    render = summary.get("render") or {}
-    if render.get("frames"):
-        faults.extend(
-            (code, text)
-            for code, text in classify_faults(render, rate_hz)
-            if code in (EXIT_WATCHDOG, EXIT_OFF_RATE, EXIT_LOST_DATA)
-        )
-    return faults
-
-
-def tissue_words(described: Mapping[str, Any] | None) -> str:
-    """A tissue as :meth:`~tissuecli.core.tissue.Tissue.describe` gives it, in words:
-    ``x+xdot+xddot: K = 350 N/m, S = 3.02 N s/m, M = 0.0501 kg``."""
-    if not described:
-        return "none"
-    name = str(described.get("law", "?"))
-    units = described.get("units") or {}
-    parts = [
-        f"{key} = {value:.4g}" + (f" {units[key]}" if key in units else "")
-        for key, value in described.items()
-        if key not in ("law", "units") and isinstance(value, (int, float))
-    ]
-    return f"{name}: " + ", ".join(parts) if parts else name
-
-
-def summary_lines(summary: dict[str, Any]) -> list[str]:
-    """The summary of :func:`live` as a few lines for people, the faults last."""
-    rec, pas, ren = summary["recording"], summary["passivity"], summary.get("render") or {}
-    delay = summary.get("first_render_delay_s")
-    rms = summary.get("tracking_rms_n")
-    estimate = summary.get("estimate") or {}
-    sched = ren.get("realtime") or {}
-    lines = [
-        f"recorded {rec['samples']} samples ({rec['duration_s']:.2f} s) to {rec['path']}, "
-        f"session {rec['session']}: {rec.get('lost_frames', 0)} lost, "
-        f"{rec.get('bad_frames', 0)} bad, {rec.get('rejected_frames', 0)} rejected frames",
-        f"online estimate: {estimate_words(estimate)}",
-        f"rendered: {tissue_words(summary.get('rendered'))}"
-        if summary.get("rendered")
-        else "rendered: never",
-        "first rendering "
-        + (f"{delay:.2f} s after the grasp began" if delay is not None else "never"),
-        f"display loop {ren.get('loop_rate_hz') or 0:.1f} Hz (period p99 "
-        f"{ren.get('period_p99_ms') or 0:.2f} ms, max {ren.get('period_max_ms') or 0:.2f} ms), "
-        f"{ren.get('missed_periods', 0)} periods without a frame, watchdog frames "
-        f"{ren.get('watchdog_frames', 0)}; scheduling {sched.get('scheduler', 'n/a')}",
-        f"passivity: energy observed {pas['energy_observed_j'] * 1e3:.3f} mJ (min "
-        f"{pas['energy_min_j'] * 1e3:.3f} mJ), dissipated "
-        f"{pas['energy_dissipated_j'] * 1e3:.3f} mJ on {pas['acting_frames']} frames",
-        f"offline law: {tissue_words(summary.get('offline'))}; rendered force vs offline "
-        "law: RMS " + (f"{rms:.3f} N" if rms is not None else "n/a"),
-        f"stopped: {summary.get('stop_reason', '')}",
-    ]
-    if summary.get("note"):
-        lines.append(summary["note"])
-    faults = summary.get("faults") or []
-    lines.extend(f"FAULT: {f}" for f in faults)
-    return lines
-
-
-def estimate_words(estimate: Mapping[str, Any]) -> str:
-    """The last online estimate (its ``as_dict``) in words: the law, its probability and
-    each coefficient with half its 95 % interval and unit."""
-    if not estimate:
-        return "none (too few samples in contact)"
-    law = estimate.get("law", "?")
-    prob = (estimate.get("probabilities") or {}).get(law)
-    head = f"{law}" + (f" ({100 * prob:.0f} %)" if isinstance(prob, (int, float)) else "")
-    if not estimate.get("confident"):
-        return f"{head}, not confident"
-    parts = []
-    for name, unit, mean, ci in zip(
-        estimate.get("names", []),
-        estimate.get("units", []),
-        estimate.get("mean", []),
-        estimate.get("ci95", []),
-        strict=False,
-    ):
-        half = (ci[1] - ci[0]) / 2 if ci and None not in ci else math.nan
-        parts.append(f"{name} {mean:.4g} +- {half:.2g} {unit}")
-    return f"{head}: " + ", ".join(parts)
 
 
 def _check_args(duration_s: float | None) -> None:

@@ -19,26 +19,20 @@ from dataclasses import asdict
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from ..core.errors import (
-    EXIT_LOST_DATA,
     EXIT_NOT_RENDERED,
-    EXIT_OFF_RATE,
-    EXIT_WATCHDOG,
-    DeviceError,
     DeviceLost,
     InputError,
     RenderError,
     worst_fault,
 )
-from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG, NONFINITE, SATURATED, UNRENDERABLE
 from ..core.session import check_name
 from ..core.tissue import Tissue
 from ..formats.jsonfile import write_json
 from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_profile, read_tissue
-from ..hw.link import DEFAULT_BAUD, Link, open_device
+from ..hw.device import Device, Display, device_class
+from ..hw.link import DEFAULT_BAUD
 from ..hw.protocol import Encoder, SetVoltage
 from ..hw.realtime import (
     SPIN_S,
@@ -57,15 +51,15 @@ from ..hw.realtime import (
 )
 from ..hw.stream import Stream
 from ..render.check import GRASP_FORCE_N, CheckResult, check
-from ..render.controller import Controller, Step, tracking_bound
+from ..render.controller import Controller, Step
 from ..render.handover import tissue_data, tissue_from_data
 from ..render.profile import (
     PAPER_DISPLAY,
     DisplayProfile,
     clamp_volts,
-    exceeded_limits,
-    profile_from_dict,
 )
+from .faults import classify_faults
+from .loopstats import PlayFigures, jsonable, silence_figures
 
 if TYPE_CHECKING:
     from ..formats.playlog import PlayLog
@@ -73,25 +67,6 @@ if TYPE_CHECKING:
 #: A missing Encoder frame is bridged by repeating the last voltage this many periods,
 #: then the host sends 0 V until frames return.
 HOLD_PERIODS = 3
-
-#: When a play is faulty (docs/rendering.md, "When a play is faulty"): the loop rate more
-#: than this fraction off nominal (on an idle machine it stays within 0.2 %) ...
-MAX_RATE_ERROR = 0.02
-#: ... more periods without a frame, or frames lost or corrupt on the line, than this
-#: fraction of the frames (each missed period is bridged with a stale voltage; normal
-#: plays on a 2-core machine running the simulated display miss 0.1-1.1 %) ...
-MAX_MISSED_FRACTION = 0.05
-#: ... the tracking error above its bound plus the check's soft gap (where the tissue is
-#: softer than the display's spring) by more than this, m: the bound holds for an
-#: unclamped law in steady state, and touch-down transients, the estimator's lag and
-#: frames where the solenoid is clamped added up to 0.27 mm at most over 197 random
-#: tissues the check accepts, on the offline loop ...
-TRACKING_ALLOWANCE_M = 4e-4
-#: ... or more saturated or unrenderable frames than a tissue the check accepts shows
-#: on the offline loop (at most 0.9 % and 11 % of all frames over 197 accepted tissues:
-#: docs/rendering.md).
-MAX_SATURATED_FRACTION = 0.05
-MAX_UNRENDERABLE_FRACTION = 0.3
 
 #: Where the host loop runs (docs/rendering.md, "Keeping time"): ``"thread"`` in a
 #: thread of its own, ``"process"`` in a process of its own
@@ -114,7 +89,7 @@ DISPLAY_SILENCE_UNELEVATED_S = 0.5
 
 
 class PlayFaults(RenderError):
-    """The play ran, but not as the check promised (see :func:`play_faults`); raised by
+    """The play ran, but not as the check promised (see :func:`.faults.play_faults`); raised by
     :func:`play_file` after the summary and the log are written. ``summary`` holds them;
     :attr:`exit_code` is the class of the worst (``summary["exit_code"]``)."""
 
@@ -139,102 +114,6 @@ class PlayLost(DeviceLost):
 
     def __reduce__(self) -> tuple[Any, ...]:
         return type(self), (str(self), self.summary)
-
-
-def play_faults(summary: Mapping[str, Any], rate_hz: float) -> list[str]:
-    """What went wrong in a play, one short sentence each (empty if nothing did); see
-    :func:`classify_faults` for the rules."""
-    return [text for _, text in classify_faults(summary, rate_hz)]
-
-
-def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[int, str]]:
-    """What went wrong in a play: ``(exit status of its class, sentence)`` each.
-
-    A play is faulty when the display's watchdog cut the solenoid (watchdog frames
-    > 0; :data:`~tissuecli.core.errors.EXIT_WATCHDOG`), the loop ran more than
-    :data:`MAX_RATE_ERROR` off ``rate_hz`` or more than :data:`MAX_MISSED_FRACTION` of
-    the periods went without a frame (``EXIT_OFF_RATE``), frames were lost or corrupt on
-    the line beyond that fraction (``EXIT_LOST_DATA``), or the rendering left what the
-    check promised (``EXIT_NOT_RENDERED``): the controller met a non-finite value, the
-    tracking error exceeded its bound (plus the check's ``soft_gap_m``) by more than
-    :data:`TRACKING_ALLOWANCE_M`, or the solenoid was saturated or unable to follow on
-    more frames than :data:`MAX_SATURATED_FRACTION` and :data:`MAX_UNRENDERABLE_FRACTION`.
-    A watchdog cut or a slow loop names what the loop's scheduling could guarantee.
-    """
-
-    def num(key: str) -> float:
-        value = summary.get(key)
-        return float(value) if isinstance(value, (int, float)) and value == value else 0.0
-
-    faults: list[tuple[int, str]] = []
-    frames = max(num("frames"), 1.0)
-    sched = summary.get("realtime")
-    scheduler = sched.get("scheduler") if isinstance(sched, Mapping) else None
-    guarantee = (
-        f"; the loop's longest period was {num('period_max_ms'):.3g} ms under {scheduler}"
-        + ("" if scheduler == "SCHED_FIFO" else ", real-time scheduling not granted")
-        if scheduler
-        else ""
-    )
-    if num("watchdog_frames") > 0:
-        faults.append(
-            (
-                EXIT_WATCHDOG,
-                f"the display's watchdog cut the solenoid on {num('watchdog_frames'):.0f} "
-                f"frame(s): the host stopped answering for 5 periods ({5e3 / rate_hz:g} ms)"
-                + guarantee,
-            )
-        )
-    rate = num("loop_rate_hz")
-    if num("frames") > 1 and abs(rate - rate_hz) > MAX_RATE_ERROR * rate_hz:
-        faults.append(
-            (
-                EXIT_OFF_RATE,
-                f"the loop ran at {rate:.1f} Hz, {100 * abs(rate / rate_hz - 1):.1f} % off "
-                f"{rate_hz:g} Hz (p99 period {num('period_p99_ms'):.2f} ms)",
-            )
-        )
-    if num("missed_periods") > MAX_MISSED_FRACTION * frames:
-        faults.append(
-            (
-                EXIT_OFF_RATE,
-                f"{num('missed_periods'):.0f} periods passed without a frame "
-                f"({100 * num('missed_periods') / frames:.1f} % of {frames:.0f})",
-            )
-        )
-    lost = num("frames_lost") + num("frames_bad")
-    if lost > MAX_MISSED_FRACTION * frames:
-        faults.append((EXIT_LOST_DATA, f"{lost:.0f} frame(s) lost or corrupt on the line"))
-    if num("nonfinite_frames") > 0:
-        faults.append(
-            (EXIT_NOT_RENDERED, f"{num('nonfinite_frames'):.0f} frame(s) with non-finite values")
-        )
-    err, bound = num("tracking_max_m"), summary.get("tracking_bound_m")
-    check = summary.get("check")
-    gap = check.get("soft_gap_m") if isinstance(check, Mapping) else None
-    gap = float(gap) if isinstance(gap, (int, float)) else 0.0
-    if isinstance(bound, (int, float)) and err > bound + gap + TRACKING_ALLOWANCE_M:
-        faults.append(
-            (
-                EXIT_NOT_RENDERED,
-                f"tracking error reached {err * 1e3:.3g} mm, above its bound "
-                f"{bound * 1e3:.3g} mm"
-                + (f" + soft gap {gap * 1e3:.3g} mm" if gap else "")
-                + f" + {TRACKING_ALLOWANCE_M * 1e3:g} mm",
-            )
-        )
-    for key, limit, what in (
-        ("saturated_fraction", MAX_SATURATED_FRACTION, "saturated"),
-        ("unrenderable_fraction", MAX_UNRENDERABLE_FRACTION, "unrenderable (a push asked)"),
-    ):
-        if num(key) > limit:
-            faults.append(
-                (
-                    EXIT_NOT_RENDERED,
-                    f"{100 * num(key):.1f} % of frames {what}, more than {100 * limit:g} %",
-                )
-            )
-    return faults
 
 
 def check_file(
@@ -276,7 +155,7 @@ def play_file(
     ------
     PlayFaults
         After the summary and the log are written, when the play was faulty (its
-        ``faults`` are not empty; see :func:`play_faults`): the command exits 1.
+        ``faults`` are not empty; see :func:`.faults.play_faults`): the command exits 1.
     PlayLost
         After the summary up to the loss is written, when the display went silent.
     """
@@ -337,6 +216,7 @@ def play(
     loop: str = "thread",
     realtime: bool = True,
     on_message: Callable[[str], None] | None = None,
+    device: str = "display",
 ) -> dict[str, Any]:
     """Render ``tissue`` on the display at ``url`` for ``duration_s`` seconds.
 
@@ -376,6 +256,9 @@ def play(
         through each expected frame; ignored by ``"plain"``.
     on_message : callable, optional
         Told, once per process, when elevated scheduling was refused.
+    device : str
+        The kind of display (a :class:`~tissuecli.hw.device.Display` class registered
+        under that name; a loop process finds only those its module registers on import).
 
     Returns
     -------
@@ -387,7 +270,7 @@ def play(
         ``clamped_commands`` (brought within [0, v_max] before sending),
         ``actuator_work_j``, ``realtime`` (what :func:`~tissuecli.hw.realtime.elevate`
         obtained), ``check`` and more; ``faults`` (what went wrong, see
-        :func:`play_faults`; empty for a good play) and ``verdict`` (``"as checked"``
+        :func:`.faults.play_faults`; empty for a good play) and ``verdict`` (``"as checked"``
         or ``"faulty"``).
 
     Raises
@@ -422,6 +305,7 @@ def play(
         idle_timeout_s=idle_timeout_s,
         status_interval_s=status_interval_s,
         realtime=realtime and loop != "plain",
+        device=device,
     )
     if loop == "process":
         proc = LoopProcess(
@@ -487,11 +371,13 @@ def _render(
     in_thread: bool,
     realtime: bool,
     on_message: Callable[[str], None] | None,
+    device: str = "display",
     inbox: Parent | None = None,
 ) -> dict[str, Any]:
     """:func:`play` from opening the display on, in this process (its loop in a thread
     of its own if ``in_thread``)."""
-    link, info, profile = _open_display(url, baudrate, rate_hz, profile)
+    link = open_display(url, kind=device, baudrate=baudrate, rate_hz=rate_hz, profile=profile)
+    info, profile = link.info or {}, link.profile
     log_file: PlayLog | None = None
     player: HostLoop | None = None
     stream: Stream | None = None
@@ -564,7 +450,7 @@ def _render(
             partial["commands_sent"] = player.sent
             partial["check"] = verdict.as_dict()
             partial["tissue"] = tissue.describe()
-            partial = _jsonable(partial)
+            partial = jsonable(partial)
             partial["faults"] = [f"the display was lost: {exc}"]
             partial["exit_code"] = DeviceLost.exit_code
             partial["verdict"] = "display lost"
@@ -576,7 +462,7 @@ def _render(
         link.close()
     summary["check"] = verdict.as_dict()
     summary["tissue"] = tissue.describe()
-    summary = _jsonable(summary)
+    summary = jsonable(summary)
     classified = classify_faults(summary, rate_hz)
     summary["faults"] = [text for _, text in classified]
     summary["exit_code"] = worst_fault({code for code, _ in classified})
@@ -587,40 +473,24 @@ def _render(
     return summary
 
 
-def _open_display(
-    url: str, baudrate: int, rate_hz: float, profile: DisplayProfile | None
-) -> tuple[Link, dict[str, Any], DisplayProfile]:
-    """Open and identify a display; its link, Info and the profile to use."""
-    link, info = open_device(url, "display", baudrate=baudrate, timeout=0.02)
-    assert info is not None  # open_device refuses a silent display
-    try:
-        device_rate = info.get("rate_hz")
-        if isinstance(device_rate, (int, float)) and abs(device_rate - rate_hz) > 1e-6 * rate_hz:
-            raise DeviceError(
-                f"the display at {url} runs its loop at {device_rate:g} Hz; "
-                f"pass --rate {device_rate:g}"
-            )
-        reported = info.get("profile")
-        limits = (
-            profile_from_dict(reported, source=f"profile reported by {url}")
-            if isinstance(reported, Mapping)
-            else None
-        )
-        if profile is None:
-            profile = limits if limits is not None else PAPER_DISPLAY
-        elif limits is not None:
-            # the display's own limits rule: a file may ask less, never more
-            over = exceeded_limits(profile, limits)
-            if over:
-                raise DeviceError(
-                    f"--profile asks more than the display at {url} reports: "
-                    + "; ".join(over)
-                    + "; lower them to the display's, or give no --profile"
-                )
-        return link, info, profile
-    except BaseException:
-        link.close()
-        raise
+def open_display(
+    url: str,
+    *,
+    kind: str = "display",
+    baudrate: int = DEFAULT_BAUD,
+    rate_hz: float | None = None,
+    profile: DisplayProfile | None = None,
+) -> Display:
+    """Open and identify the display of ``kind`` (a registered
+    :class:`~tissuecli.hw.device.Display` class) at ``url``, checked against the loop's
+    rate; its :attr:`~tissuecli.hw.device.Display.profile` is the one to render with."""
+    cls = device_class(kind)
+    if not (isinstance(cls, type) and issubclass(cls, Display)):
+        raise InputError(f"a {kind} is not a display; {cls.role}")
+    display: Display = cls(url, baudrate=baudrate, timeout=0.02).open(
+        rate_hz=rate_hz, profile=profile
+    )
+    return display
 
 
 class Rendering:
@@ -653,15 +523,16 @@ class HostLoop:
 
     Parameters
     ----------
-    link : Link
-        The open display.
+    link : Device
+        The open display (:class:`~tissuecli.hw.device.Display` or any device that
+        streams Encoder frames and takes SetVoltage commands).
     rendering : Rendering or Controller
         What computes each answer (a bare controller is wrapped in :class:`Rendering`).
     """
 
     def __init__(
         self,
-        link: Link,
+        link: Device,
         rendering: Rendering | Controller | None,
         profile: DisplayProfile,
         rate_hz: float,
@@ -847,7 +718,7 @@ class HostLoop:
                 "duration_s": self.elapsed,
                 "frames": f.frames,
                 "frames_lost": stream.seqs.lost,
-                "frames_bad": self.link.decoder.bad_frames,
+                "frames_bad": self.link.bad_frames,
                 "missed_periods": self.missed,
                 "watchdog_frames": f.watchdog,
                 "loop_rate_hz": f.loop_rate(),
@@ -861,162 +732,9 @@ class HostLoop:
             "duration_s": self.elapsed,
             "frames": figures.pop("frames"),
             "frames_lost": stream.seqs.lost,
-            "frames_bad": self.link.decoder.bad_frames,
+            "frames_bad": self.link.bad_frames,
             "missed_periods": self.missed,
             "clamped_commands": self.clamped,
             **figures,
             **silence_figures(stream),
         }
-
-
-#: The loop's former name, for code that used it.
-_Player = HostLoop
-
-
-def silence_figures(stream: Stream) -> dict[str, float]:
-    """The display's longest silence, the host's own longest stall and the limit the
-    display's silence was judged against, ms."""
-    return {
-        "longest_silence_ms": stream.longest_silence_s * 1e3,
-        "host_stall_ms": stream.host_stall_s * 1e3,
-        "no_frame_limit_ms": stream.idle_timeout_s * 1e3,
-    }
-
-
-class PlayFigures:
-    """Running figures of a play, in bounded memory: tracking, flags, energy and the
-    loop's period."""
-
-    HIST_BIN_S = 1e-5  # 10 us bins of the loop period, up to 10 ms
-
-    def __init__(self) -> None:
-        self.frames = self.saturated = self.unrenderable = self.nonfinite = 0
-        self.watchdog = self.limit = self.sends = 0
-        self.sum_e2 = self.max_e = self.max_a = self.work = 0.0
-        self.x_lo, self.x_hi = math.inf, -math.inf
-        self.hist = [0] * 1001
-        self.max_period = 0.0
-        self.first_send: float | None = None
-        self.last_send = 0.0
-        self.prev_x: float | None = None
-        self.prev_volts = 0.0
-
-    def send(self, now: float) -> None:
-        if self.first_send is not None:
-            dt = now - self.last_send
-            self.hist[min(int(dt / self.HIST_BIN_S), 1000)] += 1
-            self.max_period = max(self.max_period, dt)
-        else:
-            self.first_send = now
-        self.last_send = now
-        self.sends += 1
-
-    def percentile(self, q: float) -> float:
-        """Loop period percentile, s (upper edge of its 10 us bin; NaN before two sends)."""
-        total = sum(self.hist)
-        if total == 0:
-            return math.nan
-        need, acc = q / 100.0 * total, 0
-        for i, n in enumerate(self.hist):
-            acc += n
-            if acc >= need:
-                return (i + 1) * self.HIST_BIN_S if i < 1000 else self.max_period
-        return self.max_period
-
-    def loop_rate(self) -> float:
-        span = self.last_send - (self.first_send or 0.0)
-        return (self.sends - 1) / span if self.sends > 1 and span > 0 else 0.0
-
-    def account(self, step: Step, msg: Encoder, x: float, alpha: float) -> int:
-        """Fold one frame in (``x``: the encoder reading, m); return the frame's flags."""
-        self.frames += 1
-        e = step.xp - step.xm
-        if e == e:
-            self.sum_e2 += e * e
-            self.max_e = max(self.max_e, abs(e))
-        if step.ap == step.ap:
-            self.max_a = max(self.max_a, abs(step.ap))
-        if self.prev_x is not None:
-            # work done on the piston by the solenoid over the last period (> 0: created)
-            self.work -= alpha * self.prev_volts**2 * (x - self.prev_x)
-        self.prev_x, self.prev_volts = x, msg.volts
-        self.x_lo, self.x_hi = min(self.x_lo, step.xp), max(self.x_hi, step.xp)
-        flags = msg.flags | step.flags
-        self.saturated += bool(flags & SATURATED)
-        self.unrenderable += bool(flags & UNRENDERABLE)
-        self.nonfinite += bool(flags & NONFINITE)
-        self.watchdog += bool(flags & FLAG_WATCHDOG)
-        self.limit += bool(flags & FLAG_LIMIT)
-        return flags
-
-    def summary(self, ctrl: Controller, profile: DisplayProfile) -> dict[str, Any]:
-        """The figures as a dict (see :func:`play`)."""
-        n = max(self.frames, 1)
-        if self.x_hi >= self.x_lo:
-            depths = np.linspace(self.x_lo, self.x_hi, 51)
-            k_min = min(ctrl.local_stiffness(float(x)) for x in depths)
-        else:
-            k_min = ctrl.local_stiffness(0.0)
-        return {
-            "frames": self.frames,
-            "tracking_rms_m": math.sqrt(self.sum_e2 / n),
-            "tracking_max_m": self.max_e,
-            "tracking_bound_m": tracking_bound(
-                ctrl.gains.M, profile.Mp, self.max_a, k_min, profile.resolution
-            ),
-            "max_accel_m_s2": self.max_a,
-            "saturated_fraction": self.saturated / n,
-            "unrenderable_fraction": self.unrenderable / n,
-            "nonfinite_frames": self.nonfinite,
-            "watchdog_frames": self.watchdog,
-            "limit_frames": self.limit,
-            "actuator_work_j": self.work,
-            "loop_rate_hz": self.loop_rate(),
-            "period_p99_ms": self.percentile(99) * 1e3,
-            "period_p50_ms": self.percentile(50) * 1e3,
-            "period_max_ms": self.max_period * 1e3,
-            "gains": asdict(ctrl.gains),
-        }
-
-
-def _jsonable(value: Any) -> Any:
-    """NaN and infinities (a figure with no data) become None, so the summary is JSON."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
-
-
-def summary_lines(summary: Mapping[str, Any]) -> list[str]:
-    """The summary of :func:`play` as a few lines for people."""
-
-    def num(key: str, scale: float = 1.0, fmt: str = ".1f") -> str:
-        value = summary.get(key)
-        return "n/a" if value is None else format(value * scale, fmt)
-
-    lines = [
-        f"played {num('duration_s', fmt='.2f')} s: {summary.get('frames', 0)} frames at "
-        f"{num('loop_rate_hz')} Hz (period p99 {num('period_p99_ms', fmt='.2f')} ms, max "
-        f"{num('period_max_ms', fmt='.2f')} ms), {summary.get('frames_lost', 0)} lost, "
-        f"{summary.get('frames_bad', 0)} bad, {summary.get('missed_periods', 0)} periods "
-        "without a frame",
-        f"tracking error rms {num('tracking_rms_m', 1e6, '.2f')} um, max "
-        f"{num('tracking_max_m', 1e6)} um, bound {num('tracking_bound_m', 1e6)} um "
-        "(|M - Mp| max|xp''| / (k + Cp) + encoder resolution)",
-        f"saturated {num('saturated_fraction', 100, '.2f')} %, unrenderable "
-        f"{num('unrenderable_fraction', 100, '.2f')} % of frames; watchdog frames "
-        f"{summary.get('watchdog_frames', 0)}; solenoid work "
-        f"{num('actuator_work_j', 1e3, '.3f')} mJ (> 0: energy created)",
-        f"stopped: {summary.get('stop_reason', '')}",
-    ]
-    log = summary.get("log")
-    if log:
-        lines.append(f"log: {log['path']}, group {log['group']}")
-    faults = summary.get("faults") or []
-    lines.extend(f"FAULT: {f}" for f in faults)
-    if faults:
-        lines.append("the display did not render the tissue as checked (docs/rendering.md)")
-    return lines

@@ -22,7 +22,8 @@ from ..core.session import check_name
 from ..formats.outputs import Output, check_outputs
 from ..formats.sessions import check_new_session, session_writer
 from ..formats.writer import SeriesWriter
-from ..hw.link import DEFAULT_BAUD, Link, calibration_problem, open_device
+from ..hw.device import Device, Forceps
+from ..hw.link import DEFAULT_BAUD, calibration_problem
 from ..hw.protocol import Sample
 from ..hw.realtime import StopFlag
 from ..hw.stream import Stream
@@ -176,15 +177,13 @@ def record(
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
     _check_not_stopped(stop, url)
-    link, info = open_device(
-        url,
-        "forceps",
-        baudrate=baudrate,
+    link = Forceps(url, baudrate=baudrate).open(
         require_info=calibration is None,
         no_info_hint="; for a forceps that streams without identifying, give --calibration FILE"
         "; for a logger that prints lines of text, --protocol text",
         uses_calibration=calibration is None,
     )
+    info = link.info
     try:
         _check_not_stopped(stop, url)
         cal = calibration or calibration_from_dict((info or {})["calibration"])
@@ -358,7 +357,7 @@ class _Recording:
 
     def __init__(
         self,
-        link: Link,
+        link: Device,
         open_writer: Callable[[], SeriesWriter],
         timebase: TimeBase[Sample],
         cal: Calibration,
@@ -433,7 +432,7 @@ class _Recording:
             samples=self.samples,
             duration_s=duration,
             rate_hz=(self.samples - 1) / duration if duration > 0 else 0.0,
-            bad_frames=self.link.decoder.bad_frames,
+            bad_frames=self.link.bad_frames,
             lost_frames=self.timebase.faults.frames_lost,
             stop_reason=stream.reason,
             clock_map=clock_map,
@@ -497,7 +496,7 @@ class _Recording:
     def _counters(self) -> dict[str, Any]:
         return {
             "frames_good": self.samples,
-            "frames_bad": self.link.decoder.bad_frames,
+            "frames_bad": self.link.bad_frames,
             **self.timebase.faults.as_dict(),
         }
 
@@ -553,7 +552,7 @@ class _Recording:
             elapsed_s=elapsed,
             samples=self.samples,
             rate_hz=self.samples / elapsed if elapsed > 0 else 0.0,
-            bad_frames=self.link.decoder.bad_frames,
+            bad_frames=self.link.bad_frames,
             lost_frames=faults.frames_lost,
             file_bytes=size,
             faults=replace(faults),

@@ -37,6 +37,7 @@ from ..formats.recording import Reading, reading_of
 from ..formats.sessions import check_new_session, session_writer
 from ..formats.tables import Block, Table
 from ..formats.writer import SeriesWriter
+from ..hw.device import TextLogger
 from ..hw.realtime import StopFlag
 from ..hw.stream import Stream
 from ..hw.text import (
@@ -46,7 +47,6 @@ from ..hw.text import (
     MalformedLine,
     StampChecker,
     Teleplot,
-    TextLink,
     read_lines,
     sniff_dialect,
 )
@@ -121,9 +121,8 @@ def record_text(
     online = _Online(math.nan, forgetting_s) if identify else None
     if online is not None:
         online.prepare()  # slow (SciPy): before the lines start to queue
-    link = TextLink(url, baudrate=baudrate)
+    link = TextLogger(url, baudrate=baudrate).open()
     try:
-        link.discard_input()
         first = read_lines(link, count=SNIFF_LINES, within_s=SNIFF_S)
         _check_not_stopped(stop, url)
         if not first:
@@ -178,7 +177,7 @@ def record_text(
             link, reader, open_writer, out, session, meta, rate, duration_s, listeners, online
         )
         stream = Stream(
-            link,  # type: ignore[arg-type]  (a text link: START and STOP send nothing)
+            link,  # a text logger: START and STOP send nothing
             Line,  # type: ignore[arg-type]
             stop=stop,
             idle_timeout_s=idle_timeout_s,
@@ -190,7 +189,7 @@ def record_text(
         link.close()
 
 
-def _until_header(link: TextLink, dialect: Delimited, within_s: float) -> list[Line]:
+def _until_header(link: TextLogger, dialect: Delimited, within_s: float) -> list[Line]:
     """Lines read until one is a header for ``dialect``'s rows, or ``within_s`` passed."""
     out: list[Line] = []
     deadline = time.monotonic() + within_s
@@ -408,7 +407,7 @@ class _TextRecording:
 
     def __init__(
         self,
-        link: TextLink,
+        link: TextLogger,
         reader: _Lines,
         open_writer: Callable[[], SeriesWriter],
         out: Path,

@@ -10,11 +10,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..core.calibration import Calibration
 from ..core.errors import InputError
 from ..core.session import Session
 from ..core.units import parse_units
 from ..formats.csvfile import write_csv
 from ..formats.outputs import Output, check_outputs
+from ..formats.params import read_calibration
 from ..formats.recording import ImportReport, open_recording, read_recording, store_recording
 from ..formats.sessions import (
     check_new_session,
@@ -37,6 +39,7 @@ def import_recording(
     note: str = "",
     progress: Callable[[float], None] | None = None,
     sheet: str | None = None,
+    calibration: Calibration | str | os.PathLike[str] | None = None,
 ) -> tuple[Imported, ImportReport]:
     """Read a recording (text table, spreadsheet, .mat or .npz; see
     :func:`tissuecli.formats.recording.read_recording`) into a new session of the HDF5
@@ -54,6 +57,10 @@ def import_recording(
     sheet : str, optional
         The sheet of a spreadsheet; without it the workbook must hold one sheet with
         data (:func:`import_recordings` stores every sheet).
+    calibration : Calibration or path, optional
+        Force and position are ADC counts: SI = gain * counts + offset, by this
+        calibration or the calibration file it names (as ``record --calibration``);
+        ``units`` then names the time unit only. Stored with the session.
 
     Returns
     -------
@@ -62,13 +69,16 @@ def import_recording(
     report : ImportReport
         Columns and units used, what was repaired or skipped, and unit warnings.
     """
-    check_outputs([Output(out, "--out", appends=True)], [source])
+    cal_file = calibration if isinstance(calibration, (str, os.PathLike)) else None
+    check_outputs([Output(out, "--out", appends=True)], [source, cal_file])
     if session is None:
         session = sheet if sheet is not None else Path(source).stem
     check_new_session(out, session)
+    if cal_file is not None:
+        calibration = read_calibration(cal_file)
     reading = open_recording(
         source, columns=columns, units=units, jaw_length_m=jaw_length_m, rate_hz=rate_hz,
-        sheet=sheet,
+        sheet=sheet, calibration=calibration,  # type: ignore[arg-type]
     )  # fmt: skip
     n, duration, rate = store_recording(
         reading, out, session, {"tissue": tissue, "note": note}, progress

@@ -97,6 +97,13 @@ def _num(value: float | None, width: int, digits: int) -> str:
 @h5_out_option()
 @session_option("Name of the new session [default: the name of SOURCE without its extension].")
 @recording_options()
+@click.option(
+    "--calibration",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Counts-to-SI JSON, as record takes (docs/formats.md): force and position are "
+    "ADC counts; --units then names the time unit only.",
+)
 @label_options()
 def import_(
     source: str,
@@ -107,6 +114,7 @@ def import_(
     jaw_length: str | None,
     rate: float | None,
     sheet: str | None,
+    calibration: str | None,
     tissue: str,
     note: str,
 ) -> None:
@@ -128,6 +136,7 @@ def import_(
             --units time=ms,force=gf,position=deg --jaw-length 20mm
         tissuecli import rig.mat --out grasp.h5 --session rig-1 --columns time=t,force=F,position=x
         tissuecli import specimens.xlsx --out grasp.h5      # a session per sheet
+        tissuecli import counts.csv --out grasp.h5 --calibration forceps-cal.json
     """
     from ..app.transfer import import_recordings
 
@@ -136,6 +145,7 @@ def import_(
         out,
         session,
         **reading(columns, units, jaw_length, rate, sheet),
+        calibration=calibration,
         tissue=tissue,
         note=note,
         progress=reading_progress(source),

@@ -60,7 +60,7 @@ def live(
         tissuecli live --forceps /tmp/forceps --display /tmp/display --out live.h5 --duration 20
     """
     from ..app.live import live as run_live
-    from ..app.live import summary_lines
+    from ..app.summaries import live_lines
     from ..hw.realtime import StopFlag
 
     stop = StopFlag().install()
@@ -79,7 +79,7 @@ def live(
         )
     finally:
         end_live_line()
-    for line in summary_lines(summary):
+    for line in live_lines(summary):
         click.echo(line)
     if summary.get("faults"):
         from ..core.errors import RunFault

@@ -93,7 +93,8 @@ def play(
         tissuecli play liver.json --port /tmp/display --duration 20 --log plays.h5
         tissuecli play liver.json --check        # the band and the verdict only
     """
-    from ..app.play import PlayFaults, PlayLost, check_file, play_file, summary_lines
+    from ..app.play import PlayFaults, PlayLost, check_file, play_file
+    from ..app.summaries import play_lines
     from ..hw.realtime import StopFlag
 
     if check_only:
@@ -128,7 +129,7 @@ def play(
         summary, faulty = exc.summary, exc
     finally:
         end_live_line()
-    for line in summary_lines(summary):
+    for line in play_lines(summary):
         click.echo(line)
     if faulty is not None:
         raise faulty

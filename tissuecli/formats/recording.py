@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.calibration import Calibration
 from ..core.errors import InputError
 from ..core.plausible import unit_warnings
 from ..core.session import COLUMNS, Session
@@ -136,6 +137,8 @@ class Reading:
     rows: int = 0
     lost: int = 0  # samples missing from the recording's own clock (set by time_base)
     time_assumed: bool = False  # the time column's unit was assumed, not read or given
+    #: force and position read in ADC counts, turned to SI by this (``--calibration``)
+    calibration: Calibration | None = None
 
     @property
     def stamped(self) -> bool:
@@ -179,12 +182,16 @@ class Reading:
                 stamps = values["time"] * ColumnUnits(time=unit).factor("time")
         else:
             stamps = (self.rows + np.arange(lines.size)) / float(self.rate_hz or 1.0)
-        force = _force(values["force"], self.picked["force"][1], self.jaw_length_m, self.path)
-        position = _closure(
-            values["position"], self.picked["position"][1], self.jaw_length_m, self.path
-        )
-        if self.opening:
-            position = -position
+        if self.calibration is not None:  # counts: the calibration's gains say the sign
+            force = self.calibration.force.to_si(values["force"])
+            position = self.calibration.position.to_si(values["position"])
+        else:
+            force = _force(values["force"], self.picked["force"][1], self.jaw_length_m, self.path)
+            position = _closure(
+                values["position"], self.picked["position"][1], self.jaw_length_m, self.path
+            )
+            if self.opening:
+                position = -position
         for quantity, si in (("force", force), ("position", position)):
             bad = beyond_physical(quantity, si)
             if bad is not None:
@@ -250,9 +257,12 @@ def open_recording(
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
     sheet: str | None = None,
+    calibration: Calibration | None = None,
 ) -> Reading:
     """Open a foreign recording: its layout sniffed, its columns and units chosen, nothing
-    of its body read yet (see :func:`read_recording` for the parameters).
+    of its body read yet (see :func:`read_recording` for the parameters; ``calibration``:
+    force and position are ADC counts, turned to SI by it, and ``units`` names the time
+    unit only).
 
     Raises
     ------
@@ -267,6 +277,7 @@ def open_recording(
         units=units,
         jaw_length_m=jaw_length_m,
         rate_hz=rate_hz,
+        calibration=calibration,
     )
 
 
@@ -279,12 +290,21 @@ def reading_of(
     jaw_length_m: float | None = None,
     rate_hz: float | None = None,
     time_optional: bool = False,
+    calibration: Calibration | None = None,
 ) -> Reading:
     """:func:`open_recording` of a source already open (a table, or the first lines of a
     text logger); ``path`` names it in messages. With ``time_optional`` a source without a
     time column is read without one (a logger stamped by the host), and a bare table of
     two columns is force and position.
     """
+    if calibration is not None:
+        if {"force", "position"} & parse_units(units).given:
+            raise InputError(
+                "--calibration turns counts into N and m; give --units for time only "
+                "(e.g. --units time=ms), or leave --calibration out"
+            )
+        # counts: read in no unit (factor 1), the calibration makes them SI
+        units = ",".join(filter(None, [units, "force=N", "position=m"]))
     report = ImportReport()
     chosen = _choose_columns(
         source, _parse_columns(columns), rate_hz is not None, path, time_optional=time_optional
@@ -314,7 +334,7 @@ def reading_of(
         report.units[quantity] = unit + origin
     report.ignored = [n for i, n in enumerate(source.names) if i not in chosen.values()]
     keys = getattr(source, "keys", source.names)
-    opening = _normal(keys[picked["position"][0]]) in OPENINGS
+    opening = calibration is None and _normal(keys[picked["position"][0]]) in OPENINGS
     if opening:
         report.notes.append(
             f"position: {source.names[picked['position'][0]]!r} grows as the jaws open; "
@@ -338,6 +358,9 @@ def reading_of(
             )
     reading = Reading(path, source, report, picked, opening, jaw_length_m, rate_hz, clock)
     reading.time_assumed = "time" in picked and report.units["time"].endswith("(SI, assumed)")
+    if calibration is not None:
+        reading.calibration = calibration
+        report.units["force"] = report.units["position"] = "counts (--calibration)"
     return reading
 
 
@@ -638,7 +661,8 @@ def store_recording(
     peak = 0.0
     low, high = math.inf, -math.inf
     writer = session_writer(
-        out, name, meta={**meta, **reading.meta()}, calibration=None, raw=False,
+        out, name, meta={**meta, **reading.meta()},
+        calibration=reading.calibration.as_dict() if reading.calibration else None, raw=False,
         flush_interval_s=math.inf, fsync=False,
     )  # fmt: skip
     try:

@@ -1,5 +1,4 @@
-"""One vocabulary for every device on a framed serial line: open, read frames, command,
-limits, close.
+"""One vocabulary for every device: open, read frames, command, limits, close.
 
 A :class:`Device` subclass says what its kind is for (:attr:`~Device.role`), which
 frames it streams (:attr:`~Device.frame_type`), which Info fields a host relies on
@@ -7,15 +6,23 @@ frames it streams (:attr:`~Device.frame_type`), which Info fields a host relies 
 :func:`register` adds it to :data:`DEVICES`, and from then on
 :func:`~tissuecli.hw.link.open_device` opens, identifies and checks it by its kind
 name. Adding a device is one class and that registry entry (docs/architecture.md,
-"A new device"); the forceps and the display are the two built in.
+"A new device"); the forceps, the display and the plain-text logger are built in.
+
+A device is also what the host loops run over: :class:`~tissuecli.hw.stream.Stream`
+and the haptic loop (:class:`~tissuecli.app.play.HostLoop`) use only :meth:`Device.command`,
+:meth:`Device.poll`, :meth:`Device.send`, :meth:`Device.fileno`, :meth:`Device.nonblocking`
+and :attr:`Device.bad_frames`, so a device that is not on a serial line (a simulated one
+in the same process) overrides :meth:`Device.connect` and those, and runs in the same
+loops.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 from ..core.errors import DeviceError
+from ..render.profile import PAPER_DISPLAY, DisplayProfile, exceeded_limits, profile_from_dict
 from .link import (
     ADC_BITS_RANGE,
     CLOCK_HZ_RANGE,
@@ -31,8 +38,17 @@ from .link import (
     open_device,
 )
 from .protocol import Encoder, Message, Sample, SetVoltage
+from .text import Line, TextLink
 
-__all__ = ["DEVICES", "Device", "Display", "Forceps", "device_class", "register"]
+__all__ = [
+    "DEVICES",
+    "Device",
+    "Display",
+    "Forceps",
+    "TextLogger",
+    "device_class",
+    "register",
+]
 
 D = TypeVar("D", bound="type[Device]")
 
@@ -93,11 +109,17 @@ class Device:
     # ------------------------------------------------------------------ lifecycle
 
     def open(self, **options: Any) -> Device:
-        """Open the line, stop and drain the device, identify and check it."""
+        """Open the line, stop and drain the device, identify and check it (``options``
+        go to :func:`~tissuecli.hw.link.open_device`)."""
+        self.connect(**options)
+        return self
+
+    def connect(self, **options: Any) -> None:
+        """Set :attr:`link` and :attr:`info`: the handshake of
+        :func:`~tissuecli.hw.link.open_device` for a device on a framed serial line."""
         self.link, self.info = open_device(
             self.url, self.kind, baudrate=self.baudrate, timeout=self.timeout, **options
         )
-        return self
 
     def _line(self) -> Link:
         if self.link is None:
@@ -112,11 +134,35 @@ class Device:
 
     def read(self) -> list[Message]:
         """The frames of :attr:`frame_type` that have arrived."""
-        return [m for m in self._line().poll() if isinstance(m, self.frame_type)]
+        return [m for m in self.poll() if isinstance(m, self.frame_type)]
 
     def send(self, message: Message) -> None:
         """Send one command frame."""
         self._line().send(message)
+
+    # ------------------------------------------------------------------ what loops use
+
+    def command(self, name: str) -> None:
+        """Send a command by name (``identify``, ``start``, ``stop``)."""
+        self._line().command(name)
+
+    def poll(self) -> list[Any]:
+        """Everything that has arrived, decoded (frames of any type)."""
+        return self._line().poll()
+
+    def fileno(self) -> int | None:
+        """A file descriptor a loop may wait on with ``select``; None if there is none
+        (the loop then sleeps briefly between polls)."""
+        return self._line().fileno()
+
+    def nonblocking(self) -> None:
+        """Make :meth:`poll` return at once (a loop that keeps its own deadlines)."""
+        self._line().nonblocking()
+
+    @property
+    def bad_frames(self) -> int:
+        """Frames that arrived corrupt so far."""
+        return self.link.bad_frames if self.link is not None else 0
 
     def close(self) -> None:
         if self.link is not None:
@@ -202,5 +248,119 @@ class Display(Device):
     frame_type = Encoder
     command_type = SetVoltage
 
+    #: The constants the host renders with (set by :meth:`open`).
+    profile: DisplayProfile = PAPER_DISPLAY
+
+    def open(  # type: ignore[override]
+        self,
+        *,
+        rate_hz: float | None = None,
+        profile: DisplayProfile | None = None,
+        **options: Any,
+    ) -> Display:
+        """Open and identify the display, then check it against the host.
+
+        Parameters
+        ----------
+        rate_hz : float, optional
+            The host loop's rate, Hz: a display reporting another is refused.
+        profile : DisplayProfile, optional
+            Constants to render with; never beyond the limits the display reports
+            (refused then). By default what it reports, else the paper's.
+        """
+        self.connect(**options)
+        try:
+            self.profile = self._checked_profile(rate_hz, profile)
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _checked_profile(
+        self, rate_hz: float | None, profile: DisplayProfile | None
+    ) -> DisplayProfile:
+        info = self.info or {}
+        device_rate = info.get("rate_hz")
+        if (
+            rate_hz is not None
+            and isinstance(device_rate, (int, float))
+            and abs(device_rate - rate_hz) > 1e-6 * rate_hz
+        ):
+            raise DeviceError(
+                f"the display at {self.url} runs its loop at {device_rate:g} Hz; "
+                f"pass --rate {device_rate:g}"
+            )
+        reported = info.get("profile")
+        limits = (
+            profile_from_dict(reported, source=f"profile reported by {self.url}")
+            if isinstance(reported, Mapping)
+            else None
+        )
+        if profile is None:
+            return limits if limits is not None else PAPER_DISPLAY
+        if limits is not None:
+            # the display's own limits rule: a file may ask less, never more
+            over = exceeded_limits(profile, limits)
+            if over:
+                raise DeviceError(
+                    f"--profile asks more than the display at {self.url} reports: "
+                    + "; ".join(over)
+                    + "; lower them to the display's, or give no --profile"
+                )
+        return profile
+
     def limits(self) -> dict[str, Any]:
         return dict((self.info or {}).get("profile") or {})
+
+
+@register
+class TextLogger(Device):
+    """A plain-text logger (an Arduino or Teensy printing lines): it takes no commands
+    and does not identify, so opening it opens the port and drops what arrived before;
+    :meth:`read` returns :class:`~tissuecli.hw.text.Line` objects stamped on arrival.
+
+    Attributes
+    ----------
+    link : TextLink or None
+        The open port, line by line.
+    """
+
+    kind = "text-logger"
+    role = "record --protocol text reads a logger that prints lines"
+    frame_type = Line  # type: ignore[assignment]  (lines, not framed messages)
+
+    def __init__(self, url: str, *, baudrate: int | None = None, timeout: float = 0.05) -> None:
+        super().__init__(url, baudrate=115200 if baudrate is None else baudrate, timeout=timeout)
+        self.link: TextLink | None = None  # type: ignore[assignment]
+        self.info = {}
+
+    def connect(self, **options: Any) -> None:
+        self.link = TextLink(self.url, baudrate=self.baudrate, timeout=self.timeout)
+        try:
+            self.link.discard_input()
+        except BaseException:
+            self.close()
+            raise
+
+    def _line(self) -> TextLink:  # type: ignore[override]
+        if self.link is None:
+            raise DeviceError(f"the text logger at {self.url} is not open")
+        return self.link
+
+    def read(self) -> list[Line]:  # type: ignore[override]
+        return self._line().poll()
+
+    def send(self, message: Message) -> None:
+        raise DeviceError(f"the text logger at {self.url} takes no commands")
+
+    def nonblocking(self) -> None:
+        self._line().link.nonblocking()
+
+    def discard_input(self) -> None:
+        """Drop whatever arrived before now (and the partial line it ends in)."""
+        self._line().discard_input()
+
+    @property
+    def lines(self) -> int:
+        """Lines received so far."""
+        return self.link.lines if self.link is not None else 0

@@ -136,6 +136,11 @@ class Link:
                 next_ask += 0.5
         return None
 
+    @property
+    def bad_frames(self) -> int:
+        """Frames that arrived corrupt so far."""
+        return self.decoder.bad_frames
+
     def fileno(self) -> int | None:
         """The port's file descriptor, to wait on with ``select``; None for URLs without
         one (``loop://``)."""

@@ -12,11 +12,22 @@ import math
 import time
 from collections.abc import Callable
 from types import TracebackType
+from typing import Any, Protocol
 
 from ..core.errors import DeviceLost
-from .link import Link
 from .protocol import Message, SequenceTracker
 from .realtime import StopFlag
+
+
+class Source(Protocol):
+    """What a stream reads: an open :class:`~tissuecli.hw.device.Device` (or a bare
+    :class:`~tissuecli.hw.link.Link`)."""
+
+    url: str
+
+    def command(self, name: str) -> None: ...
+
+    def poll(self) -> list[Any]: ...
 
 
 class Stream:
@@ -38,8 +49,8 @@ class Stream:
 
     Parameters
     ----------
-    link : Link
-        An open, identified device.
+    link : Source
+        An open, identified device (:class:`~tissuecli.hw.device.Device`).
     frame_type : type of Message
         The frames the loop is about (Sample, Encoder); others are ignored.
     stop : StopFlag
@@ -72,7 +83,7 @@ class Stream:
 
     def __init__(
         self,
-        link: Link,
+        link: Source,
         frame_type: type[Message],
         *,
         stop: StopFlag,

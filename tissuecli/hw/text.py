@@ -24,7 +24,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 from .link import Link
 
@@ -622,7 +622,14 @@ class TextLink:
         self.close()
 
 
-def read_lines(link: TextLink, *, count: int, within_s: float) -> list[Line]:
+class LineSource(Protocol):
+    """What :func:`read_lines` reads from: a :class:`TextLink` or a
+    :class:`~tissuecli.hw.device.TextLogger`."""
+
+    def poll(self) -> list[Line]: ...
+
+
+def read_lines(link: LineSource, *, count: int, within_s: float) -> list[Line]:
     """Up to ``count`` lines, waiting at most ``within_s`` for them (fewer if the logger is
     slow or silent).
 
@@ -643,6 +650,7 @@ __all__ = [
     "Delimited",
     "Line",
     "LineDialect",
+    "LineSource",
     "MalformedLine",
     "SerialPlotter",
     "StampChecker",

@@ -10,7 +10,8 @@
 - :mod:`~tissuecli.identify.outcome`: :func:`fit_session`, both estimators in one call.
 """
 
-from .bayes import BayesianFit, ModelResult, parse_forms
+from .bayes import BayesianFit, ModelResult
+from .forms import parse_forms
 from .outcome import FitOutcome, fit_session
 from .pinv import WindowedPinv
 

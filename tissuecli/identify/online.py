@@ -36,11 +36,12 @@ from numpy.typing import ArrayLike, NDArray
 from ..core.errors import FitError, InputError
 from ..core.terms import Law, MotionScales
 from ..core.tissue import Tissue
-from .bayes import law_prior, parse_forms, scales_from
 from .contact import ENTER_SD, LEAVE_SD, SMOOTH_S
 from .derivatives import Differentiator, Gaussian, Kinematics, differentiator
 from .design import column_key, design
+from .forms import parse_forms
 from .posterior import ExactPosterior, SufficientStats
+from .priors import law_prior, scales_from
 from .spectrum import convolve_valid
 
 Array = NDArray[np.float64]
@@ -463,7 +464,7 @@ class OnlineFit:
 
     def scales(self) -> MotionScales:
         """The priors' yardsticks from the counted samples (as
-        :func:`~tissuecli.identify.bayes.session_scales` computes them offline)."""
+        :func:`~tissuecli.identify.priors.session_scales` computes them offline)."""
         c = max(self._count, 1e-300)
         return scales_from(*(self._sq / c), self._peak, self.force_scale)
 

@@ -12,10 +12,10 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from ..core.session import Session
 from ..core.terms import Law
-from .bayes import parse_forms
 from .derivatives import Differentiator
 from .design import design, lstsq_scaled
 from .estimator import Estimator
+from .forms import parse_forms
 
 Array = NDArray[np.float64]
 

@@ -1,7 +1,8 @@
 """Sampling a posterior with emcee where no closed form exists, and a sampler-based
-evidence (generalised stepping-stone) to check the exact one against.
+evidence (generalised stepping-stone) to check the exact one against; and which laws of
+a fit are sampled (:func:`sample_posteriors`, :func:`sample_shape_posteriors`).
 
-emcee is imported only when a chain is actually run.
+emcee and ``scipy.stats`` are imported only when a chain is actually run.
 """
 
 from __future__ import annotations
@@ -11,12 +12,23 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
 from ..core.errors import FitError
-from .posterior import LN_2PI, ExactPosterior, Posterior, Prior, SufficientStats, logsumexp
+from .posterior import (
+    CHECK_NATS,
+    LN_2PI,
+    ExactPosterior,
+    Posterior,
+    Prior,
+    SufficientStats,
+    logsumexp,
+)
+from .scoring import CUT_THRESHOLD, ModelResult
 
 Array = NDArray[np.float64]
+
+#: ln Bayes factor beyond which a form is decisively behind (Jeffreys: 100:1)
+DECISIVE = float(np.log(100.0))
 
 
 class PowerPosterior:
@@ -209,6 +221,8 @@ class ReferencePath:
 
     def __init__(self, target: PowerPosterior, mean: Array, cov: Array) -> None:
         self.target = target
+        from scipy import stats  # only when a chain runs
+
         self.q = stats.multivariate_normal(mean=mean, cov=cov, allow_singular=True)
         self.t = 1.0
 
@@ -358,3 +372,100 @@ def sample_shapes(
         "samples": int(draws.shape[0]),
         "independent_samples": int(draws.shape[0] * thin / max(top, 1.0)),
     }
+
+
+def sample_shape_posteriors(
+    results: list[ModelResult], *, sampler: str = "auto", decisive: float = DECISIVE
+) -> None:
+    """Run emcee over the shape of the chosen law if it has more than
+    :data:`~tissuecli.identify.shaped.MAX_GRID_SHAPES` shape parameters. A runner-up
+    keeps its Laplace summary (its evidence, what ranks it, is the same estimate
+    either way) unless every law not decisively behind is to be sampled
+    (``sampler="emcee"``)."""
+    top = max(r.ln_evidence for r in results)
+    for res in results:
+        if res.sample_shape is None:
+            continue
+        behind = top - res.ln_evidence
+        reason = ""
+        if behind > decisive:
+            reason = f"ln Bayes factor {behind:.1f} behind the best (> {decisive:.1f}, decisive)"
+        elif behind > 0 and sampler == "auto":
+            reason = (
+                f"a runner-up (ln Bayes factor {behind:.1f} behind the best): its Laplace "
+                "summary stands; --sampler emcee samples it"
+            )
+        if reason:
+            res.shape_sampler = {
+                **(res.shape_sampler or {}),
+                "status": "skipped",
+                "reason": reason,
+            }
+            res.reason += f"; shape not sampled: {reason}"
+        else:
+            res.sample_shape()
+        res.sample_shape = None
+
+
+def sample_posteriors(
+    results: list[ModelResult],
+    rng: np.random.Generator,
+    *,
+    sampler: str = "auto",
+    decisive: float = DECISIVE,
+    progress_for: Callable[[str], Callable[[int, float], None] | None] | None = None,
+) -> None:
+    """Run emcee where no exact posterior is known (or on request): for the chosen
+    law only, unless on request (runners-up keep the closed form, their evidence
+    exact), and never for forms decisively behind; say for each form how its
+    posterior was found."""
+    top = max(r.ln_evidence for r in results)
+    for res in results:
+        assert res.posterior is not None
+        behind = top - res.ln_evidence
+        exact = res.posterior.diagnostics.get("exact", False)
+        cut = res.posterior.outside
+        if exact and sampler == "auto":
+            how = (
+                "exact posterior (closed form); positivity bound cuts "
+                f"{res.posterior.outside:.1e} of it"
+                if res.posterior.outside <= CUT_THRESHOLD
+                else f"exact posterior with the positivity bound, which cuts "
+                f"{100 * cut:.2g} % of the closed form: independent draws by rejection"
+            )
+            # a law with shape parameters keeps how its shape was integrated
+            res.reason = f"{res.reason}; {how}" if res.family is not None else how
+            continue
+        runner_up = behind > 0 and sampler == "auto"
+        if (behind > decisive or runner_up) and len(results) > 1:
+            res.status = "skipped"
+            text = (
+                f"not sampled: ln Bayes factor {behind:.1f} behind the best "
+                f"(> {decisive:.1f}, decisive)"
+                if behind > decisive
+                else f"not sampled: a runner-up (ln Bayes factor {behind:.1f} behind the "
+                "best), so its intervals are the closed form's, which the positivity "
+                f"bound cuts by {100 * cut:.2g} %; its evidence is exact; --sampler emcee "
+                "samples it"
+            )
+            res.reason = f"{res.reason}; {text}" if res.family is not None else text
+            continue
+        progress = progress_for(res.name) if progress_for is not None else None
+        res.posterior = run_emcee(res.stats, res.prior, rng, progress=progress)  # type: ignore[arg-type]
+        res.status = "emcee"
+        res.reason = (
+            f"sampled: the positivity bound cuts {100 * cut:.2g} % of the closed-form posterior"
+            if sampler == "auto"
+            else "sampled on request (--sampler emcee)"
+        )
+        if sampler == "emcee":
+            res.ln_evidence_sampler = stepping_stone(res.stats, res.prior, rng)  # type: ignore[arg-type]
+            gap = res.ln_evidence_sampler - res.ln_evidence
+            if not abs(gap) <= CHECK_NATS:  # two estimates of one evidence
+                res.flags.append(
+                    f"the sampler's ln evidence (stepping-stone) differs from the closed "
+                    f"form's by {gap:+.1f} nats (more than {CHECK_NATS:g}): one of them "
+                    "is wrong; compare the law with its neighbours before trusting it"
+                )
+        if not res.posterior.diagnostics.get("converged", True):
+            res.flags.append("chain shorter than 50 autocorrelation times")

@@ -1,0 +1,210 @@
+"""The structure search as strategy objects: the greedy steps on a scoring callable, the
+exhaustive enumeration, a new strategy as one class, and the registry they read."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+
+import pytest
+
+from tissuecli.core.errors import FitError
+from tissuecli.core.terms import TERMS, Law, Maxwell, register, searched, unregister
+from tissuecli.identify import BayesianFit
+from tissuecli.identify.scoring import ModelResult
+from tissuecli.identify.search import (
+    SEARCHES,
+    ExhaustiveSearch,
+    GreedySearch,
+    Scope,
+    Search,
+    search_strategy,
+)
+from tissuecli.identify.search import register as register_search
+from tissuecli.sim.families import FAMILIES
+from tissuecli.sim.synth import random_session
+
+STEM = Law.of(["x", "xdot", "xddot"])
+
+
+@pytest.fixture(scope="module")
+def one_branch() -> object:
+    """A short session of one relaxation branch (it resolves time constants from 0.03
+    to 1.9 s: room for three branches) and the scope a search sees on it."""
+    s, _ = random_session(FAMILIES["one branch"], rate_hz=500.0, seed=1, duration_s=6.0, bits=12)
+    kin = BayesianFit().prepare(s).kinematics
+    return s, Scope(kin, None, kin.force.size)
+
+
+def _linear(law: Law, ln_evidence: float) -> ModelResult:
+    return ModelResult(model=law, ln_evidence=ln_evidence, residual_rms=1.0)
+
+
+class _Scorer:
+    """A scoring callable with made-up evidence: each relaxation branch is worth
+    ``gains[k]`` nats, contact ``contact`` nats; it counts the calls per law."""
+
+    def __init__(
+        self, gains: list[float], contact: float = -50.0, bonus: dict[str, float] | None = None
+    ) -> None:
+        self.gains, self.contact, self.calls = gains, contact, Counter[str]()
+        self.bonus = bonus or {}
+
+    def __call__(self, law: Law) -> ModelResult:
+        self.calls[law.name] += 1
+        names = [t.name for t in law.terms]
+        k = names.count("maxwell")
+        ln_z = sum(self.gains[:k]) + (self.contact if "contact" in names else 0.0)
+        ln_z -= 5.0 * sum(n in ("offset", "x^3") for n in names)  # what pruning removes
+        ln_z += sum(self.bonus.get(n, 0.0) for n in names)
+        return ModelResult(model=law, family=law, ln_evidence=ln_z, residual_rms=1.0)
+
+
+def test_greedy_grows_while_each_branch_raises_the_evidence_and_scores_each_law_once(one_branch):
+    _, scope = one_branch
+    score = _Scorer(gains=[30.0, 4.0, -2.0])
+    tried, notes = GreedySearch().run([_linear(STEM, 0.0)], score, scope)
+    assert notes == []
+    assert max(score.calls.values()) == 1
+    names = [r.name for r in tried]
+    # contact first, then one branch, a second, and a third that does not pay
+    assert names[0].startswith("contact")
+    assert names[1:] == [
+        "x+maxwell+xdot+xddot",
+        "x+maxwell+maxwell+xdot+xddot",
+        "x+maxwell+maxwell+maxwell+xdot+xddot",
+    ]
+    assert max(tried, key=lambda r: r.ln_evidence).name == "x+maxwell+maxwell+xdot+xddot"
+
+
+def test_greedy_prunes_what_a_branch_makes_redundant(one_branch):
+    _, scope = one_branch
+    score = _Scorer(gains=[30.0, -1.0])
+    stem = Law.of(["x", "x^3", "xdot", "xddot", "offset"])
+    tried, _ = GreedySearch().run([_linear(stem, -10.0)], score, scope)
+    best = max(tried, key=lambda r: r.ln_evidence)
+    assert best.name == "x+maxwell+xdot+xddot"
+
+
+def test_searches_say_when_the_session_is_too_short_for_more_branches(one_branch):
+    s, _ = one_branch
+    short = s.replace(s.time[:400], s.force[:400], s.position[:400])  # 0.02-0.2 s
+    kin = BayesianFit().prepare(short).kinematics
+    scope = Scope(kin, None, kin.force.size)
+    for search in (GreedySearch(), ExhaustiveSearch()):
+        score = _Scorer(gains=[30.0, 4.0])
+        tried, notes = search.run([_linear(STEM, 0.0)], score, scope)
+        assert max(r.name.count("maxwell") for r in tried) == 1
+        assert len(notes) == 1 and notes[0].startswith("relaxation branch 2 not searched")
+
+
+def test_exhaustive_scores_every_law_greedy_reaches_within_its_branches(one_branch):
+    _, scope = one_branch
+    stem = Law.of(["x", "x^3", "xdot", "xddot"])
+    greedy, exhaustive = _Scorer([30.0, 4.0, -2.0]), _Scorer([30.0, 4.0, -2.0])
+    g_tried, _ = GreedySearch().run([_linear(stem, 0.0)], greedy, scope)
+    e_tried, _ = ExhaustiveSearch(max_branches=2).run([_linear(stem, 0.0)], exhaustive, scope)
+    assert max(exhaustive.calls.values()) == 1
+    within = {r.name for r in g_tried if r.name.count("maxwell") <= 2}
+    assert within <= {r.name for r in e_tried}
+    # stiffness x, x^3 or both, times 1 or 2 branches; contact with 0 or 1
+    assert len(e_tried) == 3 * 2 + 2
+    assert all(r.name.count("maxwell") <= 2 for r in e_tried)
+    best = max(e_tried, key=lambda r: r.ln_evidence)
+    assert best.ln_evidence >= max(r.ln_evidence for r in g_tried if r.name in within)
+
+
+def test_a_search_reads_its_terms_from_the_registry():
+    for kind in ("replace", "grow", "prune"):
+        assert Search().terms(kind) == searched(kind)
+    no_contact = {n: t for n, t in TERMS.items() if t.search != "replace"}
+    assert Search(registry=no_contact).terms("replace") == []
+    assert Search(registry=no_contact).terms("grow") == searched("grow")
+
+
+def test_strategies_by_name_or_instance_and_an_unknown_name_is_refused():
+    assert isinstance(search_strategy("greedy"), GreedySearch)
+    assert isinstance(search_strategy("exhaustive"), ExhaustiveSearch)
+    mine = ExhaustiveSearch(max_branches=1)
+    assert search_strategy(mine) is mine
+    with pytest.raises(FitError, match="unknown search 'beam'.*greedy.*exhaustive"):
+        search_strategy("beam")
+
+
+class OneBranch(Search):
+    """A new strategy in one class: the best linear law with one of each ``grow`` term."""
+
+    name = "one-branch"
+
+    def explore(self, linear, score, scope, notes):  # type: ignore[no-untyped-def]
+        best = max(linear, key=lambda r: r.ln_evidence)
+        for grow in self.terms("grow"):
+            score([*(t.name for t in best.model.terms), grow])
+
+
+@pytest.fixture
+def one_branch_search() -> Iterator[type[Search]]:
+    register_search(OneBranch)
+    try:
+        yield OneBranch
+    finally:
+        SEARCHES.pop(OneBranch.name, None)
+
+
+def test_a_new_search_is_one_class_registered_or_passed(one_branch, one_branch_search):
+    s, _ = one_branch
+    by_name = BayesianFit(search="one-branch").fit(s)
+    by_instance = BayesianFit(search=OneBranch()).fit(s)
+    for est in (by_name, by_instance):
+        shaped = [r.name for r in est.results_ + est.not_evaluated_ if r.model.shape_names]
+        # the one law the strategy built: the best linear law and a branch, chosen
+        assert len(shaped) == 1 and shaped[0].count("maxwell") == 1
+        assert est.best_.name == shaped[0]
+        assert est.law_.shape["tau1"] == pytest.approx(0.5, rel=0.2)
+    assert by_name.best_.ln_evidence == by_instance.best_.ln_evidence
+    with pytest.raises(FitError, match="unknown search 'nope'.*one-branch"):
+        BayesianFit(search="nope").fit(s)
+
+
+def test_a_search_without_a_name_is_not_registered():
+    class Nameless(Search):
+        pass
+
+    with pytest.raises(FitError, match="Nameless has no name"):
+        register_search(Nameless)
+
+
+@pytest.mark.slow
+def test_exhaustive_fit_finds_at_least_the_evidence_greedy_finds(one_branch):
+    s, _ = one_branch
+    greedy = BayesianFit().fit(s)
+    every = BayesianFit(search=ExhaustiveSearch(max_branches=2)).fit(s)
+    assert every.best_.ln_evidence >= greedy.best_.ln_evidence - 1e-6
+    assert every.best_.name.count("maxwell") == 1
+    assert len(every.results_) + len(every.not_evaluated_) > len(greedy.results_)
+
+
+class Creep(Maxwell):
+    """A grown term that a law may hold twice."""
+
+    name, max_count = "creep", 2
+
+
+@pytest.fixture
+def creep() -> Iterator[dict[str, object]]:
+    register(Creep)
+    try:
+        yield {n: t for n, t in TERMS.items() if n != "maxwell"}
+    finally:
+        unregister("creep")
+
+
+def test_a_grown_term_is_added_no_more_times_than_a_law_may_hold_it(one_branch, creep):
+    _, scope = one_branch
+    for search in (GreedySearch(registry=creep), ExhaustiveSearch(registry=creep)):  # type: ignore[arg-type]
+        assert search.terms("grow") == ["creep"]
+        # creep worth 10 nats: a greedy search would take another if a law could hold it
+        score = _Scorer(gains=[], bonus={"creep": 10.0})
+        tried, _ = search.run([_linear(STEM, 0.0)], score, scope)
+        assert "x+creep+creep+xdot+xddot" in {r.name for r in tried}
+        assert all(r.name.count("creep") <= 2 for r in tried)

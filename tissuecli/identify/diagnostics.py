@@ -1,0 +1,157 @@
+"""What a fit says about its own choice: coefficients the data do not pin down, a
+blocked cross-validation score beside the evidence (and a warning where the two
+disagree), force samples the noise model does not explain, and the residual SD the
+chosen law expects."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .derivatives import Kinematics
+from .design import design
+from .scoring import NOT_EVALUATED, Context, ModelResult
+
+Array = NDArray[np.float64]
+
+
+def identifiability(r: ModelResult) -> list[str]:
+    """Flags for coefficients the data do not pin down."""
+    flags = []
+    post = r.posterior
+    assert post is not None and r.prior is not None
+    scales = r.prior.scales
+    for j, t in enumerate(r.model.terms):
+        lo, hi = post.ci95[j]
+        vague = post.sd[j] > 0.3 * scales[j]
+        if vague or (
+            t.passive and (lo <= 0.02 * max(hi, 1e-300) or post.sd[j] > 0.5 * abs(post.mean[j]))
+        ):
+            what = (
+                "too little acceleration content"
+                if t.role == "inertia"
+                else "too little excitation"
+            )
+            flags.append(
+                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
+            )
+        elif t.passive and post.sd[j] > 0.25 * abs(post.mean[j]):
+            flags.append(
+                f"{t.symbol} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                "of its value"
+            )
+    return flags
+
+
+def unidentified(r: ModelResult) -> set[int]:
+    """Indices of the terms whose coefficient :func:`identifiability` calls not
+    identified."""
+    out = set()
+    for j, t in enumerate(r.model.terms):
+        if any(f.startswith(f"{t.symbol} not identified") for f in r.flags):
+            out.add(j)
+    return out
+
+
+#: contiguous blocks of the blocked cross-validation reported beside the evidence
+CV_BLOCKS = 5
+
+
+#: a law predicting held-out blocks this much better than the chosen one is reported
+CV_MARGIN = 1.1
+
+
+def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
+    """RMS of what each of ``blocks`` contiguous blocks leaves to the least-squares fit
+    of the others (N): a prediction score of a law on data its coefficients never saw,
+    from the Gram matrix of each block, formed once.
+
+    Parameters
+    ----------
+    A : ndarray, shape (m, p)
+        The law's design matrix at the fitted samples.
+    y : ndarray, shape (m,)
+        The filtered force, N.
+    """
+    m = y.size
+    if m < 2 * blocks * max(A.shape[1], 1):
+        return float("nan")
+    edges = np.linspace(0, m, blocks + 1).astype(int)
+    d = np.linalg.norm(A, axis=0)
+    d[d == 0] = 1.0
+    As = A / d
+    parts = [(As[a:b].T @ As[a:b], As[a:b].T @ y[a:b]) for a, b in itertools.pairwise(edges)]
+    G = sum(g for g, _ in parts)
+    c = sum(v for _, v in parts)
+    ss = 0.0
+    for (a, b), (g, v) in zip(itertools.pairwise(edges), parts, strict=True):
+        beta = np.linalg.lstsq(G - g, c - v, rcond=1e-12)[0]
+        r = y[a:b] - As[a:b] @ beta
+        ss += float(r @ r)
+    return math.sqrt(ss / m)
+
+
+def predictive_guard(results: list[ModelResult], fit: Context) -> list[str]:
+    """Score each evaluated law by blocked cross-validation (``cv_rms``) and say when a
+    law predicts the held-out blocks clearly better than the chosen one: evidence and
+    prediction then disagree, and the choice rests on the priors."""
+    for r in results:
+        if r.status == NOT_EVALUATED:
+            continue
+        A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        r.cv_rms = blocked_cv_rms(A, fit.y)
+    best = results[0]
+    scored = [r for r in results if math.isfinite(r.cv_rms)]
+    if not scored or not math.isfinite(best.cv_rms):
+        return []
+    top = min(scored, key=lambda r: r.cv_rms)
+    if top is best or best.cv_rms <= CV_MARGIN * top.cv_rms:
+        return []
+    return [
+        f"{top.name} predicts held-out blocks better than the chosen {best.name} "
+        f"(blocked cross-validation RMS {top.cv_rms:.3g} N against {best.cv_rms:.3g} N): "
+        "evidence and prediction disagree"
+    ]
+
+
+def outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str]:
+    """Raw force samples beyond ``z`` noise SDs of the fit: glitches (ADC spikes, a knock)
+    the Gaussian noise model does not explain, and which pull every parameter.
+
+    Raw, not filtered, residuals: filtering smears a spike over the kernel, and at
+    high rates with a coarse position ADC the filtered residual carries the
+    quantisation of position (plateaus of K q / 2 at every turn of the jaw), which is
+    not a glitch but stood at 50 filtered-noise SDs.
+    """
+    r = kin.force_raw - fitted
+    scale = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # robust SD
+    if not scale > 0:
+        return []
+    bad = np.flatnonzero(np.abs(r) > z * scale)
+    if bad.size == 0:
+        return []
+    t = kin.time[bad]
+    return [
+        f"{bad.size} force sample(s) lie beyond {z:g} noise SDs of the fit, first at "
+        f"t = {t[0]:.3f} s: a glitching sensor or a knock; the parameters absorb it, so "
+        "inspect the residuals in the report and fit a clean stretch"
+    ]
+
+
+def expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
+    """Residual SD the best form expects (N): force noise plus position noise through the law.
+
+    With the errors-in-variables correction the posterior noise SD is the force noise
+    alone; noise on position reaches the residuals through the design columns too, adding
+    ``beta^T C beta / n`` to their variance (C: the correction subtracted from A^T A).
+    """
+    post = best.posterior
+    assert post is not None
+    sigma = float(post.sigma_mean)
+    if sigma_x <= 0 or best.correction is None:
+        return sigma  # no correction, or the fit left this form uncorrected
+    extra = float(post.mean @ best.correction @ post.mean) / max(n, 1)
+    return float(np.sqrt(sigma**2 + max(extra, 0.0)))

@@ -1,0 +1,333 @@
+"""Laws with shape parameters (time constants, contact exponents and points): their
+evidence and posterior with the shape marginalised over the prior each term declares,
+by a quadrature grid, a Laplace approximation at the peak and Gauss-Hermite nodes, or
+(beyond :data:`MAX_GRID_SHAPES` parameters) a Laplace estimate whose shape posterior
+emcee samples later; and the first pass of a law at many shapes, its shape-free
+columns formed once."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import FitError
+from ..core.terms import Law
+from .design import noise_path, raw_speed, term_column, term_noise_path
+from .posterior import CHECK_NATS, ExactPosterior, Posterior
+from .scoring import (
+    CUT_THRESHOLD,
+    Context,
+    FirstPass,
+    ModelResult,
+    first_pass,
+    law_stats,
+    not_evaluated,
+    result_of,
+)
+from .shapes import ShapeGrid, hermite_nodes, kept, laplace, mix, shape_grid, shape_summary
+
+Array = NDArray[np.float64]
+
+#: shape parameters up to which a grid (and a Laplace approximation) marginalises the
+#: shape; beyond, emcee samples it
+MAX_GRID_SHAPES = 2
+
+
+#: draws of the shape's chain whose conditional posteriors make the coefficients' one
+SHAPE_MIXTURE = 8
+
+
+def exact_shaped(law: Law, fit: Context) -> ModelResult:
+    """A law with shape parameters: its exact evidence at every node of the shape's
+    quadrature grid, weighted by the prior's masses. Where the posterior is sharper
+    than the grid (most sessions: thousands of samples pin a time constant to a few
+    per cent), Newton steps find its peak and a Laplace approximation gives the
+    evidence, and three Gauss-Hermite nodes per parameter carry the shape's
+    uncertainty into the coefficients; elsewhere the grid's heaviest nodes do.
+
+    With more than :data:`MAX_GRID_SHAPES` shape parameters the grid is coarse and
+    only seeds the peak; the evidence is still the Laplace approximation (or the
+    grid's sum), and the shape's posterior is left to the result's ``sample_shape``
+    (emcee), which the fit runs only if the law is not decisively behind the best.
+    """
+    many = len(law.shape_names) > MAX_GRID_SHAPES
+    grid = shape_grid(law, fit.kin, coarse=many)
+    light = ShapedPass(law, fit)
+    cache: dict[tuple[float, ...], tuple[float, tuple[Any, ...]]] = {}
+
+    def parts(node: dict[str, float], nodes: int = 401) -> tuple[float, tuple[Any, ...]]:
+        """ln evidence given the shape without the positivity bounds' orthant mass
+        (the costly part, and nearly constant over a peak), and the fit's parts."""
+        bound = law.bind(node)
+        key = (law.name, tuple(node[n] for n in grid.names))
+        fp = fit.shaped_passes.get(key)
+        if fp is None:
+            fp = fit.shaped_passes[key] = light(node)
+        st, prior, corr, flags = law_stats(bound, fp, fit)
+        exact = ExactPosterior(st, prior, nodes=nodes)
+        return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
+
+    def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
+        key = tuple(node[n] for n in grid.names)
+        if key not in cache:
+            cache[key] = parts(node)
+        return cache[key]
+
+    def truncation(node: dict[str, float]) -> float:
+        """ln of what the positivity bounds keep of the closed form's evidence."""
+        exact = evaluate(node)[1][5]
+        return exact.ln_evidence() - exact.ln_z_untruncated
+
+    ln_z = np.array([evaluate(node)[0] for node in grid.nodes])
+    # the bounds matter only where the evidence does: the nodes near the top (more
+    # join them if the bounds pull the top down)
+    done = np.zeros(ln_z.size, bool)
+    while True:
+        near = np.flatnonzero(~done & (ln_z > ln_z[done].max(initial=ln_z.max()) - 30.0))
+        if not near.size:
+            break
+        for i in near:
+            ln_z[i] += truncation(grid.nodes[i])
+        done[near] = True
+    log_post = ln_z + grid.log_weight
+    tops = np.argsort(-log_post)[:3]
+    starts = [grid.to_u(grid.nodes[i]) for i in tops]
+    peak = laplace(lambda u: evaluate(grid.from_u(u))[0], grid, starts)
+    sharp = peak is not None and bool(np.all(peak.sd < grid.spacing))
+    if sharp:
+        assert peak is not None
+        d = peak.u.size
+        ln_evidence = (
+            peak.log_z
+            + truncation(grid.from_u(peak.u))
+            + grid.log_density
+            + 0.5 * d * np.log(2 * np.pi)
+            + 0.5 * float(np.linalg.slogdet(peak.cov)[1])
+        )
+        point = grid.from_u(peak.u)
+        if many:  # the chain will carry the shape's uncertainty, if it runs
+            post = evaluate(point)[1][5].bounded(fit.rng, CUT_THRESHOLD)
+        else:
+            nodes_u, w = hermite_nodes(peak)
+            inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
+            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD)
+                     for i in inside]  # fmt: skip
+            post = mix(posts, w[inside], fit.rng)
+        draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
+        shape_post = _shape_draws(grid, draws)
+        how = (
+            f"Laplace approximation at the peak over the shape, after a {len(grid.nodes)}-"
+            f"node grid and {len(cache) - len(grid.nodes)} Newton evaluations"
+        )
+        start, start_cov = peak.u, peak.cov
+    else:
+        ln_evidence = float(_logsumexp(log_post))
+        heavy = kept(log_post)
+        weights = np.exp(log_post[heavy] - log_post[heavy[0]])
+        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in heavy]
+        post = mix(posts, weights, fit.rng)
+        shape_post, point = shape_summary(grid, log_post)
+        how = f"quadrature over {len(grid.nodes)} shape nodes"
+        start, start_cov = grid.to_u(grid.nodes[heavy[0]]), np.diag((grid.spacing / 4) ** 2)
+    post.ln_evidence = float(ln_evidence)
+    ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
+    ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
+    ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.y.size))
+    ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
+    res = shaped_result(law, point, post, evaluate, fit)
+    res.reason = f"{how} ({ranges})"
+    # the evidence is trusted only if the node it rests on is, and if it stays
+    # below the likelihood's maximum over every shape evaluated
+    why = evaluate(point)[1][5].untrusted()
+    top = max(entry[1][1].max_log_likelihood() for entry in cache.values())
+    if not why and not ln_evidence <= top + CHECK_NATS:
+        why = (
+            f"its ln evidence ({ln_evidence:.4g}) exceeds the likelihood's maximum "
+            f"({top:.4g}): a numerical failure"
+        )
+    res.shape_posterior = shape_post
+    res.shape_ranges = grid.ranges
+    res.least_squares = (ls_law, ls_rms)
+
+    if many:
+        res.shape_sampler = {"status": "pending", "evidence": how}
+
+        def sample() -> None:
+            """emcee over the shape, started at the peak; the evidence stays the
+            estimate above (a chain gives none)."""
+            from .sampling import sample_shapes  # emcee, only when a shape is sampled
+
+            def target(u: Array) -> float:
+                # uniform prior in u inside the support; 101 nodes over ln sigma are
+                # exact to rounding for its near-Gaussian posterior, at a quarter the cost
+                return parts(grid.from_u(u), nodes=101)[0]
+
+            try:
+                draws, diag = sample_shapes(
+                    target, grid.interior(start), start_cov, grid.inside, fit.rng,
+                    progress=fit.chain_progress(res.name),
+                )  # fmt: skip
+            except FitError as e:  # keep the Laplace summary, and say why
+                res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
+                res.reason += f"; shape not sampled: {e}"
+                res.flags.append(f"shape not sampled ({e}): its intervals are Laplace's")
+                return
+            summary = _shape_draws(grid, draws)
+            for j, name in enumerate(grid.names):
+                summary[name]["method"] = "emcee"
+                summary[name]["tau_steps"] = diag["tau"][j]
+            pick = fit.rng.choice(draws.shape[0], size=min(SHAPE_MIXTURE, draws.shape[0]),
+                                  replace=False)  # fmt: skip
+            posts = [
+                evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in pick
+            ]
+            mixed = mix(posts, np.ones(len(posts)), fit.rng)
+            mixed.ln_evidence = res.ln_evidence
+            median = np.median(draws, axis=0)
+            centre = grid.from_u(median) if grid.inside(median) else grid.from_u(draws[0])
+            new = shaped_result(law, centre, mixed, evaluate, fit)
+            for name in ("model", "posterior", "cond", "cond_scaled", "residual_rms",
+                         "gram", "correction", "stats", "prior", "flags"):  # fmt: skip
+                setattr(res, name, getattr(new, name))
+            res.shape_posterior = summary
+            diag.update(status="sampled", evidence=how)
+            res.shape_sampler = diag
+            mixed.diagnostics["shape_emcee"] = diag
+            res.reason += (
+                f"; shape sampled by emcee ({diag['walkers']} walkers, {diag['steps']} "
+                f"steps, tau {max(diag['tau']):.0f}, acceptance {diag['acceptance']:.2f})"
+            )
+            if not diag["converged"]:
+                res.flags.append(
+                    f"shape chain stopped at {diag['steps']} steps, shorter than 50 "
+                    f"autocorrelation times ({50 * max(diag['tau']):.0f}): its intervals "
+                    "are rough"
+                )
+
+        res.sample_shape = sample
+    if why:
+        not_evaluated(res, why)
+    fit.scored(law.name)
+    return res
+
+
+def shaped_result(
+    law: Law,
+    point: dict[str, float],
+    post: Posterior,
+    evaluate: Callable[[dict[str, float]], tuple[float, tuple[Any, ...]]],
+    fit: Context,
+) -> ModelResult:
+    """The result of a law with shape parameters, bound at ``point``.
+
+    Its coefficients' means are those given the shape at ``point``: a coefficient's
+    meaning can hang on the shape (a contact stiffness is in N/m^n), so an average
+    over shapes would not predict the force the bound law gives. Their SDs and
+    intervals stay those of ``post``, which carry the shape's uncertainty.
+    """
+    fp, st, prior, corr, flags, exact = evaluate(point)[1]
+    if post.diagnostics.get("shape_nodes", 1) > 1:
+        post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
+        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
+    return result_of(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
+
+
+class ShapedPass:
+    """:func:`first_pass` of one law at many values of its shape parameters.
+
+    The columns without shape parameters, their products with each other and with the
+    force, and their noise paths do not change from one shape to the next: they are
+    formed once, so that each shape costs only its own columns and their products
+    (what makes sampling the shape affordable).
+    """
+
+    def __init__(self, law: Law, fit: Context) -> None:
+        self.law, self.fit = law, fit
+        terms = law.terms
+        self.fixed = [j for j, t in enumerate(terms) if not t.shapes]
+        self.moving = [j for j, t in enumerate(terms) if t.shapes]
+        kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
+        cols = [term_column(terms[j], kin, x, sx, fit.columns) for j in self.fixed]
+        self.F = np.column_stack(cols) if cols else np.zeros((fit.y.size, 0))
+        self.G_ff = self.F.T @ self.F
+        self.b_f = self.F.T @ fit.y
+        self.yy = float(fit.y @ fit.y)
+        self.speed = raw_speed(kin, x)
+        if sx > 0:
+            paths = [term_noise_path(terms[j], kin, x, fit.paths) for j in self.fixed]
+            width = kin.kernels[0].size
+            self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
+            self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
+            self.DtD_f = self.D_f.T @ self.D_f
+
+    def __call__(self, node: dict[str, float]) -> FirstPass:
+        fit, bound = self.fit, self.law.bind(node)
+        p, fixed, moving = len(bound.terms), self.fixed, self.moving
+        S = np.column_stack(
+            [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,
+                         raw_speed=self.speed) for j in moving]
+        )  # fmt: skip
+        gram = self._assemble(self.G_ff, S.T @ self.F, S.T @ S)
+        b = np.empty(p)
+        b[fixed] = self.b_f
+        b[moving] = S.T @ fit.y
+        d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+        lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+        cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
+        if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
+            return first_pass(
+                bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
+            )
+        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+        # from the residuals themselves: yy - 2 beta.b + beta.G.beta cancels to zero (or
+        # below) when the law explains all but a millionth of yy, and a zero residual
+        # lets the evidence grow without bound as the noise level goes to zero
+        r = fit.y - self.F @ beta[fixed] - S @ beta[moving]
+        rss = float(r @ r)
+        lam = np.linalg.eigvalsh(gram)
+        cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
+        correction = None
+        if fit.sigma_x > 0:
+            paths = [noise_path(bound.terms[j], fit.kin, fit.x_full) for j in moving]
+            K = np.empty((p, fit.kin.kernels[0].size))
+            K[fixed] = self.K_f
+            K[moving] = [k for k, _ in paths]
+            D = np.column_stack([dd for _, dd in paths])
+            DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
+            correction = fit.sigma_x**2 * (K @ K.T) * DtD
+        return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
+
+    def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
+        """A (p, p) matrix of products from its blocks: fixed with fixed, moving with
+        fixed, moving with moving."""
+        fixed, moving = self.fixed, self.moving
+        p = len(fixed) + len(moving)
+        out = np.empty((p, p))
+        out[np.ix_(fixed, fixed)] = ff
+        out[np.ix_(moving, fixed)] = mf
+        out[np.ix_(fixed, moving)] = mf.T
+        out[np.ix_(moving, moving)] = mm
+        return out
+
+
+def _shape_draws(grid: ShapeGrid, draws: Array) -> dict[str, dict[str, Any]]:
+    """Mean, SD and central 95 % interval (SI) of each shape parameter from draws in
+    ``u`` (parameters of log-uniform prior, such as time constants, drawn in their
+    logarithm)."""
+    out: dict[str, dict[str, Any]] = {}
+    for j, name in enumerate(grid.names):
+        v = np.exp(draws[:, j]) if grid.log(name) else draws[:, j]
+        out[name] = {
+            "mean": float(np.mean(v)),
+            "sd": float(np.std(v, ddof=1)),
+            "ci95": [float(q) for q in np.percentile(v, [2.5, 97.5])],
+        }
+    return out
+
+
+def _logsumexp(a: Array) -> float:
+    top = float(np.max(a))
+    return top + float(np.log(np.sum(np.exp(a - top)))) if np.isfinite(top) else top
