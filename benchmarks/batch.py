@@ -5,6 +5,7 @@ Usage::
     python benchmarks/batch.py speed        # 4 tissues x 10 specimens x 10 sessions
     python benchmarks/batch.py calibration  # compare, on studies drawn from its model
     python benchmarks/batch.py classify --catalogue DIR/two.db   # after speed
+    python benchmarks/batch.py cpu          # CPU time of the parent and of the workers
 
 ``speed`` simulates the study with ``tissuecli simulate study``, fits it with
 ``tissuecli fit --jobs 1`` and ``--jobs 2`` into two catalogues, side by side, then
@@ -13,7 +14,12 @@ speed-up and the load average. ``calibration`` draws whole studies' session post
 from the hierarchical model (no fitting) and bins P(A > B) against what happened, and
 counts how often two groups with one mean are judged the same. ``classify`` runs
 leave-one-specimen-out classification on the fitted catalogue against the truth's own
-classifier (the design's group values and spreads).
+classifier (the design's group values and spreads). ``cpu`` fits the study in a child
+process with ``--jobs 1`` and ``--jobs 2`` and reports the CPU time each process used per
+session fitted: the parent's (its start and imports, reading, hashing, storing,
+dispatching) and the workers' (theirs too).
+CPU time depends far less on the machine's load than wall time does, so these figures say
+on a busy machine where a batch's work is.
 """
 
 from __future__ import annotations
@@ -77,6 +83,55 @@ def speed(a: argparse.Namespace) -> None:
     t, out = run("fit", str(study), "--catalogue", str(where / "jobs2.db"), "--jobs", "2", *extra)
     fitted = re.search(r"(\d+) of (\d+) session\(s\) fitted", out)
     print(f"repeated --jobs 2: {t:.1f} s, {fitted.group(0) if fitted else out.strip()}; {load()}")
+
+
+CHILD = """
+import json, os, sys, time
+t0 = time.perf_counter()
+import psutil
+from tissuecli.app.batch import fit_batch
+db, study, jobs, forms = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] or None
+extra = {"forms": forms} if forms else {}
+r = fit_batch([study], catalogue=db, jobs=jobs, **extra)
+parent = time.process_time()  # the whole process, its start and imports too
+kids = sum(sum(p.cpu_times()[:2]) for p in psutil.Process().children(recursive=True))
+print(json.dumps({"parent": parent, "workers": kids, "wall": time.perf_counter() - t0,
+                  "fitted": len(r.fitted), "fit": sum(f.seconds for f in r.fitted)}))
+"""
+
+
+def cpu(a: argparse.Namespace) -> None:
+    import json
+
+    where = Path(a.dir or tempfile.mkdtemp(prefix="batch-cpu-"))
+    where.mkdir(parents=True, exist_ok=True)
+    study = where / "study.h5"
+    if not study.exists():
+        size = ["--groups", str(a.groups), "--specimens", str(a.specimens)]
+        run("simulate", "study", "--out", str(study), *size, "--sessions", str(a.sessions))
+    print(f"study {study}: {a.groups} x {a.specimens} x {a.sessions} sessions; fit settings: "
+          f"{['--forms', a.forms] if a.forms else 'default'}; {load()}")  # fmt: skip
+    print("jobs   wall s   parent ms/fit   workers ms/fit   fit ms/fit   all CPU s")
+    total = {}
+    for jobs in (1, 2):
+        db = where / f"cpu{jobs}.db"
+        if db.exists():
+            db.unlink()
+        r = subprocess.run(
+            [sys.executable, "-c", CHILD, str(db), str(study), str(jobs), a.forms or ""],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        f = json.loads(r.stdout.strip().splitlines()[-1])
+        n = max(f["fitted"], 1)
+        total[jobs] = f["parent"] + f["workers"]
+        print(f"{jobs:4d} {f['wall']:8.1f} {1e3 * f['parent'] / n:15.1f} "
+              f"{1e3 * f['workers'] / n:16.1f} {1e3 * f['fit'] / n:12.1f} "
+              f"{total[jobs]:11.1f}")  # fmt: skip
+    # on 2 idle cores --jobs 1 takes its CPU time, --jobs 2 at best half of its own
+    print(
+        f"speed-up --jobs 2 over --jobs 1 that the CPU times allow on 2 idle cores: "
+        f"{total[1] / (total[2] / 2):.2f}x; {load()}"
+    )
 
 
 def draw(rng: np.random.Generator, mu: np.ndarray, omega: float, tau: float,
@@ -198,10 +253,17 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--specimens", type=int, default=10)
     c.add_argument("--sessions", type=int, default=10)
     c.add_argument("--seed", type=int, default=20261125)
+    u = sub.add_parser("cpu")
+    u.add_argument("--groups", type=int, default=4)
+    u.add_argument("--specimens", type=int, default=10)
+    u.add_argument("--sessions", type=int, default=10)
+    u.add_argument("--forms", default="paper", help="fit --forms [default: paper]")
+    u.add_argument("--dir", default=None, help="work folder (kept) [default: a new temporary one]")
     k = sub.add_parser("classify")
     k.add_argument("--catalogue", required=True)
     a = ap.parse_args(argv)
-    {"speed": speed, "calibration": calibration, "classify": classify}[a.part](a)
+    parts = {"speed": speed, "calibration": calibration, "classify": classify, "cpu": cpu}
+    parts[a.part](a)
 
 
 if __name__ == "__main__":

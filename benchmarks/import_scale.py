@@ -11,7 +11,9 @@ row) is written once, then three child processes run one after the other on it:
 ``tissuecli import`` (into a new HDF5 file) and the one behind ``tissuecli sessions`` (on
 that file). Each child loads its libraries (pandas; or tissuecli, which loads h5py and, for a
 text table, pyarrow), then times its one call and reports its peak resident memory
-(``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB).
+(``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB), and
+the CPU time of its call (every thread: pyarrow parses on every core). The CPU times'
+ratio depends little on the machine's load; the wall times' does.
 ``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
 """
 
@@ -33,18 +35,22 @@ what, path, out = sys.argv[1:4]
 if what == "pandas":
     import pandas
 else:
+    import pyarrow.csv  # loaded by the first block read: a library, as pandas is
     from tissuecli.app.transfer import import_recording
     from tissuecli.formats.sessions import list_sessions
-start = time.perf_counter()
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+start, cpu0 = time.perf_counter(), cpu()
 if what == "pandas":
     rows = len(pandas.read_csv(path))
 elif what == "import":
     rows = import_recording(path, out, "s")[0].samples
 else:
     rows = list_sessions(out)[0]["samples"]
-wall = time.perf_counter() - start
+wall, used = time.perf_counter() - start, cpu() - cpu0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-print(json.dumps({"rows": rows, "wall_s": wall, "peak_bytes": peak}))
+print(json.dumps({"rows": rows, "wall_s": wall, "cpu_s": used, "peak_bytes": peak}))
 """
 
 
@@ -78,10 +84,11 @@ def main() -> None:
     parser.add_argument("--dir", default=None, help="where to write the files")
     args = parser.parse_args()
     counts = [int(float(r)) for r in args.rows.split(",")] + ([10**8] if args.slow else [])
-    print(f"load average before: {os.getloadavg()[0]:.2f} (2 cores)")
+    print(f"load average before: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
     print(
-        f"{'rows':>10} {'CSV MB':>7} | {'pandas s':>8} {'MB':>6} | {'import s':>8} {'MB':>6} "
-        f"{'ratio':>6} | {'sessions s':>10} {'MB':>6}"
+        f"{'rows':>10} {'CSV MB':>7} | {'pandas s':>8} {'CPU s':>6} {'MB':>5} | "
+        f"{'import s':>8} {'CPU s':>6} {'MB':>5} | {'ratio':>5} {'CPU':>5} | "
+        f"{'sessions s':>10} {'MB':>5}"
     )
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for rows in counts:
@@ -93,9 +100,10 @@ def main() -> None:
             assert imp["rows"] == ref["rows"] == lst["rows"] == rows, (imp, ref, lst)
             print(
                 f"{rows:>10.0e} {path.stat().st_size / 1e6:>7.0f} | {ref['wall_s']:>8.2f} "
-                f"{ref['peak_bytes'] / 1e6:>6.0f} | {imp['wall_s']:>8.2f} "
-                f"{imp['peak_bytes'] / 1e6:>6.0f} {imp['wall_s'] / ref['wall_s']:>6.2f} | "
-                f"{lst['wall_s']:>10.2f} {lst['peak_bytes'] / 1e6:>6.0f}",
+                f"{ref['cpu_s']:>6.2f} {ref['peak_bytes'] / 1e6:>5.0f} | {imp['wall_s']:>8.2f} "
+                f"{imp['cpu_s']:>6.2f} {imp['peak_bytes'] / 1e6:>5.0f} | "
+                f"{imp['wall_s'] / ref['wall_s']:>5.2f} {imp['cpu_s'] / ref['cpu_s']:>5.2f} | "
+                f"{lst['wall_s']:>10.2f} {lst['peak_bytes'] / 1e6:>5.0f}",
                 flush=True,
             )
             path.unlink()

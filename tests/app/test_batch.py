@@ -145,3 +145,45 @@ def test_unreachable_scheduler_is_one_line() -> None:
     pytest.importorskip("distributed")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         DaskExecutor("tcp://127.0.0.1:9", timeout_s=1.0)
+
+
+def test_workers_read_the_sessions_and_the_parent_only_stores(
+    study: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import tissuecli.app.batch as batch
+
+    read_here: list[str] = []
+    real = batch.load_session
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        read_here.append(str(args[0]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(batch, "load_session", counted)
+    fit_batch([str(study)], catalogue=tmp_path / "two.db", jobs=2, **FAST)
+    assert read_here == []  # every session read in a worker process
+    fit_batch([str(study)], catalogue=tmp_path / "one.db", jobs=1, **FAST)
+    assert len(read_here) == 8  # in this process, by the same task function
+    assert _fits(tmp_path / "one.db") == _fits(tmp_path / "two.db")
+
+
+def test_an_interrupted_batch_keeps_what_it_fitted(study: Path, tmp_path: Path) -> None:
+    db = tmp_path / "t.db"
+
+    def stop_after_three(done: int, total: int, left: float | None) -> None:
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_batch([str(study)], catalogue=db, jobs=1, progress=stop_after_three, **FAST)
+    with Catalogue(db, create=False) as cat:
+        assert len(cat.entries()) == 3
+    again = fit_batch([str(study)], catalogue=db, jobs=2, **FAST)
+    assert (len(again.fitted), len(again.skipped)) == (5, 3)
+
+
+def test_stop_at_the_first_failure_with_workers(study: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "broken.csv"
+    broken.write_text("time,force,position\n0,1,2\n")
+    with pytest.raises(InputError, match="too few|broken"):
+        fit_batch([str(broken), str(study)], jobs=2, on_error="stop", **FAST)

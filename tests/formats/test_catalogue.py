@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from tissuecli.core.errors import InputError, StorageError
 from tissuecli.core.tissue import DEFAULT_TISSUE
-from tissuecli.formats.catalogue import Catalogue, export, parse_where, table
+from tissuecli.formats.catalogue import Catalogue, Fit, export, fit_rows, parse_where, table
 from tissuecli.formats.params import document
 from tissuecli.identify.outcome import fit_session
 from tissuecli.sim.synth import random_session
@@ -62,6 +62,32 @@ def test_round_trip(tmp_path: Path, doc: dict) -> None:
     np.testing.assert_allclose(sd, [t["sd"] for t in law["terms"]])
     (n,) = db.execute("SELECT count(*) FROM evidence").fetchone()
     assert n == len(doc["evidence"])
+
+
+def test_many_fits_in_one_transaction_as_one_by_one(tmp_path: Path, doc: dict) -> None:
+    one = tmp_path / "one.db"
+    with Catalogue(one) as cat:
+        for k in ("k1", "k2", "k3"):
+            _add(cat, doc, k)
+    many = tmp_path / "many.db"
+    rows = fit_rows(doc)  # as a batch's worker makes them
+    with Catalogue(many) as cat:
+        ids = cat.add_many(
+            [
+                Fit(k, "/data/a.h5", "s1", "c" * 64, {"forms": "x,xdot"}, "abc",
+                    {"tissue": "liver", "specimen": "L1"}, rows,
+                    "2026-01-01T00:00:00+00:00", 0.5)
+                for k in ("k1", "k2", "k3")
+            ]
+        )  # fmt: skip
+        assert ids == [1, 2, 3]
+
+    def dump(path: Path) -> list[list[tuple]]:
+        db = sqlite3.connect(path)
+        tables = ("fits", "coefficients", "evidence", "meta")
+        return [db.execute(f"SELECT * FROM {t} ORDER BY 1, 2").fetchall() for t in tables]
+
+    assert dump(one) == dump(many)
 
 
 def test_same_key_replaces_and_labels_change_in_place(tmp_path: Path, doc: dict) -> None:

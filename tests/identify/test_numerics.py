@@ -3,6 +3,7 @@ library routines they replace and to closed forms."""
 
 from __future__ import annotations
 
+import gc
 import math
 
 import numpy as np
@@ -184,3 +185,144 @@ def test_corrected_curvature_is_the_corrected_estimators_sandwich() -> None:
     G0, b0, _ = corrected_curvature(gram, b, np.zeros((3, 3)), rss, rss)
     np.testing.assert_allclose(G0, gram, rtol=1e-9)
     np.testing.assert_allclose(b0, b, rtol=1e-9)
+
+
+def _cut_posterior(cut_sds: float, p: int = 4, seed: int = 0) -> tuple[object, object]:
+    """Sufficient statistics and prior of a correlated regression whose second coefficient
+    sits ``cut_sds`` posterior SDs above its positivity bound (the others far inside)."""
+    from tissuecli.identify.posterior import Prior, SufficientStats
+
+    rng = np.random.default_rng(seed)
+    n, sigma = 2000.0, 0.1
+    A = rng.standard_normal((int(n), p))
+    A[:, 1] += 0.5 * A[:, 0]
+    G = A.T @ A
+    sd = sigma * np.sqrt(np.diag(np.linalg.inv(G)))
+    beta = np.full(p, 50.0) * sd
+    beta[1] = cut_sds * sd[1]
+    y = A @ beta + sigma * rng.standard_normal(int(n))
+    return SufficientStats.from_data(A, y), Prior(scales=np.full(p, 10.0))
+
+
+@pytest.mark.parametrize("cut_sds", [8.0, 1.0, -0.5, -3.0])
+def test_bounded_posterior_is_the_eager_summary_then_draws(cut_sds: float) -> None:
+    """:meth:`ExactPosterior.bounded` forms the closed-form summary only when it is the
+    answer: what it returns, and the generator's state after it, are those of forming
+    the summary first and then drawing under the bound."""
+    from tissuecli.identify.posterior import ExactPosterior
+
+    stats_, prior = _cut_posterior(cut_sds)
+
+    def eager(rng: np.random.Generator) -> object:
+        exact = ExactPosterior(stats_, prior)
+        post = exact.summary(rng)
+        if post.outside > 1e-3:
+            draws = exact.truncated(rng)
+            if draws is None:
+                post.diagnostics["exact"] = False
+                return post
+            post = draws
+        post.diagnostics["exact"] = True
+        return post
+
+    rng_lazy, rng_eager = np.random.default_rng(5), np.random.default_rng(5)
+    lazy = ExactPosterior(stats_, prior).bounded(rng_lazy)
+    ref = eager(rng_eager)
+    assert lazy.method == ref.method and lazy.diagnostics == ref.diagnostics
+    for name in ("mean", "sd", "ci95", "cov", "samples"):
+        np.testing.assert_array_equal(getattr(lazy, name), getattr(ref, name))
+    assert (lazy.sigma_mean, lazy.sigma_ci95, lazy.ln_evidence, lazy.outside) == (
+        ref.sigma_mean, ref.sigma_ci95, ref.ln_evidence, ref.outside,
+    )  # fmt: skip
+    assert rng_lazy.random() == rng_eager.random()  # the same stream for what follows
+
+
+@pytest.mark.parametrize("cut_sds", [1.0, -0.5])
+def test_rejection_draws_are_plain_rejection(cut_sds: float) -> None:
+    """The rejection draws (near bounds checked first, node by node) keep exactly the
+    draws, in the order, that checking every bound on every full draw keeps."""
+    from tissuecli.identify.posterior import ExactPosterior, _matrix_roots
+
+    stats_, prior = _cut_posterior(cut_sds)
+    exact = ExactPosterior(stats_, prior)
+    post = exact.truncated(np.random.default_rng(3))
+    assert post is not None
+    # the plain algorithm, on the same random numbers
+    rng = np.random.default_rng(3)
+    w, mus, covs, idx = exact.mixture()
+    chol = _matrix_roots(covs)
+    inside = exact.orthant_mass()
+    batch = int(max(4000, math.ceil(1.3 * 4000 / inside)))
+    kept, have, total = [], 0, 0
+    while have < 4000 and total < 20 * batch:
+        counts = rng.multinomial(batch, w)
+        pick = np.repeat(np.arange(w.size), counts)
+        beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], rng.standard_normal((batch, 4)))
+        ok = np.all(beta >= 0, axis=1)
+        kept.append(np.column_stack([beta[ok], np.exp(exact.u[idx])[pick[ok]]]))
+        have, total = have + int(ok.sum()), total + batch
+    want = np.concatenate(kept)[:4000]
+    assert post.samples.shape == want.shape
+    # the same products summed in another order: rounding of the largest value alone
+    np.testing.assert_allclose(post.samples, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    assert post.diagnostics["acceptance"] == have / total
+
+
+def test_orthant_mass_of_one_bound_is_its_normal_cdf() -> None:
+    """Where one bound alone matters the mass is that coefficient's normal CDF (to the
+    union bound's 1e-12): exact for independent coefficients, and within it for
+    correlated ones."""
+    from tissuecli.identify.orthant import orthant_log_probability
+
+    sd = np.array([1.0, 2.0, 0.5])
+    for rho in (0.0, 0.6, -0.9):
+        corr = np.array([[1.0, rho, 0.0], [rho, 1.0, rho / 2], [0.0, rho / 2, 1.0]])
+        cov = corr * np.outer(sd, sd)
+        mean = np.array([40.0, 0.3, 60.0]) * sd
+        ln_p, err = orthant_log_probability(mean, cov)
+        want = math.log(stats.norm.cdf(0.3 / math.sqrt(1 + 1e-12)))
+        assert err == 0.0
+        assert ln_p == pytest.approx(want, rel=1e-12, abs=1e-15)
+
+
+def test_orthant_lattice_without_a_sure_tail_is_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Leaving out trailing variables whose factor is 1 to the last bit changes the
+    lattice's estimate not at all: the same value, bit for bit, as the full lattice."""
+    from tissuecli.identify import orthant
+
+    sd = np.array([1.0, 1.0, 1.0, 1.0])
+    corr = np.array(
+        [[1.0, 0.5, 0.2, 0.3], [0.5, 1.0, 0.4, -0.2], [0.2, 0.4, 1.0, 0.1], [0.3, -0.2, 0.1, 1.0]]
+    )
+    mean = np.array([0.4, -0.3, 1.2, 300.0])
+    got = orthant.orthant_log_probability(mean, corr * np.outer(sd, sd))
+    monkeypatch.setattr(orthant, "_without_sure_tail", lambda chol, h: (chol, h))
+    monkeypatch.setattr(orthant, "_one_bound", lambda h: None)
+    assert orthant.orthant_log_probability(mean, corr * np.outer(sd, sd)) == got
+
+
+def test_recent_columns_answer_only_their_own_session_within_their_bound() -> None:
+    """The kept shaped columns are found again only for the very kinematics and closure
+    they came from, and never hold more than their byte bound."""
+    from tissuecli.identify.design import RecentColumns
+
+    class Kin:  # any object a weak reference can point to
+        pass
+
+    kin, other = Kin(), Kin()
+    x = np.arange(10.0)
+    cache = RecentColumns(max_bytes=3 * 80)
+    col = np.ones(10)
+    cache.put(("column", 0.0, "a"), kin, x, col)  # type: ignore[arg-type]
+    assert cache.get(("column", 0.0, "a"), kin, x) is col  # type: ignore[arg-type]
+    assert cache.get(("column", 0.0, "a"), other, x) is None  # type: ignore[arg-type]
+    assert cache.get(("column", 0.0, "a"), kin, x.copy()) is None  # type: ignore[arg-type]
+    for name in "bcd":  # three more of 80 bytes: the first is dropped
+        cache.put(("column", 0.0, name), kin, x, np.zeros(10))  # type: ignore[arg-type]
+    assert cache.get(("column", 0.0, "a"), kin, x) is None  # type: ignore[arg-type]
+    assert cache.get(("column", 0.0, "d"), kin, x) is not None  # type: ignore[arg-type]
+    assert cache.nbytes <= 3 * 80
+    del kin
+    gc.collect()  # a finished fit's columns go when the next fit keeps its first
+    cache.put(("column", 0.0, "e"), other, x, np.zeros(10))  # type: ignore[arg-type]
+    assert cache.nbytes == 80

@@ -17,6 +17,7 @@ import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -24,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from ..core import errors
 from ..core.errors import InputError, TissueError
 from ..core.session import Session
-from ..formats.catalogue import LABELS, Catalogue
+from ..formats.catalogue import LABELS, Catalogue, Fit, FitRows, fit_rows
 from ..formats.params import _finite as finite_tree
 from ..formats.params import document
 from ..formats.sessions import is_session_file, session_names
-from ..identify.outcome import fit_session
 from .transfer import load_session
 
 #: file suffixes a folder is searched for (sessions and every recording ``import`` reads)
@@ -39,6 +40,12 @@ SUFFIXES = (".h5", ".hdf5", ".csv", ".tsv", ".txt", ".dat", ".mat", ".npz")
 SETTINGS = (
     "method", "forms", "sampler", "differentiator", "window_s", "force_scale", "seed",
     "grasps", "start_s", "end_s", "hold_out",
+)  # fmt: skip
+
+#: environment variables that set the threads of BLAS and OpenMP in a worker
+BLAS_VARS = (
+    "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS", "NUMBA_NUM_THREADS", "NUMEXPR_NUM_THREADS",
 )  # fmt: skip
 
 
@@ -129,13 +136,18 @@ def read_manifest(path: str | os.PathLike[str]) -> dict[tuple[str, str | None], 
 
 
 def labels_of(
-    item: Input, session: Session, manifest: Mapping[tuple[str, str | None], dict[str, str]]
+    item: Input,
+    name: str,
+    own: Mapping[str, str],
+    manifest: Mapping[tuple[str, str | None], dict[str, str]],
+    where: str | None = None,
 ) -> dict[str, str]:
-    """The session's labels: its own attributes (tissue, specimen, operator, note), then
-    the manifest's row for its file, then the row for the session itself."""
-    out = {k: str(session.meta.get(k) or "") for k in LABELS}
-    where = str(Path(item.file).resolve())
-    for key in ((where, None), (where, session.name)):
+    """The session's labels: its own attributes (``own``: tissue, specimen, operator,
+    note), then the manifest's row for its file, then the row for the session itself
+    (named ``name``); ``where`` is the file's absolute path, if known."""
+    out = {k: str(own.get(k) or "") for k in LABELS}
+    where = where or str(Path(item.file).resolve())
+    for key in ((where, None), (where, name)):
         out.update({k: v for k, v in manifest.get(key, {}).items() if v != ""})
     return out
 
@@ -167,39 +179,122 @@ def fit_key(content: str, settings: Mapping[str, Any]) -> str:
 
 @dataclass(frozen=True)
 class Task:
-    """What a worker needs: the session itself (so that no worker needs the file)."""
+    """What a worker needs: where the session is (a worker on this machine reads it
+    itself, so that the parent's time goes to storing results alone), or the session
+    itself (``data``, for a cluster's workers, which may not see the file).
+
+    Attributes
+    ----------
+    index : int
+        The input's place in the batch.
+    file, session
+        Where to read the session (:func:`~.transfer.load_session`).
+    settings : dict
+        Keywords of :func:`fit_session`.
+    reading : dict, optional
+        How to read another logger's recording.
+    expected : frozenset of str
+        Keys the catalogue holds for this file and session with these settings: a
+        session that hashes to one of them is not fitted again.
+    data : Session, optional
+        The session, read by the parent.
+    """
 
     index: int
-    session: Session
+    file: str
+    session: str | None
     settings: dict[str, Any]
+    reading: dict[str, Any] | None = None
+    expected: frozenset[str] = frozenset()
+    data: Session | None = None
 
 
 @dataclass(frozen=True)
 class Done:
-    """A worker's answer: the parameter document, or the failure's one line."""
+    """A worker's answer, compact: the session's name, hash and own labels, and the
+    catalogue's rows of its fit (built by the worker), or the failure's one line.
+
+    Attributes
+    ----------
+    stage : str
+        Where a failure happened: "read" or "fit".
+    error_class : str
+        The failure's exception class (in :mod:`tissuecli.core.errors`).
+    skipped : bool
+        The session hashed to a key the task expected: not fitted.
+    seconds : float
+        Time the fit took (s); 0 when not fitted.
+    """
 
     index: int
-    document: dict[str, Any] | None
-    error: str | None
-    seconds: float
+    name: str | None = None
+    content: str | None = None
+    key: str | None = None
+    labels: dict[str, str] = field(default_factory=dict)
+    rows: FitRows | None = None
+    law: str | None = None
+    probability: float | None = None
+    error: str | None = None
+    error_class: str = "InputError"
+    stage: str = "fit"
+    skipped: bool = False
+    seconds: float = 0.0
+
+
+#: whether this process's BLAS is pinned to one thread for good (a loky worker's is)
+_pinned = False
+
+
+def _pin_blas() -> None:
+    """A loky worker's start: BLAS pinned to one thread once, not at every fit."""
+    global _pinned
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    _pinned = True
+
+
+def _internal(exc: Exception) -> str:
+    return f"internal error: {type(exc).__name__}: {exc}"
 
 
 def run_task(task: Task) -> Done:
-    """Fit one session in a worker, its BLAS pinned to one thread; a failure is returned,
-    not raised, so the batch goes on."""
+    """Read (unless given), hash and fit one session in a worker, its BLAS pinned to one
+    thread; a failure is returned, not raised, so the batch goes on."""
     from threadpoolctl import threadpool_limits
 
+    # loaded here, not with this module: a parent that only dispatches never needs it
+    from ..identify.outcome import fit_session
+
+    try:
+        data = task.data
+        if data is None:
+            data, _ = load_session(task.file, task.session, **(task.reading or {}))
+        content = content_sha256(data)
+    except TissueError as exc:
+        return Done(task.index, error=str(exc), error_class=type(exc).__name__, stage="read")
+    except Exception as exc:  # a bug: one input's, kept from stopping the others
+        return Done(task.index, error=_internal(exc), stage="read")
+    key = fit_key(content, task.settings)
+    own = {k: str(data.meta.get(k) or "") for k in LABELS}
+    if key in task.expected:
+        return Done(task.index, data.name, content, key, own, skipped=True)
     t0 = time.perf_counter()
     try:
-        with threadpool_limits(limits=1):
-            outcome = fit_session(task.session, **task.settings)
+        with threadpool_limits(limits=1) if not _pinned else nullcontext():
+            outcome = fit_session(data, **task.settings)
         doc = finite_tree(document(outcome))
-        return Done(task.index, doc, None, time.perf_counter() - t0)
+        law = doc.get("law") or {}
+        return Done(
+            task.index, data.name, content, key, own, fit_rows(doc), law.get("name"),
+            law.get("probability"), seconds=time.perf_counter() - t0,
+        )  # fmt: skip
     except TissueError as exc:
-        return Done(task.index, None, str(exc), time.perf_counter() - t0)
+        error, cls = str(exc), type(exc).__name__
     except Exception as exc:  # a bug: one input's, kept from stopping the others
-        return Done(task.index, None, f"internal error: {type(exc).__name__}: {exc}",
-                    time.perf_counter() - t0)  # fmt: skip
+        error, cls = _internal(exc), "InputError"
+    return Done(task.index, data.name, content, key, own, error=error, error_class=cls,
+                seconds=time.perf_counter() - t0)  # fmt: skip
 
 
 class Executor(ABC):
@@ -207,6 +302,8 @@ class Executor(ABC):
 
     #: shown in the summary
     name: str = ""
+    #: whether the workers see this machine's files (then they read the sessions)
+    reads_files: bool = True
 
     @abstractmethod
     def map(self, fn: Callable[[Task], Done], tasks: Iterable[Task]) -> Iterator[Done]: ...
@@ -238,22 +335,44 @@ class LokyExecutor(Executor):
         return self.jobs
 
     def map(self, fn: Callable[[Task], Done], tasks: Iterable[Task]) -> Iterator[Done]:
-        from joblib import Parallel, delayed
+        from concurrent.futures import FIRST_COMPLETED, Future, wait
 
-        # inner_max_num_threads: BLAS in each worker pinned to 1 thread before it starts
-        par = Parallel(
-            n_jobs=self.jobs,
-            backend="loky",
-            return_as="generator_unordered",
-            pre_dispatch="2*n_jobs",
-            inner_max_num_threads=1,
+        from joblib.externals.loky import get_reusable_executor
+
+        # BLAS pinned to 1 thread in each worker before it starts (as joblib's
+        # inner_max_num_threads); futures waited on, not polled, so that the parent
+        # sleeps while the workers fit
+        pool = get_reusable_executor(
+            max_workers=self.jobs, env=dict.fromkeys(BLAS_VARS, "1"), initializer=_pin_blas
         )
-        yield from par(delayed(fn)(t) for t in tasks)
+        window = 2 * self.jobs
+        running: set[Future[Done]] = set()
+        todo = iter(tasks)
+        try:
+            while True:
+                for t in todo:
+                    running.add(pool.submit(fn, t))
+                    if len(running) >= window:
+                        break
+                if not running:
+                    return
+                finished, running = wait(running, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    yield f.result()
+        except BaseException:
+            # stopped (Ctrl-C, a signal, --on-error stop): no fit is left running
+            for f in running:
+                f.cancel()
+            pool.shutdown(wait=False, kill_workers=True)
+            raise
 
 
 class DaskExecutor(Executor):
     """The workers of a running Dask distributed cluster (``tcp://HOST:PORT``), through
-    joblib's dask backend."""
+    joblib's dask backend. Its workers may not see this machine's files: the parent
+    reads each session and sends it."""
+
+    reads_files = False
 
     def __init__(self, address: str, *, timeout_s: float = 20.0) -> None:
         try:
@@ -352,6 +471,9 @@ class BatchResult:
 
 
 Progress = Callable[[int, int, float | None], None]
+#: the catalogue is written at most this often (s): the fits that arrived meanwhile in
+#: one transaction
+COMMIT_S = 0.5
 
 
 def fit_batch(
@@ -405,11 +527,25 @@ def fit_batch(
     sid = settings_id(settings)
     store = Catalogue(catalogue) if catalogue is not None else None
     result = BatchResult(inputs=len(items))
+    unsaved: list[Fit] = []
+    last_save = time.perf_counter()
+
+    def save() -> None:
+        # one transaction for the fits of the last COMMIT_S: one write to the disk
+        nonlocal last_save
+        if store is not None and unsaved:
+            fits = list(unsaved)
+            unsaved.clear()
+            store.add_many(fits)
+        last_save = time.perf_counter()
+
     try:
-        known = store.keys() if store is not None and not refit else set()
+        catalogued = store.keys() if store is not None and not refit else set()
+        by_place = store.keys_by_place(sid) if store is not None and not refit else {}
         executor = make_executor(jobs, scheduler, len(items))
         result.executor = executor.name
-        pending: dict[int, tuple[Input, Session, str, str, dict[str, str]]] = {}
+        resolved = {f: str(Path(f).resolve()) for f in dict.fromkeys(i.file for i in items)}
+        stored: set[str] = set()  # keys fitted in this batch
         total = len(items)
         finished = 0
         fit_times: list[float] = []
@@ -424,70 +560,88 @@ def fit_batch(
                 eta = per * left
             progress(finished, total, eta)
 
+        def fail(item: Input, done: Done) -> None:
+            error = done.error or "no result"
+            if on_error == "stop":
+                if done.stage == "read":
+                    cls = getattr(errors, done.error_class, InputError)
+                    raise (cls if issubclass(cls, TissueError) else InputError)(error)
+                raise InputError(f"{item}: {error}")
+            result.failed.append((item, error))
+
         def tasks() -> Iterator[Task]:
             nonlocal finished
+            sent: set[str] = set()
             for i, item in enumerate(items):
+                if executor.reads_files:
+                    name = item.session or (reading or {}).get("sheet") or Path(item.file).stem
+                    expected = frozenset(by_place.get((resolved[item.file], name), ()))
+                    yield Task(i, item.file, item.session, settings, reading, expected)
+                    continue
                 try:
                     data, _ = load_session(item.file, item.session, **(reading or {}))
                 except TissueError as exc:
-                    if on_error == "stop":
-                        raise
-                    result.failed.append((item, str(exc)))
+                    fail(item, Done(i, error=str(exc), error_class=type(exc).__name__,
+                                    stage="read"))  # fmt: skip
                     finished += 1
                     tick()
                     continue
-                content = content_sha256(data)
-                key = fit_key(content, settings)
-                labels = labels_of(item, data, labels_by)
-                if key in known:
-                    assert store is not None
-                    result.skipped.append(item)
-                    result.relabelled += store.relabel(key, labels)
+                key = fit_key(content_sha256(data), settings)
+                if key in catalogued or key in sent:
+                    own = {k: str(data.meta.get(k) or "") for k in LABELS}
+                    skip(item, key, labels_of(item, data.name, own, labels_by, resolved[item.file]))
                     finished += 1
                     tick()
                     continue
-                known.add(key)  # the same samples twice in one batch: fitted once
-                pending[i] = (item, data, content, key, labels)
-                yield Task(i, data, settings)
+                sent.add(key)  # the same samples twice in one batch: fitted once
+                yield Task(i, item.file, item.session, settings, data=data)
+
+        def skip(item: Input, key: str, labels: dict[str, str]) -> None:
+            result.skipped.append(item)
+            if store is not None and key in catalogued:
+                result.relabelled += store.relabel(key, labels)
 
         t_fit = time.perf_counter()
         tick()
         for done in executor.map(run_task, tasks()):
-            item, data, content, key, labels = pending.pop(done.index)
+            item = items[done.index]
             finished += 1
-            if done.error is not None or done.document is None:
-                if on_error == "stop":
-                    raise InputError(f"{item}: {done.error}")
-                result.failed.append((item, done.error or "no result"))
-            else:
-                doc = done.document
-                if store is not None:
-                    store.add(
-                        key=key,
-                        file=str(Path(item.file).resolve()),
-                        session=data.name,
-                        content_sha256=content,
-                        settings=settings,
-                        settings_id=sid,
-                        labels=labels,
-                        document=doc,
-                        fitted_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                        fit_s=done.seconds,
-                    )
-                law = doc.get("law") or {}
-                result.fitted.append(
-                    Fitted(item, data.name, law.get("name"), law.get("probability"), labels,
-                           done.seconds)
-                )  # fmt: skip
-                fit_times.append(done.seconds)
+            if done.error is not None:
+                fail(item, done)
+            elif done.key is not None and done.name is not None and done.content is not None:
+                labels = labels_of(item, done.name, done.labels, labels_by, resolved[item.file])
+                if done.skipped or done.key in catalogued or done.key in stored:
+                    skip(item, done.key, labels)
+                elif done.rows is not None:
+                    stored.add(done.key)
+                    unsaved.append(
+                        Fit(
+                            done.key, resolved[item.file], done.name, done.content, settings,
+                            sid, labels, done.rows,
+                            datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                            done.seconds,
+                        )
+                    )  # fmt: skip
+                    result.fitted.append(
+                        Fitted(item, done.name, done.law, done.probability, labels,
+                               done.seconds)
+                    )  # fmt: skip
+                    fit_times.append(done.seconds)
+            if time.perf_counter() - last_save >= COMMIT_S:
+                save()
             tick()
+        save()
         order = {item: i for i, item in enumerate(items)}
         result.fitted.sort(key=lambda f: order[f.input])
+        result.skipped.sort(key=lambda f: order[f])
         result.failed.sort(key=lambda f: order[f[0]])
         if store is not None:
             result.catalogue_fits = len(store.keys())
     finally:
         if store is not None:
-            store.close()
+            try:
+                save()  # what finished before a failure or an interruption is kept
+            finally:
+                store.close()
     result.seconds = time.perf_counter() - t0
     return result

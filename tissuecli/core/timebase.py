@@ -13,7 +13,6 @@ whole periods. Otherwise the stamps are irregular and are kept as they are.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,11 +91,12 @@ def regularise(t: Array, lines: NDArray[np.int64] | None = None) -> tuple[Array,
     """
     t = np.asarray(t, dtype=float)
     where = lines if lines is not None else np.arange(1, t.size + 1)
-    numbers, clock, base = sample_clock(t, where)
+    numbers, line, base = _clock_line(t, where)
     if numbers is not None:
-        # stamps already on the clock (to a millionth of a period) are kept exactly
+        # stamps already on the clock (to a millionth of a period) are kept exactly; the
+        # clock's times are made only when they differ
         exact = base.residual_max_s <= 1e-6 / base.rate_hz and base.repaired == 0
-        return (t if exact else clock), base
+        return (t if exact else _clock(numbers, line)), base
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         i = int(back[0])
@@ -124,6 +124,27 @@ def sample_clock(
     base : TimeBase
     """
     t = np.asarray(t, dtype=float)
+    numbers, line, base = _clock_line(t, lines)
+    return numbers, (t if numbers is None else _clock(numbers, line)), base
+
+
+def _clock(numbers: NDArray[np.int64], line: tuple[float, float, float]) -> Array:
+    """The clock's time of each sample number, s: ``line[1] + line[0] numbers``, then
+    plus ``line[2]`` (the first stamp, where the clock was fitted from it)."""
+    clock = numbers.astype(np.float64)
+    clock *= line[0]
+    clock += line[1]
+    if line[2] != 0.0:
+        clock += line[2]
+    return clock
+
+
+def _clock_line(
+    t: Array, lines: NDArray[np.int64] | None = None
+) -> tuple[NDArray[np.int64] | None, tuple[float, float, float], TimeBase]:
+    """:func:`sample_clock` without the clock's times: the sample numbers (None if
+    irregular), the clock's line (slope s per sample, offset s, and the first stamp it
+    was fitted from, s) and the time base."""
     n = t.size
     where = lines if lines is not None else np.arange(1, n + 1)
     if n < 3:
@@ -135,16 +156,15 @@ def sample_clock(
     if origin != 0.0:
         # the clock is fitted on times from the first stamp (epoch stamps, 1.7e9 s,
         # would leave the line's sums a few digits), and given back on the stamps' own
-        numbers, clock, base = sample_clock(t - origin, where)
-        clock = t if numbers is None else clock + origin
-        return numbers, clock, base
+        numbers, (slope, offset, _), base = _clock_line(t - origin, where)
+        return numbers, (slope, offset, origin), base
     # every step, or an even sample of a million of them on a long recording
     stride = max(1, (n - 1) // BLOCK)
     sampled = t[stride::stride] - t[: n - stride : stride] if stride > 1 else np.diff(t)
     positive = sampled[sampled > 0]
     if positive.size == 0 and not np.any(t[1:] > t[:-1]):
         raise InputError("time never increases; check the time column and its unit")
-    typical = float(np.median(positive)) if positive.size else float(t[-1] - t[0]) / (n - 1)
+    typical = _median(positive) if positive.size else float(t[-1] - t[0]) / (n - 1)
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
     count = total = 0.0
     backward = 0
@@ -161,17 +181,14 @@ def sample_clock(
         for _ in range(3):  # count with the period, refit the period, count again
             k = None  # the last try's numbers go before the next are made
             k = counting(t, period, q)
-            slope, offset, worst, rms = _fit_clock(k, t)
+            slope, offset, worst, rms = _fit_clock(k, t, period)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
             period = slope
         if slope > 0 and worst <= 1.01 * 0.5 * (slope + q):
-            clock = k.astype(np.float64)
-            clock *= slope
-            clock += offset
             return (
                 k,
-                clock,
+                (slope, offset, 0.0),
                 TimeBase(
                     regular=True,
                     rate_hz=1.0 / slope,
@@ -183,7 +200,7 @@ def sample_clock(
             )
     return (
         None,
-        t,
+        (0.0, 0.0, 0.0),
         TimeBase(
             regular=False,
             rate_hz=1.0 / typical,
@@ -226,41 +243,73 @@ def resolution(t: Array) -> float:
 
 
 def _multiples(t: Array, q: float, origin: float = 0.0) -> bool:
-    units = (t - origin) / q
+    units = t - origin
+    units /= q
+    off = np.rint(units)
+    np.subtract(units, off, out=off)
+    np.abs(off, out=off)
+    # the tolerance is at least 2e-9 of a step: most stamps pass that at once, and only
+    # the others are judged against the whole of it
+    near = off <= 2e-9
+    if near.all():
+        return True
+    far = np.flatnonzero(~near)
+    units, off = units[far], off[far]
     # rounding of decimal stamps and unit factors, and the ulps of large stamps
-    ulps = 3.0 * np.finfo(np.float64).eps * (abs(origin) + np.abs(t - origin)) / q
+    ulps = 3.0 * np.finfo(np.float64).eps * (abs(origin) + np.abs(units) * q) / q
     tolerance = 1e-9 * np.maximum(1.0, np.abs(units)) + 1e-9 + ulps
-    return bool(np.all(np.abs(units - np.rint(units)) <= tolerance))
+    return bool(np.all(off <= tolerance))
 
 
-def _fit_clock(k: NDArray[np.int64], t: Array) -> tuple[float, float, float, float]:
+def _fit_clock(k: NDArray[np.int64], t: Array, period: float) -> tuple[float, float, float, float]:
     """Least squares of ``t`` on ``k``, refit without stamps beyond 4 robust SDs: the
     slope (s per sample), the offset (s), and the largest and RMS residual (s). The
-    residuals are worked out block by block, never held whole."""
+    residuals are worked out block by block, never held whole; ``period`` (s) is the
+    first guess of the slope."""
     keep: NDArray[np.bool_] | None = None
+    slope, offset = period, float(t[0])
     stride = max(1, t.size // (1 << 20))
+    worst = total = 0.0
     for _ in range(3):
-        slope, offset = _line(k, t, keep)
+        slope, offset = _line(k, t, keep, (slope, offset))
         # the spread from every stamp, or from an even sample of a million of them
         sample = _residuals(k[::stride], t[::stride], slope, offset)
-        mad = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+        spread = sample - _median(sample)
+        np.abs(spread, out=spread)
+        mad = 1.4826 * _median(spread)
+        del spread
         bound = max(4 * mad, 1e-9 * abs(slope))
         inside = np.empty(t.size, dtype=bool)
+        worst = total = 0.0  # of this line's residuals: the last line's are the answer
         for i in range(0, t.size, BLOCK):
-            resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
-            np.less_equal(np.abs(resid), bound, out=inside[i : i + BLOCK])
+            resid = (
+                sample
+                if stride == 1 and t.size <= BLOCK
+                else _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
+            )
+            total += float(resid @ resid)
+            np.abs(resid, out=resid)
+            worst = max(worst, float(np.max(resid)))
+            np.less_equal(resid, bound, out=inside[i : i + BLOCK])
+        del sample
         kept = np.count_nonzero(inside)
         if kept < max(2, t.size // 2):
             break  # no clear majority on one line: keep the fit of all stamps
         if keep is None and kept == t.size or keep is not None and np.array_equal(inside, keep):
             break  # the same stamps again: the same line
         keep = inside
-    worst = total = 0.0
-    for i in range(0, t.size, BLOCK):
-        resid = _residuals(k[i : i + BLOCK], t[i : i + BLOCK], slope, offset)
-        worst = max(worst, float(np.max(np.abs(resid))))
-        total += float(resid @ resid)
     return float(slope), float(offset), worst, float(np.sqrt(total / t.size))
+
+
+def _median(a: Array) -> float:
+    """The median of finite values ``a`` (np.median's, without its check for NaN, which
+    loads numpy.ma, and with one partial sort)."""
+    n = a.size
+    half = n // 2
+    if n % 2:
+        return float(np.partition(a, half)[half])
+    part = np.partition(a, (half - 1, half))
+    return 0.5 * (float(part[half - 1]) + float(part[half]))
 
 
 def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> Array:
@@ -270,42 +319,36 @@ def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> A
     return np.subtract(t, line, out=line)
 
 
-def _centred_line(
+def _line(
     k: NDArray[np.int64],
     t: Array,
     keep: NDArray[np.bool_] | None,
-    line: tuple[float, float] = (0.0, 0.0),
+    guess: tuple[float, float],
 ) -> tuple[float, float]:
-    """Slope and offset of the least-squares line of ``t - (line[1] + line[0] k)`` on
-    ``k`` from centred sums, block by block."""
-
-    def blocks() -> Iterator[tuple[NDArray[np.int64], Array]]:
-        for i in range(0, t.size, BLOCK):
-            kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
-            if keep is not None:
-                kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
-            yield kk, (tt - (line[1] + line[0] * kk) if line != (0.0, 0.0) else tt)
-
-    sums = np.zeros(3)  # count, sum k, sum t
-    for kk, tt in blocks():
-        sums += (kk.size, float(np.sum(kk, dtype=np.float64)), float(np.sum(tt)))
-    kbar, tbar = sums[1] / sums[0], sums[2] / sums[0]
-    skk = skt = 0.0
-    for kk, tt in blocks():
-        dk = kk - kbar
-        skk += float(dk @ dk)
-        skt += float(dk @ (tt - tbar))
-    slope = skt / skk if skk > 0 else 0.0
-    return slope, tbar - slope * kbar
-
-
-def _line(k: NDArray[np.int64], t: Array, keep: NDArray[np.bool_] | None) -> tuple[float, float]:
     """Slope and offset of the least-squares line of ``t`` on ``k`` over the stamps
-    `keep` marks (all if None): centred sums taken block by block, then refined once on
-    the residuals (which the sums of large products would otherwise round)."""
-    slope, offset = _centred_line(k, t, keep)
-    ds, do = _centred_line(k, t, keep, (slope, offset))
-    return slope + ds, offset + do
+    `keep` marks (all if None), in one pass block by block: the line of the residuals
+    about ``guess`` (slope, offset), which are small, so that no sum of large products
+    rounds them away, with ``k`` about its middle."""
+    slope0, offset0 = guess
+    pivot = 0.5 * (float(k[0]) + float(k[-1]))
+    count = sk = sr = skk = skr = 0.0
+    for i in range(0, t.size, BLOCK):
+        kk, tt = k[i : i + BLOCK], t[i : i + BLOCK]
+        if keep is not None:
+            kk, tt = kk[keep[i : i + BLOCK]], tt[keep[i : i + BLOCK]]
+        r = kk * -slope0
+        r += tt
+        r -= offset0
+        dk = kk - pivot
+        count += dk.size
+        sk += float(np.sum(dk))
+        sr += float(np.sum(r))
+        skk += float(dk @ dk)
+        skr += float(dk @ r)
+    kbar, rbar = sk / count, sr / count
+    sxx = skk - sk * kbar
+    ds = (skr - sk * rbar) / sxx if sxx > 0 else 0.0
+    return slope0 + ds, offset0 + rbar - ds * (kbar + pivot)
 
 
 def _limit(dt: float, q: float) -> float:
@@ -321,7 +364,9 @@ def _step_counts(t: Array, dt: float, q: float) -> NDArray[np.int64]:
     limit = _limit(dt, q)
     for i in range(0, t.size - 1, BLOCK):
         steps = np.diff(t[i : i + BLOCK + 1])
-        counts = np.where(steps < limit, 1, np.maximum(1, np.rint(steps / dt))).astype(np.int64)
+        counts = np.ones(steps.size, dtype=np.int64)
+        gaps = np.flatnonzero(steps >= limit)  # few: lost samples
+        counts[gaps] = np.maximum(1, np.rint(steps[gaps] / dt)).astype(np.int64)
         np.cumsum(counts, out=k[i + 1 : i + 1 + counts.size])
         k[i + 1 : i + 1 + counts.size] += k[i]
     return k

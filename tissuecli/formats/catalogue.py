@@ -2,9 +2,10 @@
 the settings, the chosen law, its coefficients' posterior, the evidence, the held-out
 score and the session's labels; docs/formats.md gives the schema.
 
-One process writes it (the batch's parent; workers return parameter documents), one
-row per (session content, settings) key, committed as each fit arrives so that an
-interrupted batch keeps what it finished.
+One process writes it (the batch's parent; workers return the rows of their fits), one
+row per (session content, settings) key. A batch commits the fits that arrived in the
+last half second together (:meth:`Catalogue.add_many`), so that an interrupted batch
+keeps what it finished but for that last half second.
 """
 
 from __future__ import annotations
@@ -129,6 +130,89 @@ def _finite(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
+@dataclass(frozen=True)
+class FitRows:
+    """What the catalogue stores of one parameter document, ready to insert: made by
+    :func:`fit_rows` (in a batch, by the worker that fitted, so that the one writing
+    process only inserts).
+
+    Attributes
+    ----------
+    columns : dict
+        The ``fits`` columns taken from the document (law, coefficients, evidence,
+        validation, the document itself as JSON).
+    coefficients : list of tuple
+        ``coefficients`` rows without ``fit_id``: position, term, symbol, unit, mean,
+        sd, ci95_low, ci95_high.
+    evidence : list of tuple
+        ``evidence`` rows without ``fit_id``: law, ln_evidence, probability, method.
+    """
+
+    columns: dict[str, Any]
+    coefficients: list[tuple[Any, ...]]
+    evidence: list[tuple[Any, ...]]
+
+
+def fit_rows(document: Mapping[str, Any]) -> FitRows:
+    """The catalogue's rows for a parameter document (:func:`~.params.document`)."""
+    law = document.get("law") or {}
+    terms = list(law.get("terms") or [])
+    shape = {s["name"]: _finite(s.get("mean")) for s in law.get("shape") or []}
+    noise = document.get("noise") or {}
+    data = document.get("data") or {}
+    val = document.get("validation") or {}
+    name = law.get("name")
+    ev = document.get("evidence") or {}
+    probs = document.get("probabilities") or {}
+    cov = law.get("cov")
+    columns = {
+        "law": name,
+        "law_probability": _finite(law.get("probability")),
+        "shape": json.dumps(shape),
+        "coef_mean": json.dumps([_finite(t.get("mean")) for t in terms]),
+        "coef_cov": json.dumps(cov) if cov is not None else None,
+        "ln_evidence": _finite((ev.get(name) or {}).get("ln_evidence")) if name else None,
+        "noise_sd_N": _finite(noise.get("sd")),
+        "samples": data.get("samples"),
+        "duration_s": _finite(data.get("duration_s")),
+        "rate_hz": _finite(data.get("rate_hz")),
+        "r2_held_out": _finite(val.get("r2_held_out")),
+        "rms_held_out_N": _finite(val.get("rms_N")),
+        "warnings": json.dumps(list(document.get("warnings") or [])),
+        "document": json.dumps(document),
+    }
+    coefficients = [
+        (
+            j, t.get("term", ""), t.get("symbol", ""), t.get("unit", ""),
+            _finite(t.get("mean")), _finite(t.get("sd")),
+            *(_finite(c) for c in (t.get("ci95") or [None, None])),
+        )
+        for j, t in enumerate(terms)
+    ]  # fmt: skip
+    evidence = [
+        (law_name, _finite(e.get("ln_evidence")), _finite(probs.get(law_name)), e.get("method"))
+        for law_name, e in ev.items()
+    ]
+    return FitRows(columns, coefficients, evidence)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """One fit to store: the session, the settings, the labels and the rows of its
+    parameter document (:func:`fit_rows`)."""
+
+    key: str
+    file: str
+    session: str
+    content_sha256: str
+    settings: dict[str, Any]
+    settings_id: str
+    labels: dict[str, str]
+    rows: FitRows
+    fitted_utc: str
+    fit_s: float | None = None
+
+
 class Catalogue:
     """A catalogue file, opened (and created if ``create``) for reading and writing.
 
@@ -204,79 +288,72 @@ class Catalogue:
         settings: Mapping[str, Any],
         settings_id: str,
         labels: Mapping[str, str],
-        document: Mapping[str, Any],
+        document: Mapping[str, Any] | FitRows,
         fitted_utc: str,
         fit_s: float | None = None,
     ) -> int:
-        """Store one fit from its parameter document (:func:`~.params.document`), replacing
-        a fit of the same key; the new row's id."""
-        law = document.get("law") or {}
-        terms = list(law.get("terms") or [])
-        shape = {s["name"]: _finite(s.get("mean")) for s in law.get("shape") or []}
-        noise = document.get("noise") or {}
-        data = document.get("data") or {}
-        val = document.get("validation") or {}
-        name = law.get("name")
-        ev = document.get("evidence") or {}
-        probs = document.get("probabilities") or {}
-        cov = law.get("cov")
-        row = {
-            "key": key,
-            "file": file,
-            "session": session,
-            "content_sha256": content_sha256,
-            "settings_id": settings_id,
-            "settings": json.dumps(dict(settings), sort_keys=True),
-            "fitted_utc": fitted_utc,
-            "software": f"tissuecli {__version__}",
-            "fit_s": fit_s,
-            **{k: str(labels.get(k, "") or "") for k in LABELS},
-            "labels": json.dumps(dict(labels), sort_keys=True),
-            "law": name,
-            "law_probability": _finite(law.get("probability")),
-            "shape": json.dumps(shape),
-            "coef_mean": json.dumps([_finite(t.get("mean")) for t in terms]),
-            "coef_cov": json.dumps(cov) if cov is not None else None,
-            "ln_evidence": _finite((ev.get(name) or {}).get("ln_evidence")) if name else None,
-            "noise_sd_N": _finite(noise.get("sd")),
-            "samples": data.get("samples"),
-            "duration_s": _finite(data.get("duration_s")),
-            "rate_hz": _finite(data.get("rate_hz")),
-            "r2_held_out": _finite(val.get("r2_held_out")),
-            "rms_held_out_N": _finite(val.get("rms_N")),
-            "warnings": json.dumps(list(document.get("warnings") or [])),
-            "document": json.dumps(document),
-        }
+        """Store one fit from its parameter document (:func:`~.params.document`, or the
+        rows :func:`fit_rows` made of it), replacing a fit of the same key; the new row's
+        id. Committed at once: see :meth:`add_many` for many fits in one transaction."""
+        return self.add_many(
+            [
+                Fit(key, file, session, content_sha256, dict(settings), settings_id,
+                    dict(labels), document if isinstance(document, FitRows)
+                    else fit_rows(document), fitted_utc, fit_s)
+            ]
+        )[0]  # fmt: skip
+
+    def add_many(self, fits: Sequence[Fit]) -> list[int]:
+        """Store many fits in one transaction (one write to the disk for all of them),
+        each replacing a fit of the same key; their new rows' ids, in order."""
+        ids = []
+        software = f"tissuecli {__version__}"
         try:
             with self.db:
-                self.db.execute("DELETE FROM fits WHERE key = ?", (key,))
-                cur = self.db.execute(
-                    f"INSERT INTO fits ({', '.join(row)}) VALUES ({', '.join('?' * len(row))})",
-                    list(row.values()),
-                )
-                fit_id = int(cur.lastrowid or 0)
-                self.db.executemany(
-                    "INSERT INTO coefficients VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    [
-                        (
-                            fit_id, j, t.get("term", ""), t.get("symbol", ""), t.get("unit", ""),
-                            _finite(t.get("mean")), _finite(t.get("sd")),
-                            *(_finite(c) for c in (t.get("ci95") or [None, None])),
-                        )
-                        for j, t in enumerate(terms)
-                    ],
-                )  # fmt: skip
-                self.db.executemany(
-                    "INSERT INTO evidence VALUES (?, ?, ?, ?, ?)",
-                    [
-                        (fit_id, law_name, _finite(e.get("ln_evidence")),
-                         _finite(probs.get(law_name)), e.get("method"))
-                        for law_name, e in ev.items()
-                    ],
-                )  # fmt: skip
+                for f in fits:
+                    r = f.rows
+                    row = {
+                        "key": f.key,
+                        "file": f.file,
+                        "session": f.session,
+                        "content_sha256": f.content_sha256,
+                        "settings_id": f.settings_id,
+                        "settings": json.dumps(f.settings, sort_keys=True),
+                        "fitted_utc": f.fitted_utc,
+                        "software": software,
+                        "fit_s": f.fit_s,
+                        **{k: str(f.labels.get(k, "") or "") for k in LABELS},
+                        "labels": json.dumps(f.labels, sort_keys=True),
+                        **r.columns,
+                    }
+                    self.db.execute("DELETE FROM fits WHERE key = ?", (f.key,))
+                    cur = self.db.execute(
+                        f"INSERT INTO fits ({', '.join(row)}) VALUES ({', '.join('?' * len(row))})",
+                        list(row.values()),
+                    )
+                    fit_id = int(cur.lastrowid or 0)
+                    self.db.executemany(
+                        "INSERT INTO coefficients VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        [(fit_id, *c) for c in r.coefficients],
+                    )
+                    self.db.executemany(
+                        "INSERT INTO evidence VALUES (?, ?, ?, ?, ?)",
+                        [(fit_id, *e) for e in r.evidence],
+                    )
+                    ids.append(fit_id)
         except sqlite3.Error as exc:
             raise StorageError(f"cannot write the catalogue {self.path}: {exc}") from None
-        return fit_id
+        return ids
+
+    def keys_by_place(self, settings_id: str) -> dict[tuple[str, str], set[str]]:
+        """The keys of the fits made with the settings ``settings_id``, by (file, session)
+        as stored: what a batch expects an input to hash to if it is already fitted."""
+        out: dict[tuple[str, str], set[str]] = {}
+        for file, session, key in self.db.execute(
+            "SELECT file, session, key FROM fits WHERE settings_id = ?", (settings_id,)
+        ):
+            out.setdefault((file, session), set()).add(key)
+        return out
 
     def relabel(self, key: str, labels: Mapping[str, str]) -> bool:
         """Set the labels of the fit ``key`` (labels change without a refit); whether they

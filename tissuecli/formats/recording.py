@@ -629,6 +629,10 @@ class LineNumbers:
         return run + offset if isinstance(run, int) else int(run[offset])
 
 
+#: rows an import keeps before writing them to the file (24 MB of samples)
+FLUSH_ROWS = 1 << 20
+
+
 def store_recording(
     reading: Reading,
     out: str | os.PathLike[str],
@@ -658,6 +662,7 @@ def store_recording(
     created = not os.path.exists(out)
     stamps: list[NDArray[np.float64]] = []
     lines = LineNumbers()
+    buffered = 0
     peak = 0.0
     low, high = math.inf, -math.inf
     writer = session_writer(
@@ -675,7 +680,10 @@ def store_recording(
                         f"{numbers[bad[0]]}; remove or repair that row"
                     )
             writer.append({"time": t, "force": force, "position": position})
-            writer.flush()
+            buffered += t.size
+            if buffered >= FLUSH_ROWS:  # a few blocks a write: fewer flushes of the file
+                writer.flush()
+                buffered = 0
             stamps.append(t)
             lines.add(numbers)
             if force.size:

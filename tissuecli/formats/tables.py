@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import codecs
 import io
+import math
 import os
 import re
 from collections import Counter
@@ -36,9 +37,12 @@ _WHITESPACE = re.compile(r"\s+")
 #: bytes sniffed for the layout
 HEAD_BYTES = 1 << 20
 #: bytes of the body parsed at a time
-BLOCK_BYTES = 1 << 22
+BLOCK_BYTES = 1 << 23
 #: a longer line is not a row of samples
 MAX_LINE_BYTES = 1 << 20
+#: pieces of a block that pyarrow parses side by side on the cores (each holds whole
+#: lines of up to MAX_LINE_BYTES)
+PARSE_BYTES = 1 << 21
 #: encodings tried, in this order on a tie, when a file is not UTF-8
 LEGACY_ENCODINGS = ("cp1252", "gbk", "shift_jis")
 
@@ -263,8 +267,8 @@ class Layout:
 
     def blocks(self, columns: list[int]) -> Iterator[Block]:
         """The chosen columns of every data row, block by block (see the module)."""
-        for first_line, body in self._bodies():
-            block = self._parse(body, first_line, columns)
+        for first_line, body, count in self._bodies():
+            block = self._parse(body, first_line, count, columns)
             self.rows += block.values.shape[0]
             yield block
 
@@ -296,9 +300,10 @@ class Layout:
 
     # -- the body
 
-    def _bodies(self) -> Iterator[tuple[int, bytes]]:
+    def _bodies(self) -> Iterator[tuple[int, bytes, int]]:
         """Blocks of whole lines from the first data row on, as UTF-8 bytes with LF or
-        CRLF line ends, each with the line number of its first line."""
+        CRLF line ends, each with the line number of its first line and its count of
+        line ends."""
         utf8 = self.codec == "utf-8"
         decoder = None if utf8 else codecs.getincrementaldecoder(self.codec)("replace")
         line = self.first_line
@@ -333,20 +338,22 @@ class Layout:
                             f"{MAX_LINE_BYTES >> 20} MB; not a table of samples"
                         )
                 if body:
-                    yield line, body
-                    line += body.count(b"\n")
+                    count = body.count(b"\n")
+                    yield line, body, count
+                    line += count
                 if eof:
                     return
 
-    def _parse(self, body: bytes, first_line: int, columns: list[int]) -> Block:
+    def _parse(self, body: bytes, first_line: int, count: int, columns: list[int]) -> Block:
         if self.delimiter == " ":
             body = re.sub(rb"[ \t]+", b" ", body)
             body = re.sub(rb"(?m)^ | (?=\r?$)", b"", body)
-        fast = self._fast(body, first_line, columns)
+        fast = self._fast(body, first_line, count, columns)
         return fast if fast is not None else self._slow(body, first_line, columns)
 
-    def _fast(self, body: bytes, first_line: int, columns: list[int]) -> Block | None:
-        """The block parsed whole by pyarrow, or None if it holds anything but rows."""
+    def _fast(self, body: bytes, first_line: int, count: int, columns: list[int]) -> Block | None:
+        """The block (``count`` line ends) parsed whole by pyarrow, in pieces of
+        :data:`PARSE_BYTES` on every core, or None if it holds anything but rows."""
         import pyarrow as pa
         from pyarrow import csv
 
@@ -361,7 +368,7 @@ class Layout:
         try:
             table = csv.read_csv(
                 io.BytesIO(body),
-                read_options=csv.ReadOptions(column_names=names, block_size=1 << 24),
+                read_options=csv.ReadOptions(column_names=names, block_size=PARSE_BYTES),
                 parse_options=csv.ParseOptions(
                     delimiter=self.delimiter, invalid_row_handler=handler
                 ),
@@ -378,25 +385,26 @@ class Layout:
             pa.default_memory_pool().release_unused()  # the pool keeps what it freed
         m = table.num_rows
         # a blank line is skipped by the parser without a word: every line must be a row
-        if invalid or m != body.count(b"\n") + (not body.endswith(b"\n")):
+        if invalid or m != count + (not body.endswith(b"\n")):
             return None
-        values = np.full((m, len(columns)), np.nan)
+        values = np.empty((m, len(columns)))
         text: dict[int, list[str]] = {}
         for j, c in enumerate(columns):
             column = table.column(names[c])
             if not self.numeric[c]:
+                values[:, j] = np.nan
                 text[c] = [str(v).strip() for v in column.to_pylist()]
                 continue
             if column.null_count:
                 return None  # empty fields: junk lines, counted one by one
             row = 0
             for chunk in column.chunks:  # the values' own buffer (to_numpy loads pandas)
-                values[row : row + len(chunk), j] = np.frombuffer(
-                    chunk.buffers()[1], np.float64, len(chunk), chunk.offset * 8
-                )
+                v = np.frombuffer(chunk.buffers()[1], np.float64, len(chunk), chunk.offset * 8)
+                # a finite sum says every value is finite, without an array of flags
+                if not math.isfinite(float(np.sum(v))) and not np.isfinite(v).all():
+                    return None  # NaN or Inf: junk lines, counted one by one
+                values[row : row + len(chunk), j] = v
                 row += len(chunk)
-        if not np.isfinite(values[:, [self.numeric[c] for c in columns]]).all():
-            return None  # NaN or Inf: junk lines, counted one by one
         return Block(values, np.arange(first_line, first_line + m, dtype=np.int64), text)
 
     def _slow(self, body: bytes, first_line: int, columns: list[int]) -> Block:

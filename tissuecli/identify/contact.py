@@ -16,9 +16,13 @@ stretch at the lowest force can be tissue in contact, told apart by two signs: i
 force follows the closure or the closure speed (the damping term), beyond what the
 smoothed noise explains; or the force falls well below that level elsewhere for more
 than :data:`BELOW_FRACTION` of the session (free jaws read the lowest level there
-is; damping pulls a grasped tissue's force below it while the jaws open). Either way
-the stretch is not free jaw motion. The regressions run on the smoothed force taken
-every smoothing width, whose noise is then nearly independent.
+is; damping pulls a grasped tissue's force below it while the jaws open and turn).
+Either way the stretch is not free jaw motion. A dip that ends with the jaws still
+opening fast is the other case: a tissue pulled on jaws opening faster than it
+recovers until it let go, at the end of a grasp; such dips are in contact (a force
+far from the baseline either way is tissue's) and say nothing against free jaws.
+The regressions run on the smoothed force taken every smoothing width, whose noise is
+then nearly independent.
 """
 
 from __future__ import annotations
@@ -47,6 +51,10 @@ FOLLOW_FRACTION = 0.02
 #: a free-jaw level the smoothed force falls below (by ENTER_SD of its noise) for more
 #: than this fraction of the session is no free-jaw level: the force there is tissue's
 BELOW_FRACTION = 0.005
+#: a dip below the free-jaw level that ends with the jaws opening at less than this
+#: fraction of the dip's fastest speed (or closing) is the jaws turning in contact, not a
+#: tissue letting go of jaws that go on opening
+TURN_FRACTION = 0.3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
 
@@ -128,8 +136,10 @@ def find_contact(session: Session) -> Contact:
             noise_n=noise,
             all_contact=True,
         )
+    # free jaws read the baseline: a force far from it either way is tissue's (one that
+    # pulls on jaws opening faster than it recovers reads below)
     above = smooth - baseline
-    mask = _hysteresis(above, ENTER_SD * noise, LEAVE_SD * noise)
+    mask = _hysteresis(np.abs(above), ENTER_SD * noise, LEAVE_SD * noise)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
     grasps = []
     for start, stop in _runs(mask):
@@ -195,9 +205,18 @@ def _baseline(
     if not np.any(long_free):
         return floor, 0.0
     level = float(np.median(smooth[long_free]))
-    # free jaws read the lowest level there is: a force well below it for long is tissue
+    # free jaws read the lowest level there is: a force well below it for long is tissue,
+    # unless each dip ends with the jaws still opening fast: a tissue that pulls on jaws
+    # opening faster than it recovers, until it lets go (a grasp's release). A tissue in
+    # contact throughout dips while damping outweighs its spring, until the jaws turn.
     below = smooth < level - ENTER_SD * noise / np.sqrt(step)
-    if np.mean(below) > BELOW_FRACTION:
+    turning = np.zeros_like(below)
+    for start, stop in _runs(_close_gaps(below, 2 * step)):  # one dip, however noisy
+        peak = float(np.max(np.abs(speed[start:stop])))
+        # a release ends with the jaws still opening fast (closure falling)
+        if not float(speed[stop - 1]) <= -TURN_FRACTION * peak or stop == below.size:
+            turning[start:stop] = below[start:stop]
+    if np.mean(turning) > BELOW_FRACTION:
         return level, 0.0
     return level, float(np.mean(long_free))
 
@@ -218,7 +237,7 @@ def _follow(x: Array, v: Array, y: Array) -> list[tuple[float, float]]:
         return [_slope(x, y), (0.0, float("inf"))]
     resid = yc - (A / scale) @ coef
     s2 = float(resid @ resid) / (y.size - len(usable) - 1)
-    cov = s2 * np.linalg.inv((A / scale).T @ (A / scale))
+    cov = s2 * np.linalg.pinv((A / scale).T @ (A / scale))  # rank held by lstsq, not by inv
     for k, j in enumerate(usable):
         out[j] = (float(coef[k] / scale[k]), float(np.sqrt(cov[k, k]) / scale[k]))
     return out

@@ -3,6 +3,11 @@ correction for position noise, and least squares on scaled columns."""
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import OrderedDict
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -55,7 +60,13 @@ def term_column(
     interval (s) and central-difference speed (m/s) of :func:`raw_speed`, if already
     known."""
     var = sigma_x**2
-    if columns is None or term.shapes:  # one column per shape node: not worth keeping
+    if term.shapes:  # one column per shape node: only the most recent are kept
+        key = ("column", var, column_key(term))
+        found = RECENT.get(key, kin, x_full)
+        if found is None:
+            found = RECENT.put(key, kin, x_full, _column(term, kin, x_full, var, raw_speed))
+        return found  # type: ignore[no-any-return]
+    if columns is None:
         return _column(term, kin, x_full, var, raw_speed)
     key = column_key(term)
     if key not in columns:
@@ -140,7 +151,18 @@ def term_noise_path(
 
 def noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:
     """How position noise reaches a term's column (:func:`eiv_correction`): the kernel
-    it passes through, shape (w,), and the term's slope at each fitted sample, shape (m,)."""
+    it passes through, shape (w,), and the term's slope at each fitted sample, shape (m,)
+    (a term with shape parameters: kept among the most recent, as its column is)."""
+    if not term.shapes:
+        return _noise_path(term, kin, x_full)
+    key = ("path", 0.0, column_key(term))
+    found = RECENT.get(key, kin, x_full)
+    if found is None:
+        found = RECENT.put(key, kin, x_full, _noise_path(term, kin, x_full))
+    return found  # type: ignore[no-any-return]
+
+
+def _noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:
     if term.variable == "x":
         return kin.kernels[0], kin.smooth(term.derivative(x_full))
     if term.variable == "v":
@@ -149,6 +171,68 @@ def noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array
         return kin.kernels[2], term.derivative(kin.a)
     # a constant, or a history filtered from the raw closure, carries none to first order
     return np.zeros_like(kin.kernels[0]), np.zeros(kin.v.size)
+
+
+class RecentColumns:
+    """The columns and noise paths of terms with shape parameters computed last, by
+    session and shape: a structure search scores sibling laws (with and without an
+    offset, say) on one grid of shapes, and each node's columns cost a filter pass
+    apiece. At most ``max_bytes`` are held, the least recently used dropped first; an
+    entry answers only for the very kinematics and closure it was computed from (held
+    by weak reference, so a finished fit's are never matched by a new one's). Callers
+    must not write to what they are given."""
+
+    def __init__(self, max_bytes: int = 32 << 20) -> None:
+        self.max_bytes = max_bytes
+        self._items: OrderedDict[tuple[Any, ...], tuple[Any, Any, Any, int]] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[Any, ...], kin: Kinematics, x_full: Array) -> Any:
+        """What was kept for ``key`` on these kinematics and closure, else None."""
+        full = (*key, id(kin), id(x_full))
+        with self._lock:
+            item = self._items.get(full)
+            if item is None or item[0]() is not kin or item[1]() is not x_full:
+                return None
+            self._items.move_to_end(full)
+            return item[2]
+
+    def put(self, key: tuple[Any, ...], kin: Kinematics, x_full: Array, value: Any) -> Any:
+        """Keep ``value`` (an array or a tuple of arrays) for ``key``; returns it."""
+        parts = value if isinstance(value, tuple) else (value,)
+        size = int(sum(np.asarray(v).nbytes for v in parts))
+        full = (*key, id(kin), id(x_full))
+        with self._lock:
+            if self._items and next(reversed(self._items.values()))[0]() is not kin:
+                self._drop_dead()  # a new fit: what finished fits left is of no use
+            old = self._items.pop(full, None)
+            if old is not None:
+                self._bytes -= old[3]
+            if size <= self.max_bytes:
+                self._items[full] = (weakref.ref(kin), weakref.ref(x_full), value, size)
+                self._bytes += size
+            while self._bytes > self.max_bytes:
+                self._bytes -= self._items.popitem(last=False)[1][3]
+        return value
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held."""
+        return self._bytes
+
+    def _drop_dead(self) -> None:
+        for key in [k for k, v in self._items.items() if v[0]() is None or v[1]() is None]:
+            self._bytes -= self._items.pop(key)[3]
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+
+#: the shaped columns of the fits in this process (a few tens of MB at most)
+RECENT = RecentColumns()
 
 
 def lstsq_scaled(A: Array, y: Array) -> Array:

@@ -175,7 +175,9 @@ class Estimator:
                 np.concatenate([before.force, session.force]),
                 np.concatenate([before.position, session.position]),
             )
-            return predict_band(tissue, whole).predicted[len(before) :]
+            # the smoothing is chosen on the fitted part's force, never the new part's
+            fitted = np.arange(len(whole)) < len(before)
+            return predict_band(tissue, whole, tune=fitted).predicted[len(before) :]
         return predict_band(tissue, session).predicted
 
     def _predict_filtered(self, session: Session | None = None) -> Array:

@@ -88,6 +88,11 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
     becoming 0. The error says whether the estimate can be trusted: far in the tail
     the product of factors varies over the lattice by orders of magnitude and the
     mean over its points is carried by a few of them.
+
+    Where every coefficient but one lies so far inside its bound that together they
+    change the answer by less than :data:`ONE_BOUND_TOL` of it, the answer is that
+    one's normal CDF, in closed form (the lattice's factors for the others are 1 to
+    the last bit there, and it returns the same).
     """
     mean = np.asarray(mean, dtype=float)
     cov = np.asarray(cov, dtype=float)
@@ -97,7 +102,14 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
     corr = cov / np.outer(sd, sd) + 1e-12 * np.eye(mean.size)
     if mean.size == 1:
         return float(log_normal_cdf(h)[0]), 0.0
+    one = _one_bound(h)
+    if one is not None:
+        return one, 0.0
     chol, h = _prioritised_cholesky(corr, h)
+    dims = h.size - 1  # the shifts are drawn for every variable, whichever are kept
+    chol, h = _without_sure_tail(chol, h)
+    if h.size == 1:
+        return float(log_normal_cdf(np.array([h[0] / chol[0, 0]]))[0]), 0.0
     # the direct products while every factor stays far from underflow (half the cost);
     # in logarithms beyond
     log_space = bool(np.min(h) < -LINEAR_LIMIT)
@@ -107,10 +119,11 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
     points = FIRST_POINTS
     while True:
         k = np.arange(1, points + 1)[:, None]
-        lattice = (k * root) % 1.0
-        estimates = np.array(
-            [sov(chol, h, lattice, rng.random(h.size - 1)) for _ in range(SHIFTS)]
-        )
+        lattice = k * root
+        lattice -= np.floor(lattice)  # exact, as % 1.0 is, and cheaper
+        # every shift's estimate in one pass (the shifts drawn in the order one call
+        # per shift would draw them)
+        estimates = sov(chol, h, lattice, rng.random((SHIFTS, dims))[:, : h.size - 1])
         top = float(np.max(estimates))
         if not log_space and not (np.all(np.isfinite(estimates)) and top > -LINEAR_FLOOR):
             log_space, sov = True, _sov_log  # a product underflowed: again in logarithms
@@ -128,9 +141,70 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
         points *= 4
 
 
-def _sov_linear(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
+#: the other bounds may change a one-bound answer by at most this fraction of it
+ONE_BOUND_TOL = 1e-12
+
+
+def _one_bound(h: Array) -> float | None:
+    """``ln P(Z_j <= h_j)`` for the one standardised limit ``h_j`` that matters, if the
+    others are so far out that they change ``P(Z <= h)`` by less than
+    :data:`ONE_BOUND_TOL` of it, else None.
+
+    ``P(Z_j <= h_j) - sum_i P(Z_i > h_i) <= P(Z <= h) <= P(Z_j <= h_j)`` (a union
+    bound), so the relative error is at most ``sum_i Phi(-h_i) / Phi(h_j)``. ``h_j``
+    is scaled as the lattice's regularised correlation scales it.
+    """
+    j = int(np.argmin(h))
+    others = np.delete(h, j)
+    ln_keep = float(log_normal_cdf(np.array([h[j] / math.sqrt(1.0 + 1e-12)]))[0])
+    ln_out = log_normal_cdf(-others)
+    top = float(np.max(ln_out))
+    if math.isfinite(top):
+        ln_sum = top + math.log(float(np.sum(np.exp(ln_out - top))))
+        if ln_sum > math.log(ONE_BOUND_TOL) + ln_keep:
+            return None
+    return ln_keep
+
+
+#: a standardised limit beyond which the normal CDF is 1 to the last bit
+SURE = 9.0
+#: the largest |quantile| a lattice point can be drawn at: ``Phi^-1`` of the smallest
+#: probability a point of :data:`MAX_POINTS` per shift reaches is about -4.4; far
+#: more is allowed, so that no point of any shift can come near
+QUANTILE_BOUND = 40.0
+
+
+def _without_sure_tail(chol: Array, h: Array) -> tuple[Array, Array]:
+    """The prioritised factor and limits without the trailing variables whose
+    conditional factor is 1 to the last bit at any draw of the earlier ones: limits
+    beyond :data:`SURE` even with every earlier draw at :data:`QUANTILE_BOUND` against
+    them. The lattice's estimate is the same to the last bit without them (each factor
+    multiplies it by 1.0) at less cost; at least one variable is kept."""
+    keep = h.size
+    while keep > 1:
+        i = keep - 1
+        worst = h[i] - QUANTILE_BOUND * float(np.sum(np.abs(chol[i, :i])))
+        if not worst / chol[i, i] > SURE:
+            break
+        keep -= 1
+    return chol[:keep, :keep], h[:keep]
+
+
+def _shifted(lattice: Array, shifts: Array) -> Array:
+    """The baker's-transformed points of every shift, shape (shifts * points, d): the
+    first shift's points first."""
+    u = lattice[None, :, :] + shifts[:, None, :]
+    # (lattice + shift) mod 1 for both in [0, 1): u - 1 is exact where u >= 1 (Sterbenz),
+    # as fmod is, and takes a fraction of its time
+    u -= u >= 1.0
+    u *= 2.0
+    u -= 1.0
+    return np.abs(u, out=u).reshape(-1, lattice.shape[1])  # the baker's transform periodises
+
+
+def _sov_linear(chol: Array, h: Array, lattice: Array, shifts: Array) -> Array:
     """:func:`_sov_log` by direct products, for limits no factor can underflow at."""
-    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)
+    w = _shifted(lattice, shifts)
     e = np.full(w.shape[0], normal_cdf(np.array([h[0] / chol[0, 0]]))[0])
     f = e.copy()
     y = np.zeros((w.shape[0], h.size - 1))
@@ -138,13 +212,15 @@ def _sov_linear(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
         y[:, i - 1] = normal_ppf(w[:, i - 1] * e)
         e = normal_cdf((h[i] - y[:, :i] @ chol[i, :i]) / chol[i, i])
         f *= e
-    mean = float(np.mean(f))
-    return math.log(mean) if mean > 0 else -math.inf
+    mean = np.mean(f.reshape(shifts.shape[0], -1), axis=1)
+    with np.errstate(divide="ignore"):
+        return np.where(mean > 0, np.log(np.where(mean > 0, mean, 1.0)), -math.inf)
 
 
-def _sov_log(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
-    """One randomised-lattice estimate of ``ln P(L Z <= h)``, Z standard normal."""
-    w = np.abs(2 * ((lattice + shift) % 1.0) - 1)  # the baker's transform periodises
+def _sov_log(chol: Array, h: Array, lattice: Array, shifts: Array) -> Array:
+    """Randomised-lattice estimates of ``ln P(L Z <= h)``, Z standard normal, one per
+    row of ``shifts`` (shifts, d)."""
+    w = _shifted(lattice, shifts)
     with np.errstate(divide="ignore"):
         log_w = np.log(w)
     log_e = np.full(w.shape[0], log_normal_cdf(np.array([h[0] / chol[0, 0]]))[0])
@@ -155,10 +231,14 @@ def _sov_log(chol: Array, h: Array, lattice: Array, shift: Array) -> float:
         y[:, i - 1] = normal_ppf_log(log_w[:, i - 1] + log_e)
         log_e = log_normal_cdf((h[i] - y[:, :i] @ chol[i, :i]) / chol[i, i])
         log_f += log_e
-    top = float(np.max(log_f))
-    if not math.isfinite(top):
-        return top
-    return top + math.log(float(np.mean(np.exp(log_f - top))))
+    log_f = log_f.reshape(shifts.shape[0], -1)
+    top = np.max(log_f, axis=1)
+    out = top.copy()
+    ok = np.isfinite(top)
+    if np.any(ok):
+        tail = np.mean(np.exp(log_f[ok] - top[ok, None]), axis=1)
+        out[ok] = top[ok] + np.log(tail)
+    return out
 
 
 def tail_log_probability(mean: Array, cov: Array) -> float:

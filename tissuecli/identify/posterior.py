@@ -182,6 +182,7 @@ class ExactPosterior:
         self._inside: float | None = None
         self._inside_error = 0.0
         self._tail: float | None = None
+        self._mixture: tuple[Array, Array, Array, NDArray[np.intp]] | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
@@ -222,8 +223,9 @@ class ExactPosterior:
         w = np.full(nodes, self.u[1] - self.u[0])
         w[[0, -1]] *= 0.5
         lw = self.f + np.log(w)
-        self.ln_z_untruncated = float(logsumexp(lw) - np.log(prior.ln_sigma_range))
-        self.weights = np.exp(lw - logsumexp(lw))
+        total = logsumexp(lw)
+        self.ln_z_untruncated = float(total - np.log(prior.ln_sigma_range))
+        self.weights = np.exp(lw - total)
         if not (np.all(np.isfinite(self.weights)) and math.isfinite(self.ln_z_untruncated)):
             raise FitError(
                 "the posterior of the noise level is not finite (the session's forces or "
@@ -252,9 +254,24 @@ class ExactPosterior:
         cov = (self.Q * (s2 / (self.lam + s2))) @ self.Q.T * np.outer(scale, scale)
         return mu, cov
 
+    def conditionals(self, sigma: Array) -> tuple[Array, Array]:
+        """:meth:`conditional` at each of several noise levels: means (m, p) and
+        covariances (m, p, p), SI, in one product each."""
+        s2 = np.asarray(sigma, dtype=float)[:, None] ** 2
+        scale = self.ws / self.d
+        mus = scale * ((self.c / (self.lam + s2)) @ self.Q.T)
+        covs = np.matmul(self.Q * (s2 / (self.lam + s2))[:, None, :], self.Q.T)
+        return mus, covs * np.outer(scale, scale)
+
     def mixture(self) -> tuple[Array, Array, Array, NDArray[np.intp]]:
         """Weights (m,), means (m, p), covariances (m, p, p) and node indices (m,) of the
-        significant quadrature nodes."""
+        significant quadrature nodes (computed once: the summary and the exact draws
+        both need them)."""
+        if self._mixture is None:
+            self._mixture = self._mix()
+        return self._mixture
+
+    def _mix(self) -> tuple[Array, Array, Array, NDArray[np.intp]]:
         idx = np.flatnonzero(self.weights > 1e-12 * self.weights.max())
         w = self.weights[idx]
         if idx.size > MIXTURE_NODES:
@@ -262,12 +279,15 @@ class ExactPosterior:
             # pooled into one (at their weighted centre) change no moment or quantile
             # beyond rounding, and each summary costs a tenth
             bins = np.array_split(np.arange(idx.size), MIXTURE_NODES)
-            centre = [int(round(float(np.average(b, weights=w[b] + 1e-300)))) for b in bins]
-            w = np.array([w[b].sum() for b in bins])
-            idx = idx[centre]
-        parts = [self.conditional(float(np.exp(self.u[i]))) for i in idx]
+            starts = np.array([b[0] for b in bins])
+            ww = w + 1e-300
+            at = np.arange(idx.size, dtype=float)
+            centre = np.rint(np.add.reduceat(at * ww, starts) / np.add.reduceat(ww, starts))
+            w = np.add.reduceat(w, starts)
+            idx = idx[centre.astype(np.intp)]
+        mus, covs = self.conditionals(np.exp(self.u[idx]))
         w = w / w.sum()
-        return w, np.array([m for m, _ in parts]), np.array([c for _, c in parts]), idx
+        return w, mus, covs, idx
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
@@ -346,6 +366,17 @@ class ExactPosterior:
 
     def summary(self, rng: np.random.Generator, draws: int = 4000) -> Posterior:
         """The posterior; exact when the positivity bound cuts off no more than 1e-3."""
+        return self._summary(*self._summary_draws(rng, draws))
+
+    def _summary_draws(self, rng: np.random.Generator, draws: int = 4000) -> tuple[Array, Array]:
+        """The random numbers :meth:`summary` draws, in its order: a node for each draw
+        (draws,) and standard normals (draws, p)."""
+        w = self.mixture()[0]
+        pick = rng.choice(w.size, size=draws, p=w)
+        return pick, rng.standard_normal((draws, self.d.size))
+
+    def _summary(self, pick: Array, z: Array) -> Posterior:
+        """:meth:`summary` from its random numbers (:meth:`_summary_draws`)."""
         w, mus, covs, idx = self.mixture()
         inside = self.orthant_mass()
         ln_z = self.ln_evidence()
@@ -353,19 +384,16 @@ class ExactPosterior:
         second = np.einsum("m,mij->ij", w, covs + np.einsum("mi,mj->mij", mus, mus))
         cov = second - np.outer(mean, mean)
         sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
-        ci = np.array(
-            [
-                [_mixture_quantile(q, w, mus[:, j], sds[:, j]) for q in (0.025, 0.975)]
-                for j in range(mean.size)
-            ]
-        )
+        # every coefficient's two quantiles at once: (0.025, 0.975) for each
+        p = mean.size
+        q = np.tile([0.025, 0.975], p)
+        ci = _mixture_quantiles(q, w, np.repeat(mus, 2, axis=1), np.repeat(sds, 2, axis=1))
+        ci = ci.reshape(p, 2)
         sig = np.exp(self.u[idx])
         cdf = np.cumsum(w)
         sigma_ci = (float(np.interp(0.025, cdf, sig)), float(np.interp(0.975, cdf, sig)))
         # draws for plots: pick a node, then a Gaussian draw; the bound is applied by rejection
-        pick = rng.choice(w.size, size=draws, p=w)
         chol = _matrix_roots(covs)
-        z = rng.standard_normal((draws, mean.size))
         beta = mus[pick] + np.einsum("kij,kj->ki", chol[pick], z)
         samples = np.column_stack([beta, sig[pick]])
         samples = samples[np.all(beta[:, self.prior.bounded] >= 0, axis=1)]
@@ -386,14 +414,21 @@ class ExactPosterior:
         """The posterior as exact as it is known: the closed form where the positivity
         bound cuts no more than ``cut`` of it, else exact draws under the bound
         (:meth:`truncated`). ``diagnostics["exact"]`` says whether either applied; if
-        not (the bound keeps too little for rejection), a sampler is needed."""
-        post = self.summary(rng)
-        if post.outside > cut:
-            draws = self.truncated(rng)
-            if draws is None:
+        not (the bound keeps too little for rejection), a sampler is needed.
+
+        The closed form's summary is formed only if it is the answer; its random
+        numbers are drawn either way, so the generator's stream (and every draw after
+        it) is what it would be had it been formed."""
+        draws = self._summary_draws(rng)
+        if 1.0 - self.orthant_mass() > cut:
+            exact = self.truncated(rng)
+            if exact is None:
+                post = self._summary(*draws)
                 post.diagnostics["exact"] = False
                 return post
-            post = draws
+            post = exact
+        else:
+            post = self._summary(*draws)
         post.diagnostics["exact"] = True
         return post
 
@@ -413,21 +448,27 @@ class ExactPosterior:
         w, mus, covs, idx = self.mixture()
         chol = _matrix_roots(covs)
         bounded = self.prior.bounded
+        # the bounds a draw may plausibly cross are checked on every draw; the whole
+        # coefficient vector (and every bound) only on the draws that pass them
+        mu_m, cov_m = self._modal()
+        z_m = mu_m / np.sqrt(np.clip(np.diag(cov_m), 1e-300, None))
+        near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
+        if near.size == 0:
+            near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
+        node_sigma = np.exp(self.u[idx])
         kept: list[Array] = []
         have, total = 0, 0
         batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
         while have < draws and total < 20 * batch:
             counts = rng.multinomial(batch, w)
-            pick = np.repeat(np.arange(w.size), counts)
             z = rng.standard_normal((batch, mus.shape[1]))
-            beta = np.empty_like(z)
-            start = 0
-            for i, k in enumerate(counts):  # node by node: one small product each
-                if k:
-                    beta[start : start + k] = mus[i] + z[start : start + k] @ chol[i].T
-                    start += k
+            # every draw against the near bounds, node by node (one small product each)
+            first = _by_node(counts, z, mus[:, near], chol[:, near, :])
+            ok = np.all(first >= 0, axis=1)
+            pick = np.repeat(np.arange(w.size), counts)[ok]
+            beta = _by_node(np.bincount(pick, minlength=w.size), z[ok], mus, chol)
             ok = np.all(beta[:, bounded] >= 0, axis=1)
-            kept.append(np.column_stack([beta[ok], np.exp(self.u[idx])[pick[ok]]]))
+            kept.append(np.column_stack([beta[ok], node_sigma[pick[ok]]]))
             have += int(ok.sum())
             total += batch
         if have < 100:
@@ -435,13 +476,14 @@ class ExactPosterior:
         samples = np.concatenate(kept)[:draws]
         beta, sig = samples[:, :-1], samples[:, -1]
         cov = np.atleast_2d(np.cov(beta, rowvar=False))
+        ci = np.percentile(samples, [2.5, 97.5], axis=0).T  # the coefficients', then sigma's
         return Posterior(
             mean=beta.mean(axis=0),
             sd=beta.std(axis=0, ddof=1),
-            ci95=np.percentile(beta, [2.5, 97.5], axis=0).T,
+            ci95=ci[:-1],
             cov=cov,
             sigma_mean=float(sig.mean()),
-            sigma_ci95=(float(np.percentile(sig, 2.5)), float(np.percentile(sig, 97.5))),
+            sigma_ci95=(float(ci[-1, 0]), float(ci[-1, 1])),
             ln_evidence=self.ln_evidence(),
             outside=1.0 - inside,
             method="exact-draws",
@@ -449,6 +491,10 @@ class ExactPosterior:
             diagnostics={"draws": int(samples.shape[0]), "acceptance": have / total},
         )
 
+
+#: bounds whose coefficient's modal mean lies fewer posterior SDs inside them are
+#: checked on every rejection draw, the others only on the draws that pass those
+NEAR_SDS = 8.0
 
 #: most nodes of sigma's quadrature a posterior's summary mixes
 MIXTURE_NODES = 32
@@ -477,33 +523,74 @@ _SQRT2PI = math.sqrt(2.0 * math.pi)
 
 
 def _mixture_quantile(q: float, w: Array, mu: Array, sd: Array) -> float:
-    """The ``q`` quantile of the Gaussian mixture ``sum_i w_i N(mu_i, sd_i^2)``.
+    """The ``q`` quantile of the Gaussian mixture ``sum_i w_i N(mu_i, sd_i^2)``
+    (:func:`_mixture_quantiles` for one)."""
+    mu, sd = np.asarray(mu, dtype=float), np.asarray(sd, dtype=float)
+    return float(_mixture_quantiles(np.array([q]), w, mu[:, None], sd[:, None])[0])
+
+
+def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
+    """The ``q[j]`` quantile of each Gaussian mixture ``sum_i w_i N(mu_ij, sd_ij^2)``.
 
     Newton's method on the CDF (its slope is the mixture's density), kept inside a
     bracket that shrinks with every step and bisected when Newton leaves it; stops
-    at ``1e-14 + 4 eps |x|``, Brent's default tolerance.
+    when a step is below ``1e-14 + 4 eps |x|``, Brent's default tolerance. All
+    mixtures at once, each stopping at its own step.
+
+    Parameters
+    ----------
+    q : ndarray, shape (k,)
+    w : ndarray, shape (m,)
+        The components' weights (sum 1).
+    mu, sd : ndarray, shape (m, k)
+        Each mixture's component means and SDs.
+
+    Returns
+    -------
+    ndarray, shape (k,)
     """
-    lo = float(np.min(mu - 10 * sd))
-    hi = float(np.max(mu + 10 * sd))
-    if hi <= lo:
-        return float(mu[0])
-    x = min(max(float(w @ mu), lo), hi)
+    lo = np.min(mu - 10 * sd, axis=0)
+    hi = np.max(mu + 10 * sd, axis=0)
+    out = np.array(mu[0], dtype=float)
+    active = hi > lo
+    x = np.minimum(np.maximum(w @ mu, lo), hi)
+    tol = 4 * np.finfo(float).eps
     for _ in range(200):
+        if not active.any():
+            return out
         z = (x - mu) / sd
-        excess = float(w @ normal_cdf(z)) - q
-        if excess > 0:
-            hi = x
-        else:
-            lo = x
-        density = float(w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI)))
-        step = excess / density if density > 0 else math.inf
-        new = x - step
-        if not lo < new < hi:
-            new = 0.5 * (lo + hi)
-        if abs(new - x) <= 1e-14 + 4 * np.finfo(float).eps * abs(new):
-            return new
-        x = new
-    return x
+        excess = w @ normal_cdf(z) - q
+        above = excess > 0
+        hi = np.where(above, x, hi)
+        lo = np.where(above, lo, x)
+        density = w @ (np.exp(-0.5 * z * z) / (sd * _SQRT2PI))
+        with np.errstate(divide="ignore"):
+            step = np.where(density > 0, excess / np.where(density > 0, density, 1.0), math.inf)
+        newton = x - step
+        # a Newton step below the tolerance is convergence, even one that rounding puts
+        # on the bracket's edge (bisecting then went back 40 steps to where it was)
+        still = np.abs(newton - x) <= 1e-14 + tol * np.abs(newton)
+        new = np.where((lo < newton) & (newton < hi), newton, 0.5 * (lo + hi))
+        new = np.where(still, newton, new)
+        done = active & (still | (np.abs(new - x) <= 1e-14 + tol * np.abs(new)))
+        out[done] = new[done]
+        active &= ~done
+        x = np.where(active, new, x)
+    out[active] = x[active]
+    return out
+
+
+def _by_node(counts: NDArray[np.intp], z: Array, mus: Array, roots: Array) -> Array:
+    """``mus[i] + roots[i] z`` for each row of ``z`` (k, p), its rows grouped by node:
+    the first ``counts[0]`` of node 0, and so on; shape (k, q) for ``mus`` (m, q) and
+    ``roots`` (m, q, p)."""
+    out = np.empty((z.shape[0], mus.shape[1]))
+    start = 0
+    for i in np.flatnonzero(counts):
+        stop = start + int(counts[i])
+        out[start:stop] = mus[i] + z[start:stop] @ roots[i].T
+        start = stop
+    return out
 
 
 def _matrix_roots(covs: Array) -> Array:

@@ -8,13 +8,34 @@ motion without the lag or the flattening of a low-pass filter), and the measured
 force is left as recorded. Filtering both as a fit does (``filtered=True``) compares
 like with like, but predicts a smoothed force: what the filter removed is lost, and
 on held-out data of known law that put the prediction 2-20 times further from the
-true force than the measured force's noise floor, where the same law on
-Savitzky-Golay kinematics lands at 0.5-1.4 times it.
+true force than the measured force's noise floor.
+
+Three things make the law's force the best estimate of the true one:
+
+- **Each derivative its own smoothing.** Position noise reaches the law through x, xdot
+  and xddot, amplified by the derivative's order, and a law weighs each by its own
+  coefficient: one window for all three left the acceleration's noise (times M) or the
+  speed's (times S) several times the force's noise floor. Each order's Savitzky-Golay
+  window is chosen where the law's force agrees best with the measured force. The
+  force's noise is independent of the position's, so that agreement is the distance to
+  the true force plus a constant: a measure of the prediction's error that needs no
+  truth. An estimator chooses on the force it was fitted to (a held-out part's own
+  force is never read); a parameter file with another recording chooses on that
+  recording.
+- **Free jaws carry no tissue.** Where the session alternates grasps with free jaw
+  motion (:func:`~tissuecli.identify.contact.find_contact`, as a fit finds them), the
+  tissue's terms are zero outside the grasps and the force is the law's offset alone
+  (the sensor's): the law was fitted in contact and says nothing of open jaws.
+- **Dry friction at a turn.** Near zero speed the estimated speed has either sign; the
+  friction column is the mean of its two directions over the speed estimate's error
+  (:meth:`~tissuecli.core.terms.Term.expected`), not the sign of the estimate.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,10 +43,12 @@ from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from ..core.session import Session
+from ..core.terms import Term
 from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
+from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
-from .design import design
+from .design import design, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare
 from .spectrum import convolve_valid
 
@@ -107,6 +130,7 @@ def predict_band(
     differentiator_name: str | Differentiator = "gaussian",
     filtered: bool = False,
     smoother: Differentiator | None = None,
+    tune: NDArray[np.bool_] | None = None,
 ) -> Prediction:
     """Predict the force of every sample of ``session`` (all of it: grasps and free
     motion alike) with ``tissue``'s law; a law with memory starts from rest at the
@@ -127,8 +151,12 @@ def predict_band(
     filtered : bool
         Predict the force filtered as in a fit, and filter the measured force alike.
     smoother : Differentiator, optional
-        The kinematics estimate of the unfiltered prediction: a Savitzky-Golay
-        smoother whose window follows the position's signal band, by default.
+        The kinematics estimate of the unfiltered prediction, one window for every
+        order; by default a Savitzky-Golay window chosen for each order (see the
+        module's docstring).
+    tune : ndarray of bool, shape (n,), optional
+        The samples of ``session`` whose measured force chooses those windows (the
+        fitted part of a session whose end is held out); by default every sample.
 
     Returns
     -------
@@ -155,7 +183,13 @@ def predict_band(
         noise = noise_sd
     else:
         grid, usable = _grid(session)
-        A = _raw_design(tissue, grid, usable, smoother or SavitzkyGolay())
+        free = _free_jaws(grid)
+        if smoother is not None:
+            A = _raw_design(tissue, grid, usable, smoother)
+        else:
+            chooses = _on_grid_mask(session, grid, tune) & ~free
+            A = _tuned_design(tissue, grid, usable, free, chooses)
+        A[free] *= _kept_free(tissue)
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
         if noise_sd is not None:
@@ -252,6 +286,208 @@ def _ends(
         out[1][where] = p.polyval(u, p.polyder(c, 1))
         out[2][where] = p.polyval(u, p.polyder(c, 2))
     return out[0], out[1], out[2]
+
+
+def _free_jaws(grid: Session) -> NDArray[np.bool_]:
+    """Grid samples with the jaws free of the tissue: outside every grasp where the
+    session alternates grasps with free motion, none where it is one contact."""
+    contact = find_contact(grid)
+    if contact.all_contact or not contact.grasps:
+        return np.zeros(len(grid), bool)
+    return ~contact.mask
+
+
+def _kept_free(tissue: Tissue) -> Array:
+    """1 for each term that stays with the jaws free (a sensor's offset), else 0;
+    shape (p,)."""
+    return np.array([0.0 if t.rendered else 1.0 for t in tissue.law.terms])
+
+
+def _on_grid_mask(
+    session: Session, grid: Session, tune: NDArray[np.bool_] | None
+) -> NDArray[np.bool_]:
+    """``tune`` (one flag per sample of ``session``) at the grid's samples, by the nearest
+    sample in time; every grid sample when none."""
+    if tune is None:
+        return np.ones(len(grid), bool)
+    tune = np.asarray(tune, bool)
+    if tune.shape != session.time.shape:
+        raise FitError(f"tune has {tune.size} flags for a session of {len(session)} samples")
+    t = session.time
+    i = np.clip(np.searchsorted(t, grid.time), 1, t.size - 1)
+    nearer_left = (grid.time - t[i - 1]) <= (t[i] - grid.time)
+    return tune[np.where(nearer_left, i - 1, i)]
+
+
+#: candidate Savitzky-Golay smoothers for each derivative: these polynomial degrees (a
+#: higher one follows a fast tap over a wider window), WINDOWS windows from the
+#: shortest the degree allows to WIDEST times the window of the position's signal band
+DEGREES = (3, 5, 7)
+WINDOWS = 16
+WIDEST = 16.0
+#: the smoothers are chosen on at most this many samples (the last of those given)
+TUNE_SAMPLES = 200_000
+
+Smoother = tuple[int, int]  # (degree, window in samples)
+
+
+def _tuned_design(
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    free: NDArray[np.bool_],
+    chooses: NDArray[np.bool_],
+) -> Array:
+    """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a smoother
+    (degree and window) for each derivative (x, xdot, xddot), chosen where the law's
+    force is closest to the measured force over the ``chooses`` samples: derivative by
+    derivative, the acceleration first, twice over. Tissue terms are zero on ``free``
+    samples."""
+    t, x = grid.time, grid.position
+    n = x.size
+    dt = float(np.median(np.diff(t)))
+    w0 = SavitzkyGolay().kernels(x, dt, usable)[0][0].size
+    if w0 > n:
+        raise FitError(
+            f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
+        )
+    sigma_x = position_noise_sd(x, 1.0 / dt, usable)
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    ref = chooses & np.isfinite(grid.force)
+    if np.count_nonzero(ref) > 4 * w0:  # enough measured force to choose on
+        last = int(np.flatnonzero(ref)[-1]) + 1
+        part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
+        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
+    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x)
+
+
+def _choose(
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    free: NDArray[np.bool_],
+    ref: NDArray[np.bool_],
+    part: slice,
+    w0: int,
+    sigma_x: float,
+) -> list[Smoother]:
+    """The smoothers of :func:`_tuned_design`, chosen on the samples ``part``."""
+    n = part.stop - part.start
+    sub = grid.replace(grid.time[part], grid.force[part], grid.position[part])
+    use, off, keep = usable[part], free[part], ref[part]
+    kept_free = _kept_free(tissue)
+    f = sub.force
+    candidates = []
+    for degree in DEGREES:
+        least = degree + 2 + (degree + 1) % 2
+        top = min(int(WIDEST * w0), n)
+        if least > top:
+            continue
+        grid_w = {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)} | {w0}
+        candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
+    cache: dict[tuple[int, Smoother], tuple[Array, float]] = {}
+
+    terms = tissue.law.terms
+    # the derivatives each term's column reads: it is recomputed only when they change
+    reads_of = {"x": (0,), "v": (1,), "a": (2,), "xv": (0, 1), "h": (0, 1), "1": ()}
+    forces: dict[tuple[int, tuple[Smoother, ...]], Array] = {}
+
+    def error(smoothers: list[Smoother]) -> float:
+        total = np.zeros(n)
+        for j, term in enumerate(terms):
+            key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
+            if key not in forces:
+                col = _columns((term,), sub, use, smoothers, sigma_x, cache)[:, 0]
+                col[off] *= kept_free[j]
+                forces[key] = tissue.coef[j] * col
+            total += forces[key]
+        r = (total - f)[keep]
+        r = r[np.isfinite(r)]
+        return float(np.mean(r**2)) if r.size else np.inf
+
+    reads = {term.variable for term in tissue.law.terms}
+    needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
+              if reads & what]  # fmt: skip
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    best = error(chosen)
+    for _ in range(2):
+        for k in needed:
+            for c in candidates:
+                trial = [c if j == k else chosen[j] for j in range(3)]
+                e = error(trial)
+                if e < best:
+                    best, chosen = e, trial
+    return chosen
+
+
+def _columns(
+    terms: Sequence[Term],
+    grid: Session,
+    usable: NDArray[np.bool_],
+    smoothers: list[Smoother],
+    sigma_x: float,
+    cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
+) -> Array:
+    """The regressors of ``terms`` on the kinematics of ``smoothers`` (x, xdot, xddot),
+    shape (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
+    sample not ``usable``."""
+    x = grid.position
+    dt = float(np.median(np.diff(grid.time)))
+    cache = {} if cache is None else cache
+    est = []
+    for k, (degree, w) in enumerate(smoothers):
+        if (k, (degree, w)) not in cache:
+            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt)
+        est.append(cache[k, (degree, w)])
+    (xs, _), (vs, gain_v), (acc, _) = est
+    # the speed estimate's error, for terms that bend on its scale (dry friction)
+    var_v = (sigma_x * gain_v) ** 2
+    cols = [
+        term.expected(vs, var_v) if term.variable == "v" else term.series(dt, xs, vs, acc)
+        for term in terms
+    ]
+    A = np.column_stack(cols)
+    A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
+    return A
+
+
+def _reaches_hole(usable: NDArray[np.bool_], w: int) -> NDArray[np.bool_]:
+    """Samples whose centred window of ``w`` samples holds one not ``usable``."""
+    if usable.all():
+        return np.zeros(usable.size, bool)
+    holes = np.concatenate([[0], np.cumsum(~usable)])
+    i = np.arange(usable.size)
+    lo, hi = np.clip(i - w // 2, 0, usable.size), np.clip(i + w // 2 + 1, 0, usable.size)
+    return (holes[hi] - holes[lo]) > 0
+
+
+@functools.lru_cache(maxsize=256)
+def _fit_matrix(w: int, degree: int) -> Array:
+    """The least-squares polynomial fit of ``w`` samples, shape (degree + 1, w): its
+    coefficients (in the window's time over its half-width, from the centre) from the
+    samples. One matrix gives every derivative's kernel and the end windows' fits."""
+    h = w // 2
+    u = (np.arange(w) - h) / max(h, 1)
+    return np.linalg.pinv(np.vander(u, min(degree, w - 1) + 1, increasing=True))
+
+
+def _smoothed(x: Array, w: int, degree: int, k: int, dt: float) -> tuple[Array, float]:
+    """The ``k``-th derivative's Savitzky-Golay estimate at every sample (centred windows;
+    at either end the end window's polynomial, as scipy's ``savgol_filter(mode="interp")``)
+    and the norm of its kernel (the gain of white noise)."""
+    h = w // 2
+    fit = _fit_matrix(w, degree)
+    scale = math.factorial(k) / (max(h, 1) * dt) ** k
+    if k >= fit.shape[0]:
+        return np.zeros_like(x), 0.0
+    kernel = scale * fit[k][::-1]
+    out = np.concatenate([np.full(h, np.nan), convolve_valid(x, kernel), np.full(h, np.nan)])
+    p = np.polynomial.polynomial
+    for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
+        c = fit @ x[lo : lo + w]
+        u = (where - (lo + h)) / max(h, 1)
+        out[where] = p.polyval(u, p.polyder(c, k)) / (max(h, 1) * dt) ** k
+    return out, float(np.linalg.norm(kernel))
 
 
 def _samples_on(session: Session, grid: Session) -> Callable[[Array], Array]:

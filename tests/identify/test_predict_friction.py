@@ -1,0 +1,100 @@
+"""Dry friction, fitted and predicted: the friction column averaged over the speed's
+spread at a turn, and the force predicted on each derivative's own smoother, against
+the true force of random scenes held out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import savgol_filter
+
+from tissuecli.core.session import Session
+from tissuecli.identify import BayesianFit
+from tissuecli.sim.scenes import Scene, random_scene
+
+FRICTION = ["friction", "friction+offset"]
+
+
+def _split(scene: Scene) -> tuple[Session, Session, int]:
+    s = scene.session
+    i = int(0.7 * len(s))
+    return (
+        s.replace(s.time[:i], s.force[:i], s.position[:i]),
+        s.replace(s.time[i:], s.force[i:], s.position[i:]),
+        i,
+    )
+
+
+def _floor(measured: np.ndarray, truth: np.ndarray) -> float:
+    """The best cubic Savitzky-Golay smoother of the measured force against the truth."""
+    windows = sorted({int(w) | 1 for w in np.geomspace(5, max(5, measured.size // 3), 24)})
+    return min(
+        float(np.sqrt(np.mean((savgol_filter(measured, w, 3) - truth) ** 2)))
+        for w in windows
+        if w <= measured.size
+    )
+
+
+def _fitted(seed: int) -> tuple[Scene, BayesianFit, Session, int]:
+    scene = random_scene(seed, families=FRICTION, max_samples=20_000, contact="continuous")
+    fitted, rest, i0 = _split(scene)
+    forms = "+".join(t.name for t in scene.tissue.law.terms)
+    return scene, BayesianFit(forms, seed=seed).fit(fitted), rest, i0
+
+
+def test_fast_taps_give_friction_and_damping_their_own_share() -> None:
+    """Fast taps cross zero speed at a high acceleration: a smoothing window's spread of
+    speeds there is 10-100 times the friction's smoothing speed, and the second-order
+    expansion the fit used made its friction column +-30 at each turn. Fitted then:
+    S +239 %, Fc -92 %; now each within a few per cent."""
+    scene, est, _, _ = _fitted(0)
+    assert scene.settings["excitation"] == "fast taps"  # the premise
+    law, coef = est._coefficients()
+    truth = dict(zip(scene.tissue.law.symbols, scene.tissue.coef, strict=True))
+    for symbol, value in zip(law.symbols, coef, strict=True):
+        if symbol in ("S", "Fc"):
+            assert abs(value / truth[symbol] - 1) < 0.05, (symbol, value, truth[symbol])
+
+
+@pytest.mark.parametrize("seed", [0, 2, 21])
+def test_the_held_out_force_is_within_the_smoothers_floor(seed: int) -> None:
+    """Scenes that were 2.9-5.4 times the floor (the inertia's acceleration noise through
+    one window for every derivative, and the friction column above): now within the
+    1.5 times the generalisation goal allows."""
+    scene, est, rest, i0 = _fitted(seed)
+    truth = scene.force[i0:]
+    pred = est.predict(rest)
+    assert pred.shape == truth.shape and np.all(np.isfinite(pred))
+    error = float(np.sqrt(np.mean((pred - truth) ** 2)))
+    assert error <= 1.5 * _floor(rest.force, truth), (error, _floor(rest.force, truth))
+
+
+def test_the_held_out_part_s_own_force_is_never_read() -> None:
+    """The smoothers are chosen on the fitted part's force: a held-out part with other
+    force readings is predicted alike."""
+    _, est, rest, _ = _fitted(2)
+    other = rest.replace(rest.time, rest.force[::-1].copy(), rest.position)
+    np.testing.assert_array_equal(est.predict(rest), est.predict(other))
+
+
+def test_free_jaws_carry_the_sensor_s_offset_alone() -> None:
+    """Grasps apart by free jaw motion: outside them the tissue's terms are zero (the law
+    was fitted in contact), and the force is the law's offset."""
+    from tissuecli.core.terms import Law
+    from tissuecli.core.tissue import Tissue
+    from tissuecli.identify.predict import predict_band
+
+    t = np.arange(8000) / 1000.0
+    x = 3e-3 * np.sin(2 * np.pi * 0.5 * t) - 1e-3  # closure; contact where x > 0
+    v = np.gradient(x, t)
+    tissue = Tissue(Law.of(["x", "xdot", "sign(xdot)", "offset"]), 350.0, 0.5, 0.05, 0.2)
+    touching = x > 0
+    law = 350.0 * x + 0.5 * v + 0.05 * np.tanh(v / 1e-3)
+    truth = 0.2 + np.where(touching, np.maximum(law, 0.0), 0.0)
+    rng = np.random.default_rng(3)
+    s = Session(t, truth + rng.normal(0, 2e-3, t.size), x + rng.normal(0, 1e-6, t.size))
+    pred = predict_band(tissue, s).predicted
+    free = x < -0.5e-3  # well clear of the contact's edges
+    np.testing.assert_allclose(pred[free], 0.2)
+    inside = x > 0.5e-3
+    assert np.sqrt(np.mean((pred[inside] - truth[inside]) ** 2)) < 2e-3
