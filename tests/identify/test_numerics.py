@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import optimize, signal, stats
 
-from tissuecli.identify.noise import integrated_time
+from tissuecli.identify.noise import corrected_curvature, integrated_time
 from tissuecli.identify.orthant import normal_cdf, normal_ppf, orthant_probability
 from tissuecli.identify.posterior import _mixture_quantile
 from tissuecli.identify.spectrum import convolve_valid, power_spectrum
@@ -162,6 +162,29 @@ def test_bounded_posterior_draws_match_the_truncated_normal(ratio: float, p: int
     np.testing.assert_array_less(np.abs(post.mean - want), 4.5 * se)
     assert np.all(post.samples[:, :p] >= 0)
     np.testing.assert_allclose(post.sd, sd_want, rtol=0.05)
+
+
+def test_corrected_curvature_is_the_corrected_estimators_sandwich() -> None:
+    """Centred on (A^T A - C)^-1 A^T y; with the force-only noise s_c^2 = rss_c / n its
+    covariance s_c^2 G^-1 is s^2 (A^T A - C)^-1 A^T A (A^T A - C)^-1, s^2 = rss / n;
+    the least-squares residual yy - b^T G^-1 b is rss_c. Columns a million apart in
+    scale (x^3 beside x in SI) change nothing."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(500, 3)) * np.array([1.0, 1e-6, 1e3])
+    y = A @ np.array([2.0, 3e6, 1e-3]) + rng.normal(size=500)
+    gram, b = A.T @ A, A.T @ y
+    C = 0.05 * np.diag(np.diag(gram))
+    rss, rss_c = 480.0, 400.0
+    G, b_c, yy = corrected_curvature(gram, b, C, rss, rss_c)
+    beta_c = np.linalg.solve(gram - C, b)
+    np.testing.assert_allclose(np.linalg.solve(G, b_c), beta_c, rtol=1e-9)
+    inv = np.linalg.inv(gram - C)
+    np.testing.assert_allclose(rss_c * np.linalg.inv(G), rss * inv @ gram @ inv, rtol=1e-8)
+    assert yy - b_c @ np.linalg.solve(G, b_c) == pytest.approx(rss_c, rel=1e-6)
+    # no correction: the plain statistics
+    G0, b0, _ = corrected_curvature(gram, b, np.zeros((3, 3)), rss, rss)
+    np.testing.assert_allclose(G0, gram, rtol=1e-9)
+    np.testing.assert_allclose(b0, b, rtol=1e-9)
 
 
 def _cut_posterior(cut_sds: float, p: int = 4, seed: int = 0) -> tuple[object, object]:

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from ..core.terms import Law, MotionScales
 from .derivatives import Kinematics
 from .design import design, eiv_correction, lstsq_scaled_cond
+from .noise import corrected_curvature
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
 from .priors import law_prior
 
@@ -167,10 +168,12 @@ def law_stats(
     uncorrected = corr is not None and not _correctable(fp, corr)
     if uncorrected:
         corr = None  # noise dominates a column: the correction would be meaningless
-    G = fp.gram - corr if corr is not None else fp.gram
+    G, b, yy, rss = fp.gram, fp.b, fp.yy, fp.rss
+    if corr is not None:  # centred on the corrected fit, with its sampling covariance
+        rss = max(_corrected_rss(fp, corr), 0.0)
+        G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, rss)
     w, n = fit.weight, fit.y.size
-    rss = fp.rss if corr is None else max(_corrected_rss(fp, corr), 0.0)
-    st = SufficientStats(w * G, w * fp.b, w * fp.yy, w * n, w * rss)
+    st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
     prior = law_prior(model, fit.scales)
     flags = []
     if uncorrected:

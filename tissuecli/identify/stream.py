@@ -35,6 +35,7 @@ from ..core.terms import Law
 from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
 from .derivatives import Frozen
 from .design import design, eiv_correction
+from .noise import corrected_curvature
 from .posterior import ExactPosterior, SufficientStats
 
 Array = NDArray[np.float64]
@@ -235,11 +236,12 @@ class StreamedFit:
         for s in sums:
             if s.n <= len(s.law.terms):
                 continue
-            G = s.G - s.correction if s.correction is not None else s.G
-            rss = s.rss()
-            st = SufficientStats(
-                weight * G, weight * s.b, weight * s.yy, weight * s.n, weight * rss
-            )
+            G, b, yy, rss = s.G, s.b, s.yy, s.rss()
+            if s.correction is not None:  # as in the full fit: the corrected estimator's spread
+                p, R = len(s.law.terms), s.R
+                raw = float(R[p, p] ** 2) if R is not None and R.shape[0] > p else rss
+                G, b, yy = corrected_curvature(s.G, s.b, s.correction, raw, rss)
+            st = SufficientStats(weight * G, weight * b, weight * yy, weight * s.n, weight * rss)
             prior = law_prior(s.law, pilot.scales_)
             exact = ExactPosterior(st, prior)
             why = exact.untrusted()

@@ -283,7 +283,11 @@ def _triangle(kind: str) -> Callable[..., Scene]:
 def _relaxation_law(
     rng: np.random.Generator, K: float, branches: int, hold_s: float, shortest_s: float = 0.05
 ) -> Tissue:
-    taus = sorted(math.exp(rng.uniform(math.log(shortest_s), math.log(hold_s / 4)))
+    # a hold cut short (by a cap on the samples) still draws time constants it can show:
+    # at most a quarter of the hold
+    longest = hold_s / 4
+    shortest = min(shortest_s, longest)
+    taus = sorted(math.exp(rng.uniform(math.log(shortest), math.log(longest)))
                   for _ in range(branches))  # fmt: skip
     if branches == 2 and taus[1] < 8 * taus[0]:
         taus[1] = min(8 * taus[0], hold_s / 3)
