@@ -345,7 +345,9 @@ class LokyExecutor(Executor):
         pool = get_reusable_executor(
             max_workers=self.jobs, env=dict.fromkeys(BLAS_VARS, "1"), initializer=_pin_blas
         )
-        window = 2 * self.jobs
+        # enough fits queued that no worker waits for the parent between two short fits
+        # (with 2 per worker, 40 ms fits on 2 cores ran 1.5x faster than on one, not 1.9x)
+        window = 8 * self.jobs
         running: set[Future[Done]] = set()
         todo = iter(tasks)
         try:
