@@ -26,6 +26,7 @@ from tissuecli.hw.link import Link
 from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
 from tissuecli.hw.realtime import StopFlag
 from tissuecli.render import PAPER_DISPLAY
+from tissuecli.sim.display import SIM_WATCHDOG_MAX_S
 
 LINEAR = Law.paper("x", "xdot")
 INSIDE = Tissue(LINEAR, K=600.0, S=3.0, M=0.05)
@@ -287,7 +288,7 @@ def test_display_clamps_commands_and_its_watchdog_is_cleared_by_the_next_one(dis
         assert echo(-1.0).volts == 0.0
         assert echo(float("nan")).volts == 0.0
         assert echo(1.0).volts == pytest.approx(1.0)
-        time.sleep(0.05)  # silence for 50 periods
+        time.sleep(3 * SIM_WATCHDOG_MAX_S)  # beyond any limit the display sets itself
         tripped = _next_frame(link)
         assert tripped.flags & FLAG_WATCHDOG and tripped.volts == 0.0
         cleared = echo(0.7)
