@@ -104,7 +104,7 @@ class Kinematics:
         v = convolve_valid(x_full, gh1)
         a = convolve_valid(x_full, gh2)
         n_v = noise_var * float(gh1 @ gh1)
-        col = convolve_valid(term.expected(v, s2 * a * a - n_v), gh)
+        col = convolve_valid(term(v) + 0.5 * term.curvature(v) * (s2 * a * a - n_v), gh)
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
 
