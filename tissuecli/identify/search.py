@@ -30,10 +30,12 @@ from .shapes import resolvable, tau_range
 BRANCH_SPREAD = 4.0
 
 #: the laws within this many nats of the most evidence have their one-term-smaller laws
-#: scored: taking a term out gains at most its Occam factor, a few nats a coefficient
-#: (half the log ratio of its prior to its posterior width), so a law further behind
-#: cannot be overtaken by one of its near sub-laws
-MARGIN = 20.0
+#: scored (and theirs while they come within it): taking a term out gains at most its
+#: Occam factor, the log ratio of its prior to its posterior width, 5-11 nats a term on
+#: the protocols of docs/benchmarks.md, so a law further behind is rarely overtaken by
+#: one of its sub-laws; a wider margin scores more laws (20 nats: 1.6x the search's CPU
+#: time on a ramp-and-hold)
+MARGIN = 10.0
 
 #: the roles a stem's terms keep when contact replaces its stiffness and damping
 KEPT_ROLES = ("friction", "inertia", "offset")
