@@ -33,8 +33,7 @@ BRANCH_SPREAD = 4.0
 #: scored (and theirs while they come within it): taking a term out gains at most its
 #: Occam factor, the log ratio of its prior to its posterior width, 5-11 nats a term on
 #: the protocols of docs/benchmarks.md, so a law further behind is rarely overtaken by
-#: one of its sub-laws; a wider margin scores more laws (20 nats: 1.6x the search's CPU
-#: time on a ramp-and-hold)
+#: one of its sub-laws; a wider margin scores more laws
 MARGIN = 10.0
 
 #: the roles a stem's terms keep when contact replaces its stiffness and damping
@@ -258,8 +257,8 @@ def search_strategy(spec: str | Search) -> Search:
 class GreedySearch(Search):
     """Greedy search by exact evidence (docs/estimators.md), from each stem: the terms
     that declare ``search = "replace"`` (Hunt-Crossley contact) in place of its
-    stiffness and damping; then, to the stem and to its contact variant where that has
-    more evidence, the ``"grow"`` terms (relaxation branches) one at a time (up to
+    stiffness and damping; then, to the better of the two (and one to the stem where
+    the contact variant is better), the ``"grow"`` terms (relaxation branches) one at a time (up to
     three, one on a contact law, and each no more often than a law may hold it) while
     each raises the evidence; after each, ``"prune"`` terms the new one makes redundant
     are taken out while that raises the evidence. At the end, the laws one term smaller
@@ -332,11 +331,14 @@ class GreedySearch(Search):
         if why:
             notes.append(why)
             return False
-        # branches on the stem, and on its contact variant where that has more evidence
-        # (a branch can pay on either while the other wins without one)
-        bases = [best, contact] if contact.ln_evidence > best.ln_evidence else [best]
-        for base in bases:
-            self._branches(base, score, scope, notes)
+        # branches on the better of the stem and its contact variant; on the stem one
+        # as well when contact wins (a branch can pay on either while the other wins
+        # without one; the smaller laws scored at the end reach the stem's sub-laws)
+        if contact.ln_evidence > best.ln_evidence:
+            self._branches(contact, score, scope, notes, 1)
+            self._branches(best, score, scope, notes, 1)
+        else:
+            self._branches(best, score, scope, notes, MAX_BRANCHES)
         return True
 
     def _branches(
@@ -345,12 +347,11 @@ class GreedySearch(Search):
         score: Score,
         scope: Scope,
         notes: list[str],
+        most: int,
     ) -> None:
-        """Branches one at a time on ``base`` while each raises the evidence; a contact
-        law takes one (its exponent and contact point already make it the costliest to
-        sample)."""
-        replaced = any(t.name in self.terms("replace") for t in base.model.terms)
-        most = 1 if replaced else MAX_BRANCHES
+        """Branches one at a time on ``base`` while each raises the evidence, at most
+        ``most`` (a contact law takes one: its exponent and contact point already make
+        it the costliest to sample)."""
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
