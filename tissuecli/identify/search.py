@@ -31,9 +31,9 @@ BRANCH_SPREAD = 4.0
 
 #: the laws within this many nats of the most evidence have their one-term-smaller laws
 #: scored (and theirs while they come within it): taking a term out gains at most its
-#: Occam factor, the log ratio of its prior to its posterior width, 5-11 nats a term on
-#: the protocols of docs/benchmarks.md, so a law further behind is rarely overtaken by
-#: one of its sub-laws; a wider margin scores more laws
+#: Occam factor, the log ratio of its prior to its posterior width (6-11 nats a term on
+#: the ramp-and-hold and creep sessions of docs/benchmarks.md), so a law further behind
+#: is rarely overtaken by one of its sub-laws; a wider margin scores more laws
 MARGIN = 10.0
 
 #: the roles a stem's terms keep when contact replaces its stiffness and damping
