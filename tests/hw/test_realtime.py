@@ -12,6 +12,7 @@ import pytest
 from tissuecli.core.errors import DeviceLost
 from tissuecli.hw import realtime
 from tissuecli.hw.realtime import (
+    Deadlines,
     Elevation,
     LoopProcess,
     Parent,
@@ -148,3 +149,16 @@ def test_only_an_elevated_loop_spins(monkeypatch: pytest.MonkeyPatch) -> None:
     assert realtime.spin_for(elevated) == realtime.SPIN_S
     monkeypatch.setattr(realtime, "cpu_to_spare", lambda: False)
     assert realtime.spin_for(elevated) == 0.0  # a saturated machine: sleep, never spin
+
+
+def test_deadlines_passed_are_run_up_to_the_catch_up_and_skipped_beyond() -> None:
+    # periods of 1 s: the few microseconds the test takes move no deadline across a period
+    behind = time.monotonic() - 5.5  # woken 4.5 periods after the first deadline
+    skipping = Deadlines(1.0, t0=behind)
+    assert skipping.next() == pytest.approx(behind + 5.0)  # jumped to the last one passed
+    assert (skipping.missed, skipping.behind) == (4, 0)
+    catching = Deadlines(1.0, t0=behind, catch_up=10)
+    got = [catching.next() for _ in range(5)]
+    assert got == pytest.approx([behind + k for k in (1.0, 2.0, 3.0, 4.0, 5.0)])
+    assert (catching.missed, catching.behind) == (0, 4)  # the fifth is less than a period late
+    assert Deadlines(1.0, t0=behind, catch_up=3).next() == pytest.approx(behind + 5.0)

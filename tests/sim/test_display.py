@@ -4,6 +4,7 @@ was set, its bounds, and the firmware's limit kept when asked for."""
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import pytest
@@ -15,12 +16,16 @@ from tissuecli.app.play import watchdog_periods
 from tissuecli.core.errors import EXIT_WATCHDOG, InputError
 from tissuecli.hw.link import open_device
 from tissuecli.render.profile import PAPER_DISPLAY
+from tissuecli.sim import display as display_module
 from tissuecli.sim.display import (
+    CATCH_UP_S,
     ROUND_TRIP_MARGIN,
     SIM_WATCHDOG_MAX_S,
     WATCHDOG_PERIODS,
+    _Firmware,
     display_info,
     run_simulated_display,
+    simulate_display,
     watchdog_limit,
 )
 from tissuecli.sim.port import VirtualPort
@@ -110,3 +115,60 @@ def test_a_watchdog_fault_names_the_limit_the_display_stated() -> None:
     assert code == EXIT_WATCHDOG and "stopped answering for 23 periods (23 ms)" in text
     [(_, text)] = classify_faults(summary, 1000.0)
     assert "stopped answering for 5 periods (5 ms)" in text
+
+
+def _stalled_once(monkeypatch: pytest.MonkeyPatch, stall_s: float, at_tick: int = 50) -> None:
+    """The display's process descheduled for ``stall_s`` once, inside its ``at_tick``-th
+    integration step."""
+    step, calls = display_module.piston_step, [0]
+
+    def stalling(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        if calls[0] == at_tick:
+            time.sleep(stall_s)
+        return step(*args, **kwargs)
+
+    monkeypatch.setattr(display_module, "piston_step", stalling)
+
+
+def test_a_display_woken_late_runs_the_ticks_it_owes_and_keeps_its_rate(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    _stalled_once(monkeypatch, 0.008)
+    # any stall the machine adds is caught up too (an ordinary thread here)
+    monkeypatch.setattr(display_module, "CATCH_UP_S", 1.0)
+    port = VirtualPort()
+    try:
+        counters = simulate_display(PAPER_DISPLAY, port, duration_s=0.2)
+    finally:
+        port.close()
+    # all 200 ticks run (none skipped), at least 6 of the 8 periods the stall took owed
+    assert counters["missed_deadlines"] == 0
+    assert counters["late_ticks"] >= 6
+
+
+def test_a_display_stalled_beyond_its_catch_up_skips_and_counts_the_ticks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    _stalled_once(monkeypatch, 2 * CATCH_UP_S)
+    port = VirtualPort()
+    try:
+        counters = simulate_display(PAPER_DISPLAY, port, duration_s=0.2)
+    finally:
+        port.close()
+    assert counters["missed_deadlines"] >= CATCH_UP_S / 1e-3  # said, not run in a burst
+
+
+def test_ticks_run_to_catch_up_do_not_count_towards_the_watchdog() -> None:
+    port = VirtualPort()
+    try:
+        fw = _Firmware(PAPER_DISPLAY, port, 1000.0, lambda t: 0.0, None, watchdog_periods=5)
+        fw.streaming = fw.armed = True
+        for _ in range(20):  # a burst after the display's own stall: the host is not silent
+            fw.tick(late=True)
+        assert fw.trips == 0
+        for _ in range(6):  # on time, no answer for more than 5 periods: cut
+            fw.tick()
+        assert fw.trips == 1 and fw.volts == 0.0
+    finally:
+        port.close()

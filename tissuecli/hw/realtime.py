@@ -78,24 +78,45 @@ class StopFlag:
 
 class Deadlines:
     """Absolute deadlines every ``period_s``: sleeping a fixed time after each
-    step drifts (913 Hz for a 1 kHz loop); sleeping until ``t0 + k period`` does not."""
+    step drifts (913 Hz for a 1 kHz loop); sleeping until ``t0 + k period`` does not.
 
-    def __init__(self, period_s: float, t0: float | None = None) -> None:
+    A loop that wakes late is handed the deadlines it has passed, up to ``catch_up``
+    periods behind, so it runs them back to back and keeps its rate (the lateness is
+    jitter); further behind, the schedule jumps to now, and the deadlines jumped are
+    skipped and counted (:attr:`missed`). With ``catch_up`` = 1, a loop that answers a
+    peer's frames never runs stale periods in a burst.
+
+    Attributes
+    ----------
+    k : int
+        Deadlines handed out or skipped since ``t0``.
+    missed : int
+        Deadlines skipped.
+    behind : int
+        Deadlines handed out already more than a period past (run to catch up).
+    """
+
+    def __init__(self, period_s: float, t0: float | None = None, catch_up: int = 1) -> None:
         self.period_s = period_s
         self.t0 = time.monotonic() if t0 is None else t0
+        self.catch_up = max(int(catch_up), 1)
         self.k = 0
         self.missed = 0
+        self.behind = 0
 
     def next(self) -> float:
-        """The next deadline (monotonic s); deadlines already past are skipped and counted."""
+        """The next deadline (monotonic s); up to ``catch_up`` periods past it is handed
+        out as it is, beyond that the deadlines already past are skipped and counted."""
         self.k += 1
         deadline = self.t0 + self.k * self.period_s
         late = time.monotonic() - deadline
-        if late > self.period_s:
+        if late > self.catch_up * self.period_s:
             skip = int(late // self.period_s)
             self.k += skip
             self.missed += skip
             deadline = self.t0 + self.k * self.period_s
+        elif late > self.period_s:
+            self.behind += 1
         return deadline
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -41,6 +42,7 @@ from ..hw.realtime import (
     device_loop,
     realtime,
     spin_for,
+    wait_readable,
     wait_until,
 )
 from ..render.plant import piston_step
@@ -64,6 +66,21 @@ SIM_WATCHDOG_MAX_S = 0.05
 #: this machine (docs/benchmarks.md, "Where a loop's time goes").
 PROBES = 100
 ROUND_TRIP_MARGIN = 4.0
+#: How far behind its schedule the display's loop may fall and still run every tick it
+#: owes, s: woken late, it runs the ticks it missed back to back (physics, Encoder frame
+#: and all) so a late wake-up costs jitter, not rate; further behind, its schedule jumps
+#: to now and the ticks jumped are skipped and counted. The longest periods of demo
+#: plays beside two busy processes were 2.5-18 ms (docs/benchmarks.md); 20 ms is well
+#: under the watchdog's 50 ms bound and the host's 100 ms no-frame limit, so a stall
+#: longer than that still reaches the host as silence.
+CATCH_UP_S = 0.02
+#: While catching up, how long the display waits for the host's answer to the frame it
+#: has just sent before running the next owed tick, periods: a host that answers within
+#: it closes the loop at every tick, as it would on time (frames sent back to back are
+#: read together and answered once, and the display then holds one command for several
+#: ticks); one that does not is not waited for longer, so catching up still gains at
+#: least half a period a tick.
+ANSWER_WAIT_PERIODS = 0.5
 #: Heaviest reference mass the simulated piston carries, kg.
 MAX_LOAD_KG = 5.0
 #: Standard gravity, m/s^2.
@@ -149,8 +166,15 @@ def simulate_display(
     0), run the watchdog, send ``Encoder(position, volts in use, flags)`` if
     started, then integrate the piston over one period with that voltage held.
     STOP zeroes the voltage. The operator's presses restart at every START.
-    Ticks are paced by absolute deadlines; one the process misses (descheduled) is
-    skipped and counted, and simulated time waits for it rather than jumping.
+    Ticks are paced by absolute deadlines (:class:`~tissuecli.hw.realtime.Deadlines`):
+    woken late (descheduled), the loop runs the ticks it owes back to back, up to
+    :data:`CATCH_UP_S` behind, so the display keeps its rate over the run and stamps
+    every frame with its scheduled time (while the host answers, each owed tick waits up
+    to :data:`ANSWER_WAIT_PERIODS` for its answer to the last frame, so a host that keeps
+    up answers every tick); further behind, the ticks jumped are skipped
+    and counted, and simulated time waits for them rather than jumping. Ticks run to
+    catch up do not count towards the watchdog: the host cannot answer frames sent
+    faster than a period apart, and the display's own stall is not the host's silence.
 
     Parameters
     ----------
@@ -191,7 +215,8 @@ def simulate_display(
         Counters: ``sent`` Encoder frames, ``commands`` valid SetVoltage frames,
         ``last_command_volts`` (the last SetVoltage's value, V, or None),
         ``max_command_volts`` (the largest SetVoltage value received, V, or None),
-        ``watchdog_trips``, ``watchdog_periods``, ``bad_frames``, ``missed_deadlines``,
+        ``watchdog_trips``, ``watchdog_periods``, ``bad_frames``, ``missed_deadlines``
+        (ticks skipped), ``late_ticks`` (ticks run back to back to catch up),
         ``overrun_bytes``.
     """
     stop = stop if stop is not None else StopFlag()
@@ -213,17 +238,26 @@ def simulate_display(
     )
     for t in (0.0, 1.0, 2.0):
         fw.operator(t)  # first calls build the presses' random generator: not inside a tick
-    clock = Deadlines(fw.period)
+    clock = Deadlines(fw.period, catch_up=max(1, round(CATCH_UP_S / fw.period)))
     if on_ready is not None:
         on_ready(port)
+    late = False
     with realtime():
         while not stop:
             if duration_s is not None and clock.k * fw.period >= duration_s:
                 break
             fw.receive()
-            fw.tick()
+            fw.tick(late)
             fw.advance()
-            wait_until(None, clock.next(), spin_s)
+            behind = clock.behind
+            deadline = clock.next()
+            late = clock.behind > behind  # this tick is owed: run it at once
+            if not late:
+                wait_until(None, deadline, spin_s)
+            elif fw.streaming and fw.answered:
+                # ... once a host that answered the last frame has answered this one, or
+                # has had its time (a silent host is not waited for: its watchdog is)
+                wait_readable(port.fileno(), time.monotonic() + ANSWER_WAIT_PERIODS * fw.period)
     fw.receive()  # what the host sent last (its final 0 V and STOP) is counted
     return {
         "sent": fw.sent,
@@ -234,6 +268,7 @@ def simulate_display(
         "watchdog_periods": fw.watchdog_periods,
         "bad_frames": fw.decoder.bad_frames,
         "missed_deadlines": clock.missed,
+        "late_ticks": clock.behind,
         "overrun_bytes": port.overruns,
     }
 
@@ -262,6 +297,7 @@ class _Firmware:
         self.info = encode(Info(display_info(reports or profile, rate_hz, watchdog_periods)))
         self.x = self.v = self.volts = 0.0
         self.at_limit = self.streaming = self.armed = self.tripped = False
+        self.answered = False  # a SetVoltage came since the last tick
         self.seq = self.sent = self.commands = self.trips = 0
         self.last_command: float | None = None
         self.max_command: float | None = None
@@ -271,19 +307,24 @@ class _Firmware:
         # be descheduled (with its host) for milliseconds. A stall then looks to the host
         # like transport delay, as it would with real hardware, instead of the piston
         # running open-loop through the skipped periods.
-        self.ticks_run = self.tick_command = 0
+        self.ticks_run = 0
+        # the watchdog counts the ticks run on time: one run late to catch up comes
+        # faster than the host can answer it (see simulate_display)
+        self.watched = self.watched_command = 0
 
     def receive(self) -> None:
         """Act on what the host sent since the last tick; the latest SetVoltage wins."""
+        self.answered = False
         for msg in self.decoder.feed(self.port.read()):
             if isinstance(msg, SetVoltage):
                 if self.streaming:
                     value = float(msg.volts)
                     self.volts = min(max(value, 0.0), self.profile.v_max) if value == value else 0.0
-                    self.last_command, self.tick_command = value, self.ticks_run
+                    self.last_command, self.watched_command = value, self.watched
                     if value == value and (self.max_command is None or value > self.max_command):
                         self.max_command = value
                     self.commands += 1
+                    self.answered = True
                     self.armed, self.tripped = True, False
             elif isinstance(msg, Command):
                 if msg.code == IDENTIFY:
@@ -294,9 +335,11 @@ class _Firmware:
                 elif msg.code == STOP:
                     self.streaming, self.armed, self.volts = False, False, 0.0
 
-    def tick(self) -> None:
-        """Watchdog, then this tick's Encoder frame."""
+    def tick(self, late: bool = False) -> None:
+        """Watchdog, then this tick's Encoder frame; a ``late`` tick (run to catch up)
+        does not count towards the watchdog."""
         self.ticks_run += 1
+        self.watched += not late
         if self.k_start < 0:
             self.k_start = self.ticks_run
         # armed by the first SetVoltage after START, so a host's start-up is not a trip
@@ -304,7 +347,7 @@ class _Firmware:
             self.streaming
             and self.armed
             and not self.tripped
-            and self.ticks_run - self.tick_command > self.watchdog_periods
+            and self.watched - self.watched_command > self.watchdog_periods
         ):
             self.volts, self.tripped = 0.0, True
             self.trips += 1
