@@ -67,11 +67,9 @@ def test_greedy_grows_while_each_branch_raises_the_evidence_and_scores_each_law_
     assert notes == []
     assert max(score.calls.values()) == 1
     names = [r.name for r in tried]
-    # contact first, then one branch, a second, and a third that does not pay (the laws
-    # one term smaller than the best scored between them)
+    # contact first, then one branch, a second, and a third that does not pay
     assert names[0].startswith("contact")
-    grown = [n for n in names if n.endswith("xdot+xddot") and "maxwell" in n]
-    assert grown == [
+    assert names[1:] == [
         "x+maxwell+xdot+xddot",
         "x+maxwell+maxwell+xdot+xddot",
         "x+maxwell+maxwell+maxwell+xdot+xddot",
@@ -104,10 +102,8 @@ def test_exhaustive_scores_every_law_greedy_reaches_within_its_branches(one_bran
     _, scope = one_branch
     stem = Law.of(["x", "x^3", "xdot", "xddot"])
     greedy, exhaustive = _Scorer([30.0, 4.0, -2.0]), _Scorer([30.0, 4.0, -2.0])
-    # the steps alone (no smaller neighbours): what the enumeration covers
-    g_tried, _ = GreedySearch(margin=None).run([_linear(stem, 0.0)], greedy, scope)
-    every = ExhaustiveSearch(max_branches=2, margin=None)
-    e_tried, _ = every.run([_linear(stem, 0.0)], exhaustive, scope)
+    g_tried, _ = GreedySearch().run([_linear(stem, 0.0)], greedy, scope)
+    e_tried, _ = ExhaustiveSearch(max_branches=2).run([_linear(stem, 0.0)], exhaustive, scope)
     assert max(exhaustive.calls.values()) == 1
     within = {r.name for r in g_tried if r.name.count("maxwell") <= 2}
     assert within <= {r.name for r in e_tried}
@@ -212,57 +208,3 @@ def test_a_grown_term_is_added_no_more_times_than_a_law_may_hold_it(one_branch, 
         tried, _ = search.run([_linear(STEM, 0.0)], score, scope)
         assert "x+creep+creep+xdot+xddot" in {r.name for r in tried}
         assert all(r.name.count("creep") <= 2 for r in tried)
-
-
-class _Table:
-    """A scoring callable with made-up evidence, additive over the terms of a law (nats
-    a term, ``pair`` for two together, or one twice); it counts the calls per law."""
-
-    def __init__(self, worth: dict[str, float], pair: dict[tuple[str, str], float]) -> None:
-        self.worth, self.pair, self.calls = worth, pair, Counter[str]()
-
-    def __call__(self, law: Law) -> ModelResult:
-        self.calls[law.name] += 1
-        names = [t.name for t in law.terms]
-        ln_z = sum(self.worth.get(n, -3.0) for n in names)
-        held = Counter(names)
-        ln_z += sum(v for (a, b), v in self.pair.items() if held[a] and held[b] > (a == b))
-        return ModelResult(model=law, family=law, ln_evidence=ln_z, residual_rms=1.0)
-
-
-def test_greedy_scores_a_truth_that_is_a_sub_law_of_the_best_scored_law(one_branch):
-    _, scope = one_branch
-    # the truth x+maxwell: damping and inertia cost 2 nats each, an offset 5; contact
-    # beats the stem but a branch pays only without it, so greedy grows the branch on
-    # the stem (x+maxwell+xdot+xddot, 8 nats) and reaches the truth (12) only by
-    # taking xdot and xddot out of it
-    worth = {"x": 0.0, "xdot": -2.0, "xddot": -2.0, "maxwell": 12.0, "contact": 9.0,
-             "contact*xdot": -2.0, "offset": -5.0}  # fmt: skip
-    score = _Table(worth, {("contact", "maxwell"): -15.0, ("maxwell", "maxwell"): -13.0})
-    tried, _ = GreedySearch().run([_linear(STEM, score(STEM).ln_evidence)], score, scope)
-    names = [r.name for r in tried]
-    assert max(score.calls.values()) == 1 and STEM.name not in names
-    assert "x+maxwell+xdot+xddot" in names
-    assert max(tried, key=lambda r: r.ln_evidence).name == "x+maxwell"
-    # without the smaller neighbours the same steps never score it
-    alone = _Table(worth, score.pair)
-    steps, _ = GreedySearch(margin=None).run([_linear(STEM, -4.0)], alone, scope)
-    assert "x+maxwell" not in {r.name for r in steps}
-    # the others are the steps' laws and laws one term smaller than a law scored
-    scored = {STEM.name, *names}
-    below = {"+".join(f) for n in scored for f in Search.smaller(n.split("+"))}
-    assert set(names) <= below | {r.name for r in steps}
-
-
-def test_smaller_laws_keep_a_stiffness_and_what_a_term_requires():
-    names = ["contact", "maxwell", "contact*xdot", "xddot", "offset"]
-    fewer = {"+".join(f) for f in Search.smaller(names)}
-    # contact goes with contact damping; without it no stiffness remains
-    assert fewer == {
-        "contact+contact*xdot+xddot+offset",
-        "contact+maxwell+xddot+offset",
-        "contact+maxwell+contact*xdot+offset",
-        "contact+maxwell+contact*xdot+xddot",
-    }
-    assert Search.smaller(["x", "xdot"]) == [["x"]]
-    assert Search.smaller(["x", "maxwell", "maxwell"]) == [["x", "maxwell"]]

@@ -329,8 +329,7 @@ class BayesianFit(Estimator):
         """Never keep a term the fit itself reports as not identified: while the most
         probable law has such terms, its probability passes to the best (by evidence)
         of its sub-laws whose terms are all identified, the law without the unidentified
-        terms and the laws one term smaller than it among them (scored if the search had
-        not). A term the data do not pin
+        terms among them (scored if the search had not). A term the data do not pin
         down cannot be what made its law probable."""
         by_name = {r.name: r for r in results}
 
@@ -349,16 +348,11 @@ class BayesianFit(Estimator):
             if any(term(n).role == "stiffness" for n in names):
                 law = Law.of(names)
                 if law.name not in by_name:
-                    # and the laws one term smaller: the truth may lack more than the
-                    # unidentified terms (an offset the branches had used)
-                    for fewer in [law, *(Law.of(f) for f in Search.smaller(names))]:
-                        if fewer.name in by_name:
-                            continue
-                        new = self._score(fewer, fit)
-                        new.probability = 0.0
-                        new.flags.extend(identifiability(new))
-                        results.append(new)
-                        by_name[new.name] = new
+                    new = self._score(law, fit)
+                    new.probability = 0.0
+                    new.flags.extend(identifiability(new))
+                    results.append(new)
+                    by_name[new.name] = new
             mine = Counter(names_of(best))
             subs = [
                 r for r in results

@@ -29,13 +29,6 @@ from .shapes import resolvable, tau_range
 #: span this factor more (k branches: BRANCH_SPREAD**k)
 BRANCH_SPREAD = 4.0
 
-#: the laws within this many nats of the most evidence have their one-term-smaller laws
-#: scored (and theirs while they come within it): taking a term out gains at most its
-#: Occam factor, the log ratio of its prior to its posterior width (6-11 nats a term on
-#: the ramp-and-hold and creep sessions of docs/benchmarks.md), so a law further behind
-#: is rarely overtaken by one of its sub-laws; a wider margin scores more laws
-MARGIN = 10.0
-
 #: the roles a stem's terms keep when contact replaces its stiffness and damping
 KEPT_ROLES = ("friction", "inertia", "offset")
 
@@ -105,7 +98,7 @@ class Search:
 
         notes: list[str] = []
         self.explore(list(linear), once, scope, notes)
-        return tried, list(dict.fromkeys(notes))
+        return tried, notes
 
     def explore(
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
@@ -134,64 +127,6 @@ class Search:
             "xdot" not in design.unexcited and design.representative("xdot") == "xdot"
         )
         return [n for n in self.terms("replace") if speed or term(n).variable != "xv"]
-
-    @staticmethod
-    def tracked(
-        linear: Sequence[ModelResult], score: Score
-    ) -> tuple[dict[str, ModelResult], Score]:
-        """The laws scored so far by name (the linear ones first) and a scoring callable
-        that adds to them (and never scores a linear law again)."""
-        known = {r.name: r for r in linear}
-
-        def scored(law: Law | Sequence[str]) -> ModelResult:
-            law = law if isinstance(law, Law) else Law.of(list(law))
-            if law.name not in known:
-                known[law.name] = score(law)
-            return known[law.name]
-
-        return known, scored
-
-    @classmethod
-    def settle(
-        cls,
-        known: dict[str, ModelResult],
-        score: Score,
-        expanded: set[str],
-        margin: float | None,
-    ) -> None:
-        """Score the laws one term smaller (:meth:`smaller`) than each law in ``known``
-        within ``margin`` nats of the most evidence (the best at least; None: none),
-        until those are all ``expanded`` (each law is expanded once, so this ends): a
-        law the search reached by adding terms the data did not need is then never
-        chosen for want of the law without them."""
-        while margin is not None:
-            ranked = [r for r in known.values() if math.isfinite(r.ln_evidence)]
-            if not ranked:
-                return
-            top = max(r.ln_evidence for r in ranked)
-            fresh = [r for r in ranked
-                     if r.ln_evidence >= top - margin and r.name not in expanded]  # fmt: skip
-            if not fresh:
-                return
-            for r in fresh:
-                expanded.add(r.name)
-                for fewer in cls.smaller([t.name for t in (r.family or r.model).terms]):
-                    score(fewer)
-
-    @staticmethod
-    def smaller(names: Sequence[str]) -> list[list[str]]:
-        """The laws one term smaller than the law of ``names``: each term taken out in
-        turn (one of a repeated term), with the terms that require it, as long as some
-        stiffness remains. A law the data reached by adding terms it did not need is
-        one of these."""
-        out: list[list[str]] = []
-        for drop in dict.fromkeys(names):
-            fewer = list(names)
-            fewer.remove(drop)
-            fewer = [n for n in fewer if all(r in fewer for r in term(n).requires)]
-            if any(term(n).role == "stiffness" for n in fewer):
-                out.append(fewer)
-        return out
 
     @staticmethod
     def kept(law: Law) -> list[str]:
@@ -257,47 +192,20 @@ def search_strategy(spec: str | Search) -> Search:
 class GreedySearch(Search):
     """Greedy search by exact evidence (docs/estimators.md), from each stem: the terms
     that declare ``search = "replace"`` (Hunt-Crossley contact) in place of its
-    stiffness and damping; then, to the better of the two (and one to the stem where
-    the contact variant is better), the ``"grow"`` terms (relaxation branches) one at a time (up to
-    three, one on a contact law, and each no more often than a law may hold it) while
-    each raises the evidence; after each, ``"prune"`` terms the new one makes redundant
-    are taken out while that raises the evidence. At the end, the laws one term smaller
-    (:meth:`Search.smaller`) than each law within ``margin`` nats of the most evidence
-    are scored, and theirs in turn while they come within it: a law reached by adding
-    terms the data did not need is never chosen because the law without them went
-    unscored.
-
-    Parameters
-    ----------
-    margin : float or None
-        Laws within this many nats of the most evidence have their one-term-smaller
-        laws scored (the best at least; None: none).
-    registry : mapping of str to Term, optional
-        The terms to search (by default every registered one).
-    """
+    stiffness and damping; then, to the better of the two, the ``"grow"`` terms
+    (relaxation branches) one at a time (up to three, one on a contact law, and each no
+    more often than a law may hold it) while each raises the evidence; after each,
+    ``"prune"`` terms the new one makes redundant are taken out while that raises the
+    evidence."""
 
     name = "greedy"
-
-    def __init__(
-        self, *, margin: float | None = MARGIN, registry: Mapping[str, Term] | None = None
-    ) -> None:
-        super().__init__(registry=registry)
-        self.margin = margin
-
-    def __repr__(self) -> str:
-        changed = "" if self.margin == MARGIN else f"margin={self.margin!r}"
-        return f"{type(self).__name__}({changed})"
 
     def explore(
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
     ) -> None:
-        known, scored = self.tracked(linear, score)
         for stem in self.stems(linear, scope):
-            if not self._grow(stem, scored, scope, notes):
+            if not self._grow(stem, score, scope, notes):
                 break
-        # at the end only: a law that falls further behind the best as the search goes
-        # on cannot be overtaken by its near sub-laws
-        self.settle(known, scored, set(), self.margin)
 
     def _prune(self, res: ModelResult, score: Score) -> ModelResult:
         """Take ``"prune"`` terms out of ``res``'s law while that raises the evidence
@@ -317,41 +225,18 @@ class GreedySearch(Search):
                     break
         return res
 
-    def _grow(
-        self,
-        best: ModelResult,
-        score: Score,
-        scope: Scope,
-        notes: list[str],
-    ) -> bool:
+    def _grow(self, best: ModelResult, score: Score, scope: Scope, notes: list[str]) -> bool:
         """The search's steps from one linear law; False if the session resolves no
         relaxation (no other stem will either)."""
         contact = self._prune(score([*self.replacing(scope), *self.kept(best.model)]), score)
+        base = contact if contact.ln_evidence > best.ln_evidence else best
         why = self.unresolved(scope)
         if why:
             notes.append(why)
             return False
-        # branches on the better of the stem and its contact variant; on the stem one
-        # as well when contact wins (a branch can pay on either while the other wins
-        # without one; the smaller laws scored at the end reach the stem's sub-laws)
-        if contact.ln_evidence > best.ln_evidence:
-            self._branches(contact, score, scope, notes, 1)
-            self._branches(best, score, scope, notes, 1)
-        else:
-            self._branches(best, score, scope, notes, MAX_BRANCHES)
-        return True
-
-    def _branches(
-        self,
-        base: ModelResult,
-        score: Score,
-        scope: Scope,
-        notes: list[str],
-        most: int,
-    ) -> None:
-        """Branches one at a time on ``base`` while each raises the evidence, at most
-        ``most`` (a contact law takes one: its exponent and contact point already make
-        it the costliest to sample)."""
+        # branches one at a time while each raises the evidence; a contact law takes one
+        # (its exponent and contact point already make it the costliest to sample)
+        most = 1 if base is contact else MAX_BRANCHES
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
@@ -366,6 +251,7 @@ class GreedySearch(Search):
             if trial.ln_evidence <= current.ln_evidence:
                 break
             current = self._prune(trial, score)
+        return True
 
 
 @register
@@ -381,9 +267,6 @@ class ExhaustiveSearch(Search):
     ----------
     max_branches : int
         Most ``"grow"`` terms in one law.
-    margin : float or None
-        Laws within this many nats of the most evidence have their one-term-smaller
-        laws scored at the end, as the greedy search does (None: none).
     registry : mapping of str to Term, optional
         The terms to search (by default every registered one).
     """
@@ -391,26 +274,17 @@ class ExhaustiveSearch(Search):
     name = "exhaustive"
 
     def __init__(
-        self,
-        *,
-        max_branches: int = MAX_BRANCHES,
-        margin: float | None = MARGIN,
-        registry: Mapping[str, Term] | None = None,
+        self, *, max_branches: int = MAX_BRANCHES, registry: Mapping[str, Term] | None = None
     ) -> None:
         super().__init__(registry=registry)
         self.max_branches = max_branches
-        self.margin = margin
 
     def __repr__(self) -> str:
-        changed = [f"max_branches={self.max_branches!r}"]
-        if self.margin != MARGIN:
-            changed.append(f"margin={self.margin!r}")
-        return f"{type(self).__name__}({', '.join(changed)})"
+        return f"{type(self).__name__}(max_branches={self.max_branches!r})"
 
     def explore(
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
     ) -> None:
-        known, score = self.tracked(linear, score)
         room = 0
         for k in range(1, self.max_branches + 1):
             why = self.too_narrow(scope, k)
@@ -433,7 +307,6 @@ class ExhaustiveSearch(Search):
                             many = any(law.count(g) > term(g).max_count for g in extra)
                             if not many and any(n in replace or n in grow for n in law):
                                 score(law)
-        self.settle(known, score, set(), self.margin)
 
     def _pruned(self, names: list[str]) -> Iterable[list[str]]:
         """``names`` with every subset of its ``"prune"`` terms taken out, as long as
