@@ -45,7 +45,7 @@ def peak(path: Path, what: str) -> tuple[int, int]:
     loads the readers, and the rows it read."""
     out = subprocess.run(
         [sys.executable, "-c", CHILD, str(path), what],
-        capture_output=True, text=True, check=True,
+        capture_output=True, text=True, check=True, timeout=600,
     ).stdout.split()  # fmt: skip
     return int(out[0]), int(out[1])
 
