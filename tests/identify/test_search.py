@@ -208,3 +208,48 @@ def test_a_grown_term_is_added_no_more_times_than_a_law_may_hold_it(one_branch, 
         tried, _ = search.run([_linear(STEM, 0.0)], score, scope)
         assert "x+creep+creep+xdot+xddot" in {r.name for r in tried}
         assert all(r.name.count("creep") <= 2 for r in tried)
+
+
+def test_smaller_laws_keep_a_stiffness_and_what_a_term_requires():
+    names = ["contact", "maxwell", "contact*xdot", "xddot", "offset"]
+    fewer = {"+".join(f) for f in Search.smaller(names)}
+    # contact goes with contact damping; without it no stiffness remains
+    assert fewer == {
+        "contact+contact*xdot+xddot+offset",
+        "contact+maxwell+xddot+offset",
+        "contact+maxwell+contact*xdot+offset",
+        "contact+maxwell+contact*xdot+xddot",
+    }
+    assert Search.smaller(["x", "xdot"]) == [["x"]]
+    assert Search.smaller(["x", "maxwell", "maxwell"]) == [["x", "maxwell"]]
+
+
+def test_descent_scores_the_sub_laws_of_the_choice_while_it_moves_to_one():
+    # additive made-up evidence: the truth x+maxwell; damping and inertia cost 2 nats
+    worth = {"x": 0.0, "maxwell": 12.0, "xdot": -2.0, "xddot": -2.0, "offset": -5.0}
+    scored: dict[str, ModelResult] = {}
+
+    def score(law: Law | list[str]) -> ModelResult:
+        law = law if isinstance(law, Law) else Law.of(list(law))
+        if law.name not in scored:
+            ln_z = sum(worth[t.name] for t in law.terms)
+            scored[law.name] = ModelResult(model=law, family=law, ln_evidence=ln_z,
+                                           residual_rms=1.0)  # fmt: skip
+        return scored[law.name]
+
+    start = score(["x", "maxwell", "xdot", "xddot"])
+    calls: list[str] = []
+
+    def choose() -> list[ModelResult]:
+        best = max(scored.values(), key=lambda r: r.ln_evidence)
+        calls.append(best.name)
+        return [best]
+
+    GreedySearch().descend(choose, score)
+    assert max(scored.values(), key=lambda r: r.ln_evidence).name == "x+maxwell"
+    # each law named once, then the choice stays: x+maxwell's own sub-law (x) is scored
+    assert calls[-1] == calls[-2] == "x+maxwell"
+    assert "x" in scored and start.name in scored
+    # only the sub-laws of the laws named: nothing with an offset, nothing bigger
+    assert all("offset" not in n for n in scored)
+    assert len(scored) <= 1 + 3 + 2 + 1

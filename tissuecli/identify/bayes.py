@@ -281,6 +281,9 @@ class BayesianFit(Estimator):
             self._progress.stage("structure search, scored again", self._known)
             self._scored = 0
             results, found = self._candidates(linear, shaped, firsts, fit)
+        if self.forms in (None, "all"):
+            self._progress.stage("smaller laws", self._known)
+            self._descend(results, fit)
         warnings.extend(found)
         del columns
         self._progress.stage("sampling")
@@ -325,12 +328,41 @@ class BayesianFit(Estimator):
         self.warnings_ = warnings
         return self
 
+    def _descend(self, results: list[ModelResult], fit: Context) -> None:
+        """Add to ``results`` the laws one term smaller than the one the fit would choose
+        and than the linear law with the most evidence (:meth:`Search.descend`), scored
+        at ``fit``'s weight. The choice is read before sampling, as
+        :meth:`_drop_unidentified` will make it: the identified law with the most
+        evidence. The linear law's sub-laws cost milliseconds, and they are where a
+        probability set aside by :meth:`_drop_unidentified` goes when the law with the
+        most evidence has a term that is not identified."""
+        known = {r.name: r for r in results}
+
+        def score(law: Law | Sequence[str]) -> ModelResult:
+            law = law if isinstance(law, Law) else Law.of(list(law))
+            if law.name not in known:
+                known[law.name] = self._score(law, fit)
+                results.append(known[law.name])
+            return known[law.name]
+
+        def choose() -> list[ModelResult]:
+            linear = [r for r in evaluated(results) if not (r.family or r.model).shape_names]
+            best = [max(linear, key=lambda r: r.ln_evidence)] if linear else []
+            return [provisional_choice(results), *best]
+
+        self._strategy.descend(choose, score)
+
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
         """Never keep a term the fit itself reports as not identified: while the most
         probable law has such terms, its probability passes to the best (by evidence)
         of its sub-laws whose terms are all identified, the law without the unidentified
         terms among them (scored if the search had not). A term the data do not pin
-        down cannot be what made its law probable."""
+        down cannot be what made its law probable. Should the best of them be decisively
+        behind (``decisive`` nats) an identified law that is not one of its sub-laws (or
+        none be identified), no sub-law stands for it: the term did work that none of
+        them does (a contact law whose coefficient trades with an offset, 300 nats ahead
+        of contact alone), and its probability is shared by the other laws in
+        proportion to theirs, as though it had not been scored."""
         by_name = {r.name: r for r in results}
 
         def names_of(r: ModelResult) -> list[str]:
@@ -359,15 +391,35 @@ class BayesianFit(Estimator):
                 if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
                 and not Counter(names_of(r)) - mine
             ]  # fmt: skip
-            if not subs:
+            others = [
+                r for r in results
+                if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
+            ]  # fmt: skip
+            if not others:
                 break
-            smaller = max(subs, key=lambda r: r.ln_evidence)
             symbols = ", ".join(terms[j].symbol for j in sorted(bad))
-            smaller.probability += best.probability
+            rival = max(others, key=lambda r: r.ln_evidence)
+            smaller = max(subs, key=lambda r: r.ln_evidence) if subs else None
+            if smaller is not None and smaller.ln_evidence >= rival.ln_evidence - self.decisive:
+                smaller.probability += best.probability
+                best.flags.append(
+                    f"not chosen: {symbols} not identified; its probability counts for "
+                    f"{smaller.name}"
+                )
+            else:
+                rest = sum(r.probability for r in results if r is not best)
+                if rest > 0.0:
+                    for r in results:
+                        if r is not best:
+                            r.probability *= (rest + best.probability) / rest
+                else:
+                    rival.probability += best.probability
+                best.flags.append(
+                    f"not chosen: {symbols} not identified, and no law without "
+                    f"{'them' if len(bad) > 1 else 'it'} explains the data as well as "
+                    f"{rival.name}: its probability is shared by the other laws"
+                )
             best.probability = 0.0
-            best.flags.append(
-                f"not chosen: {symbols} not identified; its probability counts for {smaller.name}"
-            )
         return results
 
     def _residual_weight(
@@ -487,3 +539,20 @@ class BayesianFit(Estimator):
 
     def _position_noise_sd(self) -> float:
         return self.sigma_x_
+
+
+def evaluated(results: Sequence[ModelResult]) -> list[ModelResult]:
+    """The laws whose evidence was evaluated and is finite."""
+    return [r for r in results
+            if r.status != NOT_EVALUATED and r.posterior is not None
+            and math.isfinite(r.ln_evidence)]  # fmt: skip
+
+
+def provisional_choice(results: Sequence[ModelResult]) -> ModelResult:
+    """The law the fit would choose among ``results`` before sampling: the one with the
+    most evidence among those evaluated whose coefficients are all identified
+    (:func:`identifiability`), or with the most evidence if none is."""
+    ranked = evaluated(results) or list(results)
+    clean = [r for r in ranked if r.posterior is None or r.prior is None
+             or not any(" not identified (" in f for f in identifiability(r))]  # fmt: skip
+    return max(clean or ranked, key=lambda r: r.ln_evidence)

@@ -35,6 +35,9 @@ KEPT_ROLES = ("friction", "inertia", "offset")
 #: a law, or the names of its terms, scored by exact evidence (each law once)
 Score = Callable[[Law | Sequence[str]], ModelResult]
 
+#: most laws :meth:`Search.descend` takes terms out of, one after the other
+DESCENT_STEPS = 6
+
 
 @dataclass(frozen=True)
 class Scope:
@@ -127,6 +130,44 @@ class Search:
             "xdot" not in design.unexcited and design.representative("xdot") == "xdot"
         )
         return [n for n in self.terms("replace") if speed or term(n).variable != "xv"]
+
+    @staticmethod
+    def smaller(names: Sequence[str]) -> list[list[str]]:
+        """The laws one term smaller than the law of ``names``: each term taken out in
+        turn (one of a repeated term), with the terms that require it, as long as some
+        stiffness remains."""
+        out: list[list[str]] = []
+        for drop in dict.fromkeys(names):
+            fewer = list(names)
+            fewer.remove(drop)
+            fewer = [n for n in fewer if all(r in fewer for r in term(n).requires)]
+            if any(term(n).role == "stiffness" for n in fewer):
+                out.append(fewer)
+        return out
+
+    def descend(self, choose: Callable[[], Sequence[ModelResult]], score: Score) -> None:
+        """Score the laws one term smaller (:meth:`smaller`) than each law ``choose``
+        names (called again after each step: the law the fit would choose now, and the
+        law with the most evidence among those without shape parameters), and theirs
+        while ``choose`` moves to them (at most :data:`DESCENT_STEPS` steps).
+
+        Every step of a search adds a term or prunes after a step that paid, and every
+        linear law carries damping and inertia: a truth such as ``x+maxwell`` or
+        ``x+x^3+xdot``, one term short of a law scored, is otherwise never scored, and
+        the law with the term it does not need is chosen. Only the sub-laws of the
+        laws named are scored, not those of every law near the best: where a law named
+        is linear they are linear (closed form, milliseconds), and a choice that no
+        sub-law beats stays as it was.
+        """
+        done: set[str] = set()
+        for _ in range(DESCENT_STEPS):
+            fresh = [r for r in choose() if r.name not in done]
+            if not fresh:
+                return
+            for r in fresh:
+                done.add(r.name)
+                for fewer in self.smaller([t.name for t in (r.family or r.model).terms]):
+                    score(fewer)
 
     @staticmethod
     def kept(law: Law) -> list[str]:
