@@ -330,12 +330,12 @@ class BayesianFit(Estimator):
 
     def _descend(self, results: list[ModelResult], fit: Context) -> None:
         """Add to ``results`` the laws one term smaller than the one the fit would choose
-        and than the linear law with the most evidence (:meth:`Search.descend`), scored
-        at ``fit``'s weight. The choice is read before sampling, as
+        (:meth:`Search.descend`), scored at ``fit``'s weight, and the linear law with
+        the most evidence without its terms that are not identified (closed form: where
+        :meth:`_drop_unidentified` sets a law aside, its probability goes to the laws
+        that explain what it did). The choice is read before sampling, as
         :meth:`_drop_unidentified` will make it: the identified law with the most
-        evidence. The linear law's sub-laws cost milliseconds, and they are where a
-        probability set aside by :meth:`_drop_unidentified` goes when the law with the
-        most evidence has a term that is not identified."""
+        evidence."""
         known = {r.name: r for r in results}
 
         def score(law: Law | Sequence[str]) -> ModelResult:
@@ -345,12 +345,14 @@ class BayesianFit(Estimator):
                 results.append(known[law.name])
             return known[law.name]
 
-        def choose() -> list[ModelResult]:
-            linear = [r for r in evaluated(results) if not (r.family or r.model).shape_names]
-            best = [max(linear, key=lambda r: r.ln_evidence)] if linear else []
-            return [provisional_choice(results), *best]
-
-        self._strategy.descend(choose, score)
+        linear = [r for r in evaluated(results) if not (r.family or r.model).shape_names]
+        if linear:
+            top = max(linear, key=lambda r: r.ln_evidence)
+            bad = {top.model.terms[j].symbol for j in unidentified_in(top)}
+            names = [t.name for t in top.model.terms if t.symbol not in bad]
+            if bad and any(term(n).role == "stiffness" for n in names):
+                score(names)
+        self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
         """Never keep a term the fit itself reports as not identified: while the most
@@ -358,11 +360,11 @@ class BayesianFit(Estimator):
         of its sub-laws whose terms are all identified, the law without the unidentified
         terms among them (scored if the search had not). A term the data do not pin
         down cannot be what made its law probable. Should the best of them be decisively
-        behind (``decisive`` nats) an identified law that is not one of its sub-laws (or
-        none be identified), no sub-law stands for it: the term did work that none of
-        them does (a contact law whose coefficient trades with an offset, 300 nats ahead
-        of contact alone), and its probability is shared by the other laws in
-        proportion to theirs, as though it had not been scored."""
+        behind (``decisive`` nats) an identified law that is not one of its sub-laws, it
+        does not stand for it: the term did work that none of them does (a contact law
+        whose coefficient trades with an offset, 300 nats ahead of contact alone), and
+        its probability is shared by the other laws in proportion to theirs, as though
+        it had not been scored. A law none of whose sub-laws is identified stays."""
         by_name = {r.name: r for r in results}
 
         def names_of(r: ModelResult) -> list[str]:
@@ -395,7 +397,7 @@ class BayesianFit(Estimator):
                 r for r in results
                 if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
             ]  # fmt: skip
-            if not others:
+            if not subs or not others:
                 break
             symbols = ", ".join(terms[j].symbol for j in sorted(bad))
             rival = max(others, key=lambda r: r.ln_evidence)
@@ -548,11 +550,20 @@ def evaluated(results: Sequence[ModelResult]) -> list[ModelResult]:
             and math.isfinite(r.ln_evidence)]  # fmt: skip
 
 
+def unidentified_in(r: ModelResult) -> set[int]:
+    """Indices of the terms :func:`identifiability` would call not identified (before
+    the flags are set)."""
+    if r.posterior is None or r.prior is None:
+        return set()
+    flags = identifiability(r)
+    return {j for j, t in enumerate(r.model.terms)
+            if any(f.startswith(f"{t.symbol} not identified") for f in flags)}  # fmt: skip
+
+
 def provisional_choice(results: Sequence[ModelResult]) -> ModelResult:
     """The law the fit would choose among ``results`` before sampling: the one with the
     most evidence among those evaluated whose coefficients are all identified
     (:func:`identifiability`), or with the most evidence if none is."""
     ranked = evaluated(results) or list(results)
-    clean = [r for r in ranked if r.posterior is None or r.prior is None
-             or not any(" not identified (" in f for f in identifiability(r))]  # fmt: skip
+    clean = [r for r in ranked if not unidentified_in(r)]
     return max(clean or ranked, key=lambda r: r.ln_evidence)

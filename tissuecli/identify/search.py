@@ -131,13 +131,20 @@ class Search:
         )
         return [n for n in self.terms("replace") if speed or term(n).variable != "xv"]
 
-    @staticmethod
-    def smaller(names: Sequence[str]) -> list[list[str]]:
-        """The laws one term smaller than the law of ``names``: each term taken out in
-        turn (one of a repeated term), with the terms that require it, as long as some
-        stiffness remains."""
+    def smaller(self, names: Sequence[str]) -> list[list[str]]:
+        """The laws one term smaller than the law of ``names``: each term that may go
+        taken out in turn (one of a repeated term), with the terms that require it, as
+        long as some stiffness remains. From a law the search built (one with a
+        ``"replace"`` or ``"grow"`` term) any term may go; from a linear law only its
+        ``"prune"`` terms (offset, friction, ``x^3``, ``x``): the linear laws enumerate
+        damping and inertia already, and taking damping out of a linear law that
+        misfits (a measured recording) trades prediction for evidence."""
+        built = any(n in self.terms("replace") or n in self.terms("grow") for n in names)
+        prune = self.terms("prune")
         out: list[list[str]] = []
         for drop in dict.fromkeys(names):
+            if not built and drop not in prune:
+                continue
             fewer = list(names)
             fewer.remove(drop)
             fewer = [n for n in fewer if all(r in fewer for r in term(n).requires)]
@@ -147,17 +154,16 @@ class Search:
 
     def descend(self, choose: Callable[[], Sequence[ModelResult]], score: Score) -> None:
         """Score the laws one term smaller (:meth:`smaller`) than each law ``choose``
-        names (called again after each step: the law the fit would choose now, and the
-        law with the most evidence among those without shape parameters), and theirs
-        while ``choose`` moves to them (at most :data:`DESCENT_STEPS` steps).
+        names (called again after each step: the law the fit would choose now), and
+        theirs while ``choose`` moves to them (at most :data:`DESCENT_STEPS` steps).
 
         Every step of a search adds a term or prunes after a step that paid, and every
         linear law carries damping and inertia: a truth such as ``x+maxwell`` or
         ``x+x^3+xdot``, one term short of a law scored, is otherwise never scored, and
-        the law with the term it does not need is chosen. Only the sub-laws of the
-        laws named are scored, not those of every law near the best: where a law named
-        is linear they are linear (closed form, milliseconds), and a choice that no
-        sub-law beats stays as it was.
+        the law with a term the data do not need is chosen. Only the sub-laws of the
+        choice are scored, not those of every law near it: where the choice is linear
+        they are linear (closed form, milliseconds), and a choice that no sub-law
+        beats stays as it was.
         """
         done: set[str] = set()
         for _ in range(DESCENT_STEPS):
