@@ -37,17 +37,33 @@ def test_a_term_goes_with_the_term_it_requires():
 
 def test_no_sub_law_far_behind_an_identified_law_takes_the_probability():
     # a contact law whose coefficient trades with the offset: far ahead of contact alone,
-    # its only identified sub-law, and of which a linear law is not a sub-law
+    # its only identified sub-law, and of which a cubic law is not a sub-law
     both = _result(["contact", "offset"], -618.2, 0.99, ["Kc not identified (...)"])
     alone = _result(["contact"], -925.1, 0.0)
-    spring = _result(["x", "offset"], -619.2, 0.008)
+    cubic = _result(["x^3", "offset"], -619.2, 0.008)
     slow = _result(["x", "maxwell"], -623.9, 0.002)
-    out = BayesianFit()._drop_unidentified([both, alone, spring, slow], fit=None)  # type: ignore[arg-type]
+    # what contact is at n = 1, a spring and an offset, no better identified here
+    spring = _result(["x", "offset"], -700.0, 0.0, ["K not identified (...)"])
+    laws = [both, alone, cubic, slow, spring]
+    out = BayesianFit()._drop_unidentified(laws, fit=None)  # type: ignore[arg-type]
     assert both.probability == 0.0 and alone.probability == 0.0
     # shared as though it had not been scored
-    assert abs(spring.probability - 0.8) < 1e-12 and abs(slow.probability - 0.2) < 1e-12
+    assert abs(cubic.probability - 0.8) < 1e-12 and abs(slow.probability - 0.2) < 1e-12
     assert both.flags[-1] == (
         "not chosen: Kc not identified, and no law without it explains the data as well "
-        "as x+offset: its probability is shared by the other laws"
+        "as x^3+offset: its probability is shared by the other laws"
     )
-    assert sum(r.probability for r in out) == 1.0
+    assert abs(sum(r.probability for r in out) - 1.0) < 1e-12
+
+
+def test_a_contact_law_nests_a_spring_and_an_offset():
+    # contact at n = 1 is Kc (x - x0): the spring with an offset is one of its sub-laws,
+    # and it is what a contact law whose coefficient is not identified stands for
+    both = _result(["contact", "offset"], -618.2, 0.99, ["Kc not identified (...)"])
+    alone = _result(["contact"], -925.1, 0.0)
+    spring = _result(["x", "offset"], -619.2, 0.01)
+    BayesianFit()._drop_unidentified([both, alone, spring], fit=None)  # type: ignore[arg-type]
+    assert both.probability == 0.0 and spring.probability == 1.0
+    assert both.flags[-1] == (
+        "not chosen: Kc not identified; its probability counts for x+offset"
+    )

@@ -210,6 +210,9 @@ class Term(ABC):
         :meth:`instance`).
     requires : tuple of str
         Terms a law must hold beside it (contact damping needs its contact).
+    nests : tuple of str
+        Terms it equals at one of its shapes (contact at n = 1, ``Kc (x - x0)``, is a
+        spring and an offset): a law with those in its place is one of its sub-laws.
     search : str, optional
         What the default structure search does with it (:data:`SEARCH`): ``"replace"``
         (tried, with the others so marked, in place of the best linear law's stiffness
@@ -236,6 +239,7 @@ class Term(ABC):
     order: ClassVar[float | None] = None
     max_count: ClassVar[int] = 1
     requires: ClassVar[tuple[str, ...]] = ()
+    nests: ClassVar[tuple[str, ...]] = ()
     search: ClassVar[str | None] = None
 
     #: names of the nonlinear (shape) parameters the term reads, their declarations, and
@@ -629,6 +633,7 @@ class Contact(Term):
         "contact", "Kc", "N/m^n", "dⁿ", "stiffness", "x",
     )  # fmt: skip
     order, display, search = 30.0, "position", "replace"
+    nests = ("x", "offset")
     shapes = ("n", "x0")
     parameters = (EXPONENT, CONTACT_POINT)
 

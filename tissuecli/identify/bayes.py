@@ -330,12 +330,9 @@ class BayesianFit(Estimator):
 
     def _descend(self, results: list[ModelResult], fit: Context) -> None:
         """Add to ``results`` the laws one term smaller than the one the fit would choose
-        (:meth:`Search.descend`), scored at ``fit``'s weight, and the linear law with
-        the most evidence without its terms that are not identified (closed form: where
-        :meth:`_drop_unidentified` sets a law aside, its probability goes to the laws
-        that explain what it did). The choice is read before sampling, as
-        :meth:`_drop_unidentified` will make it: the identified law with the most
-        evidence."""
+        (:meth:`Search.descend`), scored at ``fit``'s weight. The choice is read before
+        sampling, as :meth:`_drop_unidentified` will make it: the identified law with
+        the most evidence."""
         known = {r.name: r for r in results}
 
         def score(law: Law | Sequence[str]) -> ModelResult:
@@ -345,13 +342,6 @@ class BayesianFit(Estimator):
                 results.append(known[law.name])
             return known[law.name]
 
-        linear = [r for r in evaluated(results) if not (r.family or r.model).shape_names]
-        if linear:
-            top = max(linear, key=lambda r: r.ln_evidence)
-            bad = {top.model.terms[j].symbol for j in unidentified_in(top)}
-            names = [t.name for t in top.model.terms if t.symbol not in bad]
-            if bad and any(term(n).role == "stiffness" for n in names):
-                score(names)
         self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
@@ -379,6 +369,11 @@ class BayesianFit(Estimator):
             names = [t.name for j, t in enumerate(terms) if j not in bad]
             # a term that needs one left out goes with it (contact damping, contact)
             names = [n for n in names if all(r in names for r in term(n).requires)]
+            # and one left out leaves what it equals at one of its shapes (contact:
+            # a spring and an offset), should nothing else stiffen the law
+            if not any(term(n).role == "stiffness" for n in names):
+                nested = [n for j in sorted(bad) for n in term(terms[j].name).nests]
+                names = list(dict.fromkeys([*names, *nested]))
             if any(term(n).role == "stiffness" for n in names):
                 law = Law.of(names)
                 if law.name not in by_name:
@@ -388,6 +383,7 @@ class BayesianFit(Estimator):
                     results.append(new)
                     by_name[new.name] = new
             mine = Counter(names_of(best))
+            mine |= Counter(n for t in terms for n in term(t.name).nests)
             subs = [
                 r for r in results
                 if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
