@@ -122,11 +122,6 @@ def test_random_protocols_give_finite_evidence(name: str, seed: int) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="a 1.6 s ramp-and-hold at 1.2 kHz, 16 bits, 35 um (seed 48) chooses "
-    "x+maxwell+xdot (P 0.98) over its truth x+maxwell",
-    strict=False,
-)
 @settings(max_examples=15, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])  # fmt: skip
 @given(name=st.sampled_from(PROTOCOLS), seed=st.integers(0, 2**20))
