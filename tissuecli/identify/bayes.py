@@ -342,6 +342,15 @@ class BayesianFit(Estimator):
                 results.append(known[law.name])
             return known[law.name]
 
+        # the law with the most evidence, should it hold a term that is not identified,
+        # stands for the law without it (scored there, as _drop_unidentified would):
+        # the choice may be that law or one of its sub-laws
+        ranked = evaluated(results)
+        if ranked:
+            top = max(ranked, key=lambda r: r.ln_evidence)
+            names = stand_in(top, unidentified_in(top))
+            if names is not None:
+                score(names)
         self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
@@ -366,15 +375,8 @@ class BayesianFit(Estimator):
             if not bad or best.status == NOT_EVALUATED:
                 break
             terms = (best.family or best.model).terms
-            names = [t.name for j, t in enumerate(terms) if j not in bad]
-            # a term that needs one left out goes with it (contact damping, contact)
-            names = [n for n in names if all(r in names for r in term(n).requires)]
-            # and one left out leaves what it equals at one of its shapes (contact:
-            # a spring and an offset), should nothing else stiffen the law
-            if not any(term(n).role == "stiffness" for n in names):
-                nested = [n for j in sorted(bad) for n in term(terms[j].name).nests]
-                names = list(dict.fromkeys([*names, *nested]))
-            if any(term(n).role == "stiffness" for n in names):
+            names = stand_in(best, bad)
+            if names is not None:
                 law = Law.of(names)
                 if law.name not in by_name:
                     new = self._score(law, fit)
@@ -544,6 +546,23 @@ def evaluated(results: Sequence[ModelResult]) -> list[ModelResult]:
     return [r for r in results
             if r.status != NOT_EVALUATED and r.posterior is not None
             and math.isfinite(r.ln_evidence)]  # fmt: skip
+
+
+def stand_in(r: ModelResult, bad: set[int]) -> list[str] | None:
+    """The terms of the law ``r`` stands for without its terms ``bad`` (indices): a term
+    that needs one left out goes with it (contact damping, contact), and one left out
+    leaves what it equals at one of its shapes (:attr:`Term.nests`; contact: a spring
+    and an offset) should nothing else stiffen the law. None if ``bad`` is empty or no
+    stiffness remains."""
+    if not bad:
+        return None
+    terms = (r.family or r.model).terms
+    names = [t.name for j, t in enumerate(terms) if j not in bad]
+    names = [n for n in names if all(q in names for q in term(n).requires)]
+    if not any(term(n).role == "stiffness" for n in names):
+        nested = [n for j in sorted(bad) for n in term(terms[j].name).nests]
+        names = list(dict.fromkeys([*names, *nested]))
+    return names if any(term(n).role == "stiffness" for n in names) else None
 
 
 def unidentified_in(r: ModelResult) -> set[int]:
