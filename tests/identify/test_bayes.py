@@ -64,6 +64,4 @@ def test_a_contact_law_nests_a_spring_and_an_offset():
     spring = _result(["x", "offset"], -619.2, 0.01)
     BayesianFit()._drop_unidentified([both, alone, spring], fit=None)  # type: ignore[arg-type]
     assert both.probability == 0.0 and spring.probability == 1.0
-    assert both.flags[-1] == (
-        "not chosen: Kc not identified; its probability counts for x+offset"
-    )
+    assert both.flags[-1] == "not chosen: Kc not identified; its probability counts for x+offset"

@@ -357,8 +357,10 @@ class BayesianFit(Estimator):
         """Never keep a term the fit itself reports as not identified: while the most
         probable law has such terms, its probability passes to the best (by evidence)
         of its sub-laws whose terms are all identified, the law without the unidentified
-        terms among them (scored if the search had not). A term the data do not pin
-        down cannot be what made its law probable. Should the best of them be decisively
+        terms among them (scored if the search had not; a sub-law may hold in a term's
+        place what that term equals at one of its shapes, :attr:`Term.nests`). A term
+        the data do not pin down cannot be what made its law probable. Should the best
+        of them be decisively
         behind (``decisive`` nats) an identified law that is not one of its sub-laws, it
         does not stand for it: the term did work that none of them does (a contact law
         whose coefficient trades with an offset, 300 nats ahead of contact alone), and
@@ -399,8 +401,8 @@ class BayesianFit(Estimator):
                 break
             symbols = ", ".join(terms[j].symbol for j in sorted(bad))
             rival = max(others, key=lambda r: r.ln_evidence)
-            smaller = max(subs, key=lambda r: r.ln_evidence) if subs else None
-            if smaller is not None and smaller.ln_evidence >= rival.ln_evidence - self.decisive:
+            smaller = max(subs, key=lambda r: r.ln_evidence)
+            if smaller.ln_evidence >= rival.ln_evidence - self.decisive:
                 smaller.probability += best.probability
                 best.flags.append(
                     f"not chosen: {symbols} not identified; its probability counts for "
