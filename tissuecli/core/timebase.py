@@ -298,6 +298,8 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     head = t[:HEAD]
     first_q = next((q for q in QUANTA if _multiples(head, q)), None)
     fits_q = True
+    # a recording of up to two blocks is held whole (as its sample is every stamp)
+    held = np.empty(n) if stride == 1 else None
     picks = []
     for i in range(0, n, BLOCK):
         block = t[i : i + BLOCK]
@@ -305,17 +307,26 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
             bad = np.flatnonzero(~np.isfinite(block))
             if bad.size:
                 raise InputError(f"time is not a finite number at line {where[i + int(bad[0])]}")
-        picks.append(block[(-i) % stride :: stride].copy())  # not the whole block
+        if held is not None:
+            held[i : i + block.size] = block
+        else:
+            picks.append(block[(-i) % stride :: stride].copy())  # not the whole block
         if first_q is not None and fits_q and i + block.size > HEAD:
             fits_q = _multiples(block[max(0, HEAD - i) :], first_q)
+    if held is not None:
+        t = held  # type: ignore[assignment]
     # every step, or the steps over `stride` samples of an even sample of them
-    sampled = np.diff(np.concatenate(picks))
+    sampled = np.diff(held if held is not None else np.concatenate(picks))
     del picks
     positive = sampled[sampled > 0]
+    del sampled
     if positive.size == 0 and not _increases(t):
         raise InputError("time never increases; check the time column and its unit")
-    typical = _median(positive) if positive.size else float(t[n - 1 : n][0] - t[0:1][0]) / (n - 1)
-    del sampled, positive
+    if positive.size:
+        typical = _median(positive, overwrite=True)
+    else:
+        typical = float(t[n - 1 : n][0] - t[0:1][0]) / (n - 1)
+    del positive
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
     count = total = 0.0
     backward = 0
@@ -423,65 +434,133 @@ def _multiples(t: Array, q: float, origin: float = 0.0) -> bool:
     return bool(np.all(off <= tolerance))
 
 
+#: steps of more than one period (lost samples) kept by their index, at most; beyond
+#: that, the sample numbers are made from the steps again at each pass
+MAX_GAPS = 1 << 16
+
+
 class _Counts:
     """Sample numbers of the stamps, made block by block from the stamps' steps (each a
     whole number of periods, at least one) when they are needed.
 
     A subclass says how many periods each step is (:meth:`steps`); this base keeps what
-    the first pass found: the last number, and the numbers and stamps of an even sample
-    of a million rows (for the residuals' spread)."""
+    the first pass found: the last number; the steps of more than one period (lost
+    samples), if few; and the numbers and stamps of an even sample of a million rows
+    (for the residuals' spread), which are every row, held whole, for a recording of
+    up to two blocks held in memory."""
+
+    #: steps of more than one period: their indices and periods
+    gaps: tuple[Ints, Ints] | None = None
 
     def __init__(self, t: Stamps, dt: float, q: float) -> None:
         self.dt, self.limit = dt, _limit(dt, q)
         n = len(t)
         self.stride = max(1, n // (1 << 20))
+        self.whole: tuple[Ints, Array] | None = None
+        whole = self.stride == 1 and isinstance(t, np.ndarray)
+        recording = self.gaps is None
+        rows: list[Ints] = []
+        counts: list[Ints] = []
+        found = 0
         ks, ts = [], []
         last = 0
-        for i, k, tt in self.pairs(t):
-            first = (-i) % self.stride
-            ks.append(k[first :: self.stride].copy())  # not the whole blocks
-            ts.append(tt[first :: self.stride].copy())
+        for i, k, tt, steps in self._pairs(t, recording):
+            if steps is not None and recording:
+                at = np.flatnonzero(steps != 1)
+                found += at.size
+                if found > MAX_GAPS:
+                    recording = False
+                    rows, counts = [], []
+                else:
+                    rows.append(at + max(0, i - 1))
+                    counts.append(steps[at])
+            if whole:
+                ks.append(k)
+            else:
+                first = (-i) % self.stride
+                ks.append(k[first :: self.stride].copy())  # not the whole blocks
+                ts.append(tt[first :: self.stride].copy())
             last = int(k[-1])
+        if recording:
+            self.gaps = (
+                np.concatenate(rows) if rows else np.empty(0, np.int64),
+                np.concatenate(counts) if counts else np.empty(0, np.int64),
+            )
         self.last = last
-        self.sample_k, self.sample_t = np.concatenate(ks), np.concatenate(ts)
+        if whole:
+            self.whole = (np.concatenate(ks), t)  # type: ignore[arg-type]
+            self.sample_k, self.sample_t = self.whole
+        else:
+            self.sample_k, self.sample_t = np.concatenate(ks), np.concatenate(ts)
 
     def pairs(self, t: Stamps) -> Iterator[tuple[int, Ints, Array]]:
         """``(row, numbers, stamps)`` of each block of :data:`BLOCK` rows, in order. Each
         block of stamps is read once, before its numbers are given."""
+        if self.whole is not None:
+            k, held = self.whole
+            for i in range(0, k.size, BLOCK):
+                yield i, k[i : i + BLOCK], held[i : i + BLOCK]
+            return
+        for i, k, tt, _ in self._pairs(t, False):
+            yield i, k, tt
+
+    def _pairs(self, t: Stamps, steps_too: bool) -> Iterator[tuple[int, Ints, Array, Ints | None]]:
+        """:meth:`pairs`, with each block's periods per step (from the step into its
+        first row; None if each is one) if ``steps_too``."""
         prev_t, prev_k = 0.0, 0
         for i in range(0, len(t), BLOCK):
             tt = t[i : i + BLOCK]
+            first = max(0, i - 1)  # the step into the block's first row (or second)
+            size = tt.size - (i == 0)
+            if self.gaps is not None:
+                counts = self._from_gaps(first, size)
+            else:
+                if i == 0:
+                    steps = np.diff(tt)
+                else:
+                    steps = np.empty(tt.size)
+                    steps[0] = tt[0] - prev_t
+                    np.subtract(tt[1:], tt[:-1], out=steps[1:])
+                counts = self.steps(steps)
+                del steps
             if i == 0:
-                counts = self.steps(0, np.diff(tt))
                 k = np.empty(tt.size, dtype=np.int64)
                 k[0] = 0
                 if counts is None:
                     k[1:] = np.arange(1, tt.size)
                 else:
                     np.cumsum(counts, out=k[1:])
+            elif counts is None:
+                k = np.arange(prev_k + 1, prev_k + 1 + tt.size, dtype=np.int64)
             else:
-                steps = np.empty(tt.size)
-                steps[0] = tt[0] - prev_t
-                np.subtract(tt[1:], tt[:-1], out=steps[1:])
-                counts = self.steps(i - 1, steps)
-                if counts is None:
-                    k = np.arange(prev_k + 1, prev_k + 1 + tt.size, dtype=np.int64)
-                else:
-                    k = np.cumsum(counts)
-                    k += prev_k
+                k = np.cumsum(counts)
+                k += prev_k
             prev_t, prev_k = float(tt[-1]), int(k[-1])
-            yield i, k, tt
+            yield i, k, tt, (counts if counts is not None or not steps_too else _ONES)
 
-    def steps(self, first: int, steps: Array) -> Ints | None:
-        """How many periods each of ``steps`` (steps ``first``, ``first + 1``, ...: step
-        ``j`` goes from stamp ``j`` to ``j + 1``) is; None if each is one."""
+    def _from_gaps(self, first: int, size: int) -> Ints | None:
+        assert self.gaps is not None
+        rows, periods = self.gaps
+        lo, hi = np.searchsorted(rows, (first, first + size))
+        if lo == hi:
+            return None
+        counts = np.ones(size, dtype=np.int64)
+        counts[rows[lo:hi] - first] = periods[lo:hi]
+        return counts
+
+    def steps(self, steps: Array) -> Ints | None:
+        """How many periods each of ``steps`` is; None if each is one."""
         raise NotImplementedError
+
+
+#: a block of steps of one period each
+_ONES = np.ones(0, dtype=np.int64)
 
 
 class _StepCounts(_Counts):
     """Sample numbers from each step alone: enough for quantised stamps."""
 
-    def steps(self, first: int, steps: Array) -> Ints | None:
+    def steps(self, steps: Array) -> Ints | None:
         gaps = np.flatnonzero(steps >= self.limit)  # few: lost samples
         if not gaps.size:
             return None
@@ -523,17 +602,8 @@ class _LockedCounts(_Counts):
                 j += 1
                 clock += count * dt
                 clock += gain * (stamp - clock)
-        self.rows = np.array(rows, dtype=np.int64)
-        self.counts = np.array(counts, dtype=np.int64)
+        self.gaps = (np.array(rows, dtype=np.int64), np.array(counts, dtype=np.int64))
         super().__init__(t, dt, q)
-
-    def steps(self, first: int, steps: Array) -> Ints | None:
-        lo, hi = np.searchsorted(self.rows, (first, first + steps.size))
-        if lo == hi:
-            return None
-        counts = np.ones(steps.size, dtype=np.int64)
-        counts[self.rows[lo:hi] - first] = self.counts[lo:hi]
-        return counts
 
 
 def _fit_clock(counts: _Counts, t: Stamps, period: float) -> tuple[float, float, float, float]:
@@ -552,14 +622,16 @@ def _fit_clock(counts: _Counts, t: Stamps, period: float) -> tuple[float, float,
         sample = _residuals(counts.sample_k, counts.sample_t, slope, offset)
         spread = sample - _median(sample)
         np.abs(spread, out=spread)
-        mad = 1.4826 * _median(spread)
-        del spread, sample
+        mad = 1.4826 * _median(spread, overwrite=True)
+        del spread
         bound = max(4 * mad, 1e-9 * abs(slope))
         worst = total = 0.0  # of this line's residuals: the last line's are the answer
         kept = 0
         same = keep is not None
-        for _, k, tt in counts.pairs(t):
-            resid = _residuals(k, tt, slope, offset)
+        for i, k, tt in counts.pairs(t):
+            # held whole, the sample's residuals are every row's
+            whole = counts.whole is not None
+            resid = sample[i : i + BLOCK] if whole else _residuals(k, tt, slope, offset)
             total += float(resid @ resid)
             np.abs(resid, out=resid)
             worst = max(worst, float(np.max(resid)))
@@ -567,6 +639,7 @@ def _fit_clock(counts: _Counts, t: Stamps, period: float) -> tuple[float, float,
             kept += int(np.count_nonzero(inside))
             if same and keep is not None:
                 same = bool(np.array_equal(inside, _kept(k, tt, keep)))
+        del sample
         if kept < max(2, n // 2):
             break  # no clear majority on one line: keep the fit of all stamps
         if keep is None and kept == n or same:
@@ -582,15 +655,27 @@ def _kept(k: Ints, t: Array, keep: tuple[float, float, float]) -> NDArray[np.boo
     return resid <= keep[2]
 
 
-def _median(a: Array) -> float:
+def _median(a: Array, *, overwrite: bool = False) -> float:
     """The median of finite values ``a`` (np.median's, without its check for NaN, which
-    loads numpy.ma, and with one partial sort)."""
+    loads numpy.ma, and with one partial sort; of ``a`` itself, reordered, if
+    ``overwrite``)."""
     n = a.size
     half = n // 2
+    part = a if overwrite else a.copy()
     if n % 2:
-        return float(np.partition(a, half)[half])
-    part = np.partition(a, (half - 1, half))
+        part.partition(half)
+        return float(part[half])
+    part.partition((half - 1, half))
     return 0.5 * (float(part[half - 1]) + float(part[half]))
+
+
+def median(a: Array) -> float:
+    """The median of ``a`` as :func:`numpy.median` gives it (NaN if any value is NaN),
+    without loading ``numpy.ma`` (50 ms on the first call in a process)."""
+    a = np.asarray(a, dtype=float)
+    if a.size == 0 or np.isnan(a).any():
+        return float("nan")
+    return _median(a)
 
 
 def _residuals(k: NDArray[np.int64], t: Array, slope: float, offset: float) -> Array:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import os
 import time as _time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from types import TracebackType
 from typing import Any, NoReturn
 
@@ -379,6 +379,40 @@ class SeriesWriter:
         except WRITE_ERRORS as exc:
             self._broke(exc)
 
+    def column(self, name: str) -> StoredRows:
+        """Flush, then the rows of column `name` written so far, read a block at a time
+        (a slice of it reads those rows from the file)."""
+        self.flush()
+        if self._closed:
+            raise ValueError("writer is closed")
+        return StoredRows(self._datasets[name.strip("/")], self._written)
+
+    def rewrite_blocks(self, name: str, blocks: Iterable[ArrayLike]) -> None:
+        """Flush, then replace the rows of column `name` with `blocks`, in order from the
+        first row, each written as it comes (so a block may be made from the rows it
+        replaces, read just before); as :meth:`rewrite` otherwise."""
+        if self._fault is not None:
+            return
+        if self._closed:
+            raise ValueError("writer is closed")
+        self.flush()
+        ds = self._datasets[name.strip("/")]
+        row = 0
+        try:
+            for block in blocks:
+                values = np.asarray(block)
+                if row + values.shape[0] > self._written:
+                    raise ValueError(f"{name}: more values than the {self._written} rows")
+                ds[row : row + values.shape[0]] = values
+                row += values.shape[0]
+            if row != self._written:
+                raise ValueError(f"{name}: {row} values for {self._written} rows")
+            self._file.flush()
+            if self.fsync:
+                fsync_file(self._file, self.path)
+        except WRITE_ERRORS as exc:
+            self._broke(exc)
+
     def flush(self) -> None:
         """Write buffered rows and pending attributes, then commit them to disk.
 
@@ -614,6 +648,27 @@ class SeriesWriter:
                     else f"error: {exc_type.__name__}"
                 )
             self.close(complete=False)
+
+
+class StoredRows:
+    """Rows ``0 .. n - 1`` of a dataset, read a slice at a time (what :meth:`SeriesWriter.
+    column` gives)."""
+
+    def __init__(self, dataset: h5py.Dataset, rows: int) -> None:
+        self._dataset, self._rows = dataset, rows
+
+    def __len__(self) -> int:
+        return self._rows
+
+    def __getitem__(self, rows: slice) -> NDArray[Any]:
+        start, stop, step = rows.indices(self._rows)
+        if step != 1:
+            raise ValueError("rows are read in runs, step 1")
+        if stop <= start:
+            return np.empty((0, *self._dataset.shape[1:]), self._dataset.dtype)
+        out = np.empty((stop - start, *self._dataset.shape[1:]), self._dataset.dtype)
+        self._dataset.read_direct(out, np.s_[start:stop])
+        return out
 
 
 def _opens(path: str) -> bool:
