@@ -298,8 +298,16 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     head = t[:HEAD]
     first_q = next((q for q in QUANTA if _multiples(head, q)), None)
     fits_q = True
-    # a recording of up to two blocks is held whole (as its sample is every stamp)
-    held = np.empty(n) if stride == 1 else None
+    # stamps in an array are worked on whole (shifted, as one copy); a recording of up
+    # to two blocks is held whole (as its sample is every stamp)
+    in_memory = isinstance(stamps, np.ndarray)
+    held: Array | None = None
+    if in_memory:
+        held = np.asarray(stamps, dtype=float)
+        held = held - origin if origin != 0.0 else held
+        t = held  # type: ignore[assignment]
+    elif stride == 1:
+        held = np.empty(n)
     picks = []
     for i in range(0, n, BLOCK):
         block = t[i : i + BLOCK]
@@ -307,16 +315,16 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
             bad = np.flatnonzero(~np.isfinite(block))
             if bad.size:
                 raise InputError(f"time is not a finite number at line {where[i + int(bad[0])]}")
-        if held is not None:
-            held[i : i + block.size] = block
-        else:
+        if held is None:
             picks.append(block[(-i) % stride :: stride].copy())  # not the whole block
+        elif not in_memory:
+            held[i : i + block.size] = block
         if first_q is not None and fits_q and i + block.size > HEAD:
             fits_q = _multiples(block[max(0, HEAD - i) :], first_q)
     if held is not None:
         t = held  # type: ignore[assignment]
     # every step, or the steps over `stride` samples of an even sample of them
-    sampled = np.diff(held if held is not None else np.concatenate(picks))
+    sampled = np.diff(held[::stride] if held is not None else np.concatenate(picks))
     del picks
     positive = sampled[sampled > 0]
     del sampled
@@ -457,12 +465,12 @@ class _Counts:
         n = len(t)
         self.stride = max(1, n // (1 << 20))
         self.whole: tuple[Ints, Array] | None = None
-        whole = self.stride == 1 and isinstance(t, np.ndarray)
-        recording = self.gaps is None
+        whole = isinstance(t, np.ndarray)
+        recording = self.gaps is None and not whole
         rows: list[Ints] = []
         counts: list[Ints] = []
         found = 0
-        ks, ts = [], []
+        ks, ts, full = [], [], []
         last = 0
         for i, k, tt, steps in self._pairs(t, recording):
             if steps is not None and recording:
@@ -475,8 +483,8 @@ class _Counts:
                     rows.append(at + max(0, i - 1))
                     counts.append(steps[at])
             if whole:
-                ks.append(k)
-            else:
+                full.append(k)
+            if not whole or self.stride > 1:
                 first = (-i) % self.stride
                 ks.append(k[first :: self.stride].copy())  # not the whole blocks
                 ts.append(tt[first :: self.stride].copy())
@@ -488,7 +496,9 @@ class _Counts:
             )
         self.last = last
         if whole:
-            self.whole = (np.concatenate(ks), t)  # type: ignore[arg-type]
+            self.whole = (np.concatenate(full), t)  # type: ignore[arg-type]
+            del full
+        if whole and self.stride == 1:
             self.sample_k, self.sample_t = self.whole
         else:
             self.sample_k, self.sample_t = np.concatenate(ks), np.concatenate(ts)
@@ -630,7 +640,7 @@ def _fit_clock(counts: _Counts, t: Stamps, period: float) -> tuple[float, float,
         same = keep is not None
         for i, k, tt in counts.pairs(t):
             # held whole, the sample's residuals are every row's
-            whole = counts.whole is not None
+            whole = counts.whole is not None and counts.stride == 1
             resid = sample[i : i + BLOCK] if whole else _residuals(k, tt, slope, offset)
             total += float(resid @ resid)
             np.abs(resid, out=resid)
