@@ -326,8 +326,9 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     # every step, or the steps over `stride` samples of an even sample of them
     sampled = np.diff(held[::stride] if held is not None else np.concatenate(picks))
     del picks
-    positive = sampled[sampled > 0]
-    del sampled
+    up = sampled > 0
+    positive = sampled if up.all() else sampled[up]  # no copy when every step is forward
+    del sampled, up
     if positive.size == 0 and not _increases(t):
         raise InputError("time never increases; check the time column and its unit")
     if positive.size:
@@ -470,7 +471,8 @@ class _Counts:
         rows: list[Ints] = []
         counts: list[Ints] = []
         found = 0
-        ks, ts, full = [], [], []
+        ks, ts = [], []
+        full = np.empty(n, dtype=np.int64) if whole else None
         last = 0
         for i, k, tt, steps in self._pairs(t, recording):
             if steps is not None and recording:
@@ -482,8 +484,8 @@ class _Counts:
                 else:
                     rows.append(at + max(0, i - 1))
                     counts.append(steps[at])
-            if whole:
-                full.append(k)
+            if full is not None:
+                full[i : i + k.size] = k
             if not whole or self.stride > 1:
                 first = (-i) % self.stride
                 ks.append(k[first :: self.stride].copy())  # not the whole blocks
@@ -495,9 +497,8 @@ class _Counts:
                 np.concatenate(counts) if counts else np.empty(0, np.int64),
             )
         self.last = last
-        if whole:
-            self.whole = (np.concatenate(full), t)  # type: ignore[arg-type]
-            del full
+        if full is not None:
+            self.whole = (full, t)  # type: ignore[assignment]
         if whole and self.stride == 1:
             self.sample_k, self.sample_t = self.whole
         else:
@@ -630,7 +631,9 @@ def _fit_clock(counts: _Counts, t: Stamps, period: float) -> tuple[float, float,
         slope, offset = _line(counts, t, keep, (slope, offset))
         # the spread from every stamp, or from an even sample of a million of them
         sample = _residuals(counts.sample_k, counts.sample_t, slope, offset)
-        spread = sample - _median(sample)
+        spread = sample.copy()  # the median's partial sort, then the spread, in one array
+        middle = _median(spread, overwrite=True)
+        np.subtract(sample, middle, out=spread)
         np.abs(spread, out=spread)
         mad = 1.4826 * _median(spread, overwrite=True)
         del spread

@@ -122,6 +122,9 @@ class SeriesWriter:
     min_free_bytes : int, optional
         Free space (and file-size limit) needed before the file is created or opened,
         bytes; default :data:`~.space.HEADROOM_BYTES`.
+    chunk_rows : int, optional
+        Rows per HDF5 chunk (default :data:`~.hdf5.CHUNK_ROWS`); larger chunks suit a
+        file written in large blocks and read back whole (an import).
 
     Raises
     ------
@@ -144,8 +147,10 @@ class SeriesWriter:
         kind: str = "session",
         option: str = "--out",
         min_free_bytes: int | None = None,
+        chunk_rows: int = CHUNK_ROWS,
     ) -> None:
         self.path = os.fspath(path)
+        self.chunk_rows = int(chunk_rows)
         self.group_path = group_path(group)
         self.columns = list(columns)
         self.flush_interval_s = float(flush_interval_s)
@@ -248,7 +253,7 @@ class SeriesWriter:
                     col.name.strip("/"),
                     shape=(0, *col.shape),
                     maxshape=(None, *col.shape),
-                    chunks=(CHUNK_ROWS, *col.shape),
+                    chunks=(self.chunk_rows, *col.shape),
                     dtype=dtype,
                     fillvalue=fill,
                 )
@@ -517,8 +522,9 @@ class SeriesWriter:
 
     def _chunk_bytes(self, n_old: int, n_new: int) -> int:
         """Bytes of the chunks HDF5 allocates to grow every column from n_old to n_new rows."""
-        chunks = -(-n_new // CHUNK_ROWS) - -(-n_old // CHUNK_ROWS)
-        return chunks * CHUNK_ROWS * row_bytes(self.columns)
+        size = self.chunk_rows
+        chunks = -(-n_new // size) - -(-n_old // size)
+        return chunks * size * row_bytes(self.columns)
 
     def _make_room(self, need: int) -> None:
         """Stop cleanly (before HDF5 writes a byte) unless `need` bytes fit past the file's end."""
