@@ -389,7 +389,7 @@ class Layout:
         # a blank line is skipped by the parser without a word: every line must be a row
         if invalid or m != count + (body[-1:] != b"\n"):
             return None
-        values = np.empty((m, len(columns)))
+        values = np.empty((len(columns), m)).T  # each column contiguous, as it is used
         text: dict[int, list[str]] = {}
         for j, c in enumerate(columns):
             column = table.column(names[c])
