@@ -339,11 +339,18 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     # the period: the mean of ordinary steps, so 3 and 4 ms stamps give 3.25 ms, not 3
     count = total = 0.0
     backward = 0
+    # read block by block, the same pass keeps the steps that may be lost samples (any
+    # step of a period beyond 1.25 typical steps) and an even sample of a million
+    # stamps, so that the sample numbers need no pass of their own (:class:`_Steps`)
+    steps_kept: _Steps | None = None if held is not None else _Steps(1.25 * typical, n)
     for i in range(0, n - 1, BLOCK):
-        steps = np.diff(t[i : i + BLOCK + 1])
+        block = t[i : i + BLOCK + 1]
+        steps = np.diff(block)
         ordinary = steps[(steps > -0.75 * typical) & (steps < 1.75 * typical)]
         count, total = count + ordinary.size, total + float(np.sum(ordinary))
         backward += int(np.count_nonzero(steps <= 0))
+        if steps_kept is not None and not steps_kept.add(i, block, steps):
+            steps_kept = None  # too many: the numbers are counted by a pass
     dt = total / count if count and total > 0 else typical
     if first_q is None:
         q = 0.0
@@ -355,7 +362,7 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     for counting in (_StepCounts, _LockedCounts):  # the fast way, then the careful one
         period = dt
         for _ in range(3):  # count with the period, refit the period, count again
-            counts = counting(t, period, q)
+            counts = counting(t, period, q, steps_kept)
             slope, offset, worst, rms = _fit_clock(counts, t, period)
             if not slope > 0 or abs(slope - period) <= 1e-4 * period:
                 break
@@ -461,11 +468,14 @@ class _Counts:
     #: steps of more than one period: their indices and periods
     gaps: tuple[Ints, Ints] | None = None
 
-    def __init__(self, t: Stamps, dt: float, q: float) -> None:
+    def __init__(self, t: Stamps, dt: float, q: float, known: _Steps | None = None) -> None:
         self.dt, self.limit = dt, _limit(dt, q)
         n = len(t)
         self.stride = max(1, n // (1 << 20))
         self.whole: tuple[Ints, Array] | None = None
+        if known is not None and self.gaps is None and self.limit >= known.floor:
+            self._from_steps(known, n)
+            return
         whole = isinstance(t, np.ndarray)
         recording = self.gaps is None and not whole
         rows: list[Ints] = []
@@ -503,6 +513,28 @@ class _Counts:
             self.sample_k, self.sample_t = self.whole
         else:
             self.sample_k, self.sample_t = np.concatenate(ks), np.concatenate(ts)
+
+    def _from_steps(self, known: _Steps, n: int) -> None:
+        """What the first pass finds, from the steps kept while the period was found:
+        every step of more than one period is among them."""
+        rows, steps = known.arrays()
+        longer = steps >= self.limit
+        rows, steps = rows[longer], steps[longer]
+        counts = np.maximum(1, np.rint(steps / self.dt)).astype(np.int64)
+        gaps = counts != 1
+        self.gaps = (rows[gaps], counts[gaps])
+        self._sampled(known, n)
+
+    def _sampled(self, known: _Steps, n: int) -> None:
+        """The last number and the sample, from the steps of more than one period and
+        the stamps sampled while the period was found."""
+        assert self.gaps is not None
+        extra = np.concatenate(([0], np.cumsum(self.gaps[1] - 1)))
+        self.last = n - 1 + int(extra[-1])
+        # sample row r is numbered r plus the extra periods of the steps before it
+        sampled = np.arange(0, n, self.stride, dtype=np.int64)
+        self.sample_k = sampled + extra[np.searchsorted(self.gaps[0], sampled, side="left")]
+        self.sample_t = np.concatenate(known.sample)
 
     def pairs(self, t: Stamps) -> Iterator[tuple[int, Ints, Array]]:
         """``(row, numbers, stamps)`` of each block of :data:`BLOCK` rows, in order. Each
@@ -568,6 +600,37 @@ class _Counts:
 _ONES = np.ones(0, dtype=np.int64)
 
 
+class _Steps:
+    """The steps of ``floor`` s or more (by index) and an even sample of a million stamps
+    (every ``n // 2**20``-th, as :class:`_Counts` samples them), kept block by block."""
+
+    def __init__(self, floor: float, n: int) -> None:
+        self.floor, self.n = floor, n
+        self.stride = max(1, n // (1 << 20))
+        self.rows: list[Ints] = []
+        self.steps: list[Array] = []
+        self.sample: list[Array] = []
+        self.found = 0
+
+    def add(self, i: int, block: Array, steps: Array) -> bool:
+        """Keep what stamps ``block`` (rows ``i``, ``i + 1``, ...; the first of the next
+        block last) and their steps hold; False once the steps kept are too many."""
+        at = np.flatnonzero(steps >= self.floor)
+        self.found += at.size
+        if self.found > MAX_GAPS or not self.floor > 0:
+            return False
+        self.rows.append(at + i)
+        self.steps.append(steps[at])
+        rows = block if i + BLOCK >= self.n - 1 else block[:BLOCK]
+        self.sample.append(rows[(-i) % self.stride :: self.stride].copy())
+        return True
+
+    def arrays(self) -> tuple[Ints, Array]:
+        if not self.rows:
+            return np.empty(0, np.int64), np.empty(0)
+        return np.concatenate(self.rows), np.concatenate(self.steps)
+
+
 class _StepCounts(_Counts):
     """Sample numbers from each step alone: enough for quantised stamps."""
 
@@ -587,7 +650,7 @@ class _LockedCounts(_Counts):
     The lock runs once over the stamps; the steps that are not one period (lost
     samples) are kept, by the step's index, and the numbers made from them."""
 
-    def __init__(self, t: Stamps, dt: float, q: float) -> None:
+    def __init__(self, t: Stamps, dt: float, q: float, known: _Steps | None = None) -> None:
         limit = _limit(dt, q)
         gain = 0.05  # phase correction per sample: follows drift, averages jitter
         rows: list[int] = []
@@ -614,6 +677,12 @@ class _LockedCounts(_Counts):
                 clock += count * dt
                 clock += gain * (stamp - clock)
         self.gaps = (np.array(rows, dtype=np.int64), np.array(counts, dtype=np.int64))
+        if known is not None:
+            self.dt, self.limit = dt, limit
+            self.stride = max(1, len(t) // (1 << 20))
+            self.whole = None
+            self._sampled(known, len(t))
+            return
         super().__init__(t, dt, q)
 
 
