@@ -340,9 +340,14 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     count = total = 0.0
     backward = 0
     # read block by block, the same pass keeps the steps that may be lost samples (any
-    # step of a period beyond 1.25 typical steps) and an even sample of a million
-    # stamps, so that the sample numbers need no pass of their own (:class:`_Steps`)
-    steps_kept: _Steps | None = None if held is not None else _Steps(1.25 * typical, n)
+    # step beyond 1.25 of the first stamps' median step: the typical step above is
+    # over `stride` samples) and an even sample of a million stamps, so that the
+    # sample numbers need no pass of their own (:class:`_Steps`)
+    steps_kept: _Steps | None = None
+    if held is None:
+        first = np.diff(head)
+        first = first[first > 0]
+        steps_kept = _Steps(1.25 * (_median(first, overwrite=True) if first.size else typical), n)
     for i in range(0, n - 1, BLOCK):
         block = t[i : i + BLOCK + 1]
         steps = np.diff(block)
@@ -785,10 +790,11 @@ def _line(
         if keep is not None:
             inside = _kept(kk, tt, keep)
             kk, tt = kk[inside], tt[inside]
-        r = kk * -slope0
+        dk = kk.astype(np.float64)  # exact (numbers below 2**53), and cast once
+        r = dk * -slope0
         r += tt
         r -= offset0
-        dk = kk - pivot
+        dk -= pivot
         count += dk.size
         sk += float(np.sum(dk))
         sr += float(np.sum(r))
