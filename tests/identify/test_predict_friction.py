@@ -42,17 +42,6 @@ def _fitted(seed: int) -> tuple[Scene, BayesianFit, Session, int]:
     return scene, BayesianFit(forms, seed=seed).fit(fitted), rest, i0
 
 
-FIT_COLUMN = pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "the fit keeps the second-order friction column: averaged over the window's "
-        "spread it clashed with the errors-in-variables correction, whose noise path "
-        "is the unsmoothed step's slope (a measured punch recording fell to R^2 -0.56)"
-    ),
-)
-
-
-@FIT_COLUMN
 def test_fast_taps_give_friction_and_damping_their_own_share() -> None:
     """Fast taps cross zero speed at a high acceleration: a smoothing window's spread of
     speeds there is 10-100 times the friction's smoothing speed, and the second-order
@@ -67,9 +56,7 @@ def test_fast_taps_give_friction_and_damping_their_own_share() -> None:
             assert abs(value / truth[symbol] - 1) < 0.05, (symbol, value, truth[symbol])
 
 
-@pytest.mark.parametrize(
-    "seed", [pytest.param(0, marks=FIT_COLUMN), 2, pytest.param(21, marks=FIT_COLUMN)]
-)
+@pytest.mark.parametrize("seed", [0, 2, 21])
 def test_the_held_out_force_is_within_the_smoothers_floor(seed: int) -> None:
     """Scenes that were 2.9-5.4 times the floor (the inertia's acceleration noise through
     one window for every derivative, and the friction column above): now within the
