@@ -39,7 +39,8 @@ def floor(measured: np.ndarray, truth: np.ndarray) -> float:
 
 
 def scene_figures(seed: int, max_samples: int) -> dict[str, object]:
-    """One scene's settings, its S and Fc errors (fractions) and held-out error / floor."""
+    """One scene's settings, its S and Fc errors (fractions), how many coefficients'
+    95 % intervals hold the truth, and its held-out error over the floor."""
     scene = random_scene(seed, families=FRICTION, max_samples=max_samples, contact="continuous")
     s = scene.session
     i = int(0.7 * len(s))
@@ -51,7 +52,12 @@ def scene_figures(seed: int, max_samples: int) -> dict[str, object]:
     cpu = time.process_time() - start
     law, coef = est._coefficients()
     truth = dict(zip(scene.tissue.law.symbols, scene.tissue.coef, strict=True))
-    err = {sym: float(c / truth[sym] - 1) for sym, c in zip(law.symbols, coef, strict=True)}
+    sd, ci = est._uncertainty()
+    err, z, inside = {}, {}, {}
+    for j, sym in enumerate(law.symbols):
+        err[sym] = float(coef[j] / truth[sym] - 1)
+        z[sym] = float((coef[j] - truth[sym]) / sd[j])
+        inside[sym] = bool(ci[j][0] <= truth[sym] <= ci[j][1])
     held = scene.force[i:]
     pred = est.predict(rest)
     ok = np.isfinite(pred)
@@ -63,6 +69,10 @@ def scene_figures(seed: int, max_samples: int) -> dict[str, object]:
         "bits": int(scene.settings["bits"]),
         "S": err.get("S", float("nan")),
         "Fc": err.get("Fc", float("nan")),
+        "zS": z.get("S", float("nan")),
+        "zFc": z.get("Fc", float("nan")),
+        "inside": sum(inside.values()),
+        "terms": len(inside),
         "ratio": ratio,
         "cpu": cpu,
     }
@@ -80,21 +90,26 @@ def main() -> None:
         seeds = [int(v) for v in args.seeds.split(",")]
     print(f"load average {os.getloadavg()[0]:.1f}")
     print(f"{'seed':>4} {'excitation':<14} {'rate Hz':>8} {'bits':>4} "
-          f"{'S err':>8} {'Fc err':>8} {'held/floor':>10} {'cpu s':>6}")  # fmt: skip
+          f"{'S err':>8} {'Fc err':>8} {'z S':>6} {'z Fc':>6} {'in 95 %':>7} "
+          f"{'held/floor':>10} {'cpu s':>6}")  # fmt: skip
     rows = []
     for seed in seeds:
         r = scene_figures(seed, args.max_samples)
         rows.append(r)
         print(f"{seed:>4} {r['excitation']:<14} {r['rate_hz']:>8.0f} {r['bits']:>4} "
-              f"{r['S']:>+8.1%} {r['Fc']:>+8.1%} {r['ratio']:>10.2f} {r['cpu']:>6.2f}",
+              f"{r['S']:>+8.1%} {r['Fc']:>+8.1%} {r['zS']:>+6.2f} {r['zFc']:>+6.2f} "
+              f"{r['inside']:>5}/{r['terms']:<1} {r['ratio']:>10.2f} {r['cpu']:>6.2f}",
               flush=True)  # fmt: skip
     ratio = np.array([r["ratio"] for r in rows])
     s_err = np.abs([r["S"] for r in rows])
     fc_err = np.abs([r["Fc"] for r in rows])
+    inside = sum(int(r["inside"]) for r in rows)  # type: ignore[call-overload]
+    terms = sum(int(r["terms"]) for r in rows)  # type: ignore[call-overload]
     print(f"held/floor: median {np.median(ratio):.2f}, 90th percentile "
           f"{np.percentile(ratio, 90):.2f}, within 1.5: {int(np.sum(ratio <= 1.5))}/{ratio.size}; "
           f"|S err| median {np.nanmedian(s_err):.1%}, max {np.nanmax(s_err):.1%}; "
-          f"|Fc err| median {np.nanmedian(fc_err):.1%}, max {np.nanmax(fc_err):.1%}")  # fmt: skip
+          f"|Fc err| median {np.nanmedian(fc_err):.1%}, max {np.nanmax(fc_err):.1%}; "
+          f"coefficients inside their 95 % interval {inside}/{terms}")  # fmt: skip
     print(f"load average {os.getloadavg()[0]:.1f}")
 
 
