@@ -61,24 +61,3 @@ def test_a_smooth_regressor_s_slope_is_its_own() -> None:
         u = np.linspace(-2e-2, 2e-2, 9)
         np.testing.assert_array_equal(term.expected_slope(u, 1e-4), term.derivative(u))
     assert _coulomb().step
-
-
-@pytest.mark.parametrize("ratio", [0.2, 0.5, 0.6, 3.0, 100.0])
-def test_the_mean_and_its_slope_are_the_integrals_to_their_stated_accuracy(ratio: float) -> None:
-    """Against adaptive quadrature of the normal integral: the mean within 1e-5 (it was
-    0.02 off with tanh taken for an erf, the same sign at every turn), the slope within
-    1e-5 of its largest value, on either side of the switch between the two rules."""
-    from scipy.integrate import quad
-
-    term, sd = _coulomb(), ratio * V_SMOOTH
-    scale = max(sd, V_SMOOTH)
-
-    def integral(f, u: float) -> float:  # type: ignore[no-untyped-def]
-        density = lambda e: np.exp(-0.5 * (e / sd) ** 2) / (np.sqrt(2 * np.pi) * sd)  # noqa: E731
-        return float(quad(lambda e: f(u + e) * density(e), -12 * sd, 12 * sd, points=[-u],
-                          limit=400, epsabs=1e-12)[0])  # fmt: skip
-
-    for u in np.linspace(-5, 5, 21) * scale:
-        mean, slope = integral(term, u), integral(term.derivative, u)
-        assert abs(float(term.expected(u, sd**2)) - mean) < 1e-5, (u, sd)
-        assert abs(float(term.expected_slope(u, sd**2)) - slope) * scale < 1e-5, (u, sd)
