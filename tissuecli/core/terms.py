@@ -600,10 +600,11 @@ class Coulomb(Term):
         window smoothing across a turn averages them likewise. With tanh(z) ~
         erf(sqrt(pi) z / 2) that mean is tanh(u / V), the smoothing speed widened to
         V = sqrt(V_SMOOTH^2 + pi var / 2): exact at var = 0, within 0.04 of the exact
-        mean at any var. A second-order expansion (the default) is no use here: the
-        step's curvature, of order 1/V_SMOOTH^2, turned a spread of 10 mm/s at a turn
-        into a column of +-30 where it is +-1. A spread cannot be taken out of a step:
-        a negative ``var`` counts as 0."""
+        mean at any var (0.02 where the spread's SD is near V_SMOOTH, one sign at every
+        turn: a small spread's first-order effect is not the expansion's). A second-order
+        expansion (the default) is no use here: the step's curvature, of order
+        1/V_SMOOTH^2, turned a spread of 10 mm/s at a turn into a column of +-30 where it
+        is +-1. A spread cannot be taken out of a step: a negative ``var`` counts as 0."""
         return np.tanh(np.asarray(u, dtype=float) / _widened(var))
 
     def expected_slope(self, u: ArrayLike, var: ArrayLike) -> Array:

@@ -111,11 +111,12 @@ class Kinematics:
 
         A smooth regressor's own slope at the filtered speed. For a :attr:`Term.step`
         (dry friction) the slope of the same mean its column is,
-        ``g_h * E[r]'(v_h, spread + n_v)`` (:meth:`Term.expected_slope`), the noise's
-        spread included: for Gaussian noise that mean slope is the exact covariance of
-        the column with the speed's error (Bussgang), where the step's own slope,
-        1/V_SMOOTH at every turn, put a noise there that the column does not carry, and
-        the correction took it off the friction's share of the data.
+        ``g_h * E[r]'(v_h, max(s^2 a_h^2 - n_v, 0) + n_v)`` (:meth:`Term.expected_slope`):
+        the column's spread and the noise's together, as the column's error sees them.
+        For Gaussian noise that mean slope is the exact covariance of the column with
+        the speed's error (Bussgang's theorem), where the step's own slope, 1/V_SMOOTH at
+        every turn, put a noise there that the column does not carry, and the
+        correction took it off the friction's share of the data.
         """
         if not term.step:
             return term.derivative(self.v)
