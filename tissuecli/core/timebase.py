@@ -264,9 +264,11 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     """The regular clock behind ``stamps``, if there is one, read block by block.
 
     The stamps are read a few times over, :data:`BLOCK` rows at a time; memory holds
-    a few blocks, an even sample of a million stamps and, where the stamps follow the
-    clock only when judged against a phase lock, the rows where a step is not one
-    sample (lost samples).
+    a few blocks, an even sample of a million stamps and the steps of more than one
+    period (lost samples: up to :data:`MAX_GAPS` of them, beyond which the sample
+    numbers are counted again at each pass, or all of them where the stamps follow the
+    clock only when judged against a phase lock). Stamps given as an array are worked
+    on whole, as are up to two blocks of stamps (their sample is every stamp).
 
     Parameters
     ----------
