@@ -249,6 +249,9 @@ class ShapedPass:
         terms = law.terms
         self.fixed = [j for j, t in enumerate(terms) if not t.shapes]
         self.moving = [j for j, t in enumerate(terms) if t.shapes]
+        fixed, moving = self.fixed, self.moving
+        self._blocks = (np.ix_(fixed, fixed), np.ix_(moving, fixed), np.ix_(fixed, moving),
+                        np.ix_(moving, moving))  # fmt: skip
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         cols = [term_column(terms[j], kin, x, sx, fit.columns) for j in self.fixed]
         self.F = np.column_stack(cols) if cols else np.zeros((fit.y.size, 0))
@@ -303,13 +306,13 @@ class ShapedPass:
     def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
         """A (p, p) matrix of products from its blocks: fixed with fixed, moving with
         fixed, moving with moving."""
-        fixed, moving = self.fixed, self.moving
-        p = len(fixed) + len(moving)
+        p = len(self.fixed) + len(self.moving)
         out = np.empty((p, p))
-        out[np.ix_(fixed, fixed)] = ff
-        out[np.ix_(moving, fixed)] = mf
-        out[np.ix_(fixed, moving)] = mf.T
-        out[np.ix_(moving, moving)] = mm
+        ff_at, mf_at, fm_at, mm_at = self._blocks
+        out[ff_at] = ff
+        out[mf_at] = mf
+        out[fm_at] = mf.T
+        out[mm_at] = mm
         return out
 
 
