@@ -113,7 +113,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         else:
             nodes_u, w = hermite_nodes(peak)
             inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD)
+            alone = len(inside) == 1  # a mixture's components need no intervals
+            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD,
+                                                                     intervals=alone)
                      for i in inside]  # fmt: skip
             post = mix(posts, w[inside], fit.rng)
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
@@ -127,7 +129,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         ln_evidence = float(_logsumexp(log_post))
         heavy = kept(log_post)
         weights = np.exp(log_post[heavy] - log_post[heavy[0]])
-        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in heavy]
+        alone = len(heavy) == 1
+        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD, intervals=alone)
+                 for i in heavy]  # fmt: skip
         post = mix(posts, weights, fit.rng)
         shape_post, point = shape_summary(grid, log_post)
         how = f"quadrature over {len(grid.nodes)} shape nodes"
@@ -181,9 +185,12 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 summary[name]["tau_steps"] = diag["tau"][j]
             pick = fit.rng.choice(draws.shape[0], size=min(SHAPE_MIXTURE, draws.shape[0]),
                                   replace=False)  # fmt: skip
+            alone = len(pick) == 1
             posts = [
-                evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in pick
-            ]
+                evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD,
+                                                              intervals=alone)
+                for i in pick
+            ]  # fmt: skip
             mixed = mix(posts, np.ones(len(posts)), fit.rng)
             mixed.ln_evidence = res.ln_evidence
             median = np.median(draws, axis=0)
@@ -231,7 +238,7 @@ def shaped_result(
     fp, st, prior, corr, flags, exact = evaluate(point)[1]
     if post.diagnostics.get("shape_nodes", 1) > 1:
         post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
-        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
+        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD, intervals=False).mean
     return result_of(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
 
 
