@@ -60,3 +60,35 @@ def test_a_sharp_peak_near_the_edge_is_still_found(depth: float) -> None:
     assert peak is not None
     assert abs(float(peak.u[0]) - top) < 0.1 * sd
     assert float(peak.sd[0]) == pytest.approx(sd, rel=1e-3)
+
+
+def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
+    """A time constant's sharp peak a tenth of a grid step inside its upper edge, with
+    an exponent well inside its range: the climbs from the best grid nodes end at the
+    peak, not on the edge."""
+    from tissuecli.core.terms import EXPONENT
+
+    taus = np.linspace(math.log(0.01), math.log(10.0), 16)
+    ns = np.linspace(1.0, 2.5, 5)
+    nodes = [{"tau1": float(math.exp(a)), "n": float(b)} for a in taus for b in ns]
+    h = np.array([taus[1] - taus[0], ns[1] - ns[0]])
+    grid = ShapeGrid(
+        nodes, np.full(len(nodes), -math.log(len(nodes))),
+        {"tau1": (0.01, 10.0), "n": (1.0, 2.5)}, h, 0.0,
+        {"tau1": TIME_CONSTANT, "n": EXPONENT},
+    )  # fmt: skip
+    centre = np.array([taus[-1] - 0.1 * h[0], 1.355])
+    sd = np.array([0.052 * h[0], 0.02 * h[1]])
+    cov = np.array([[1.0, 0.37], [0.37, 1.0]]) * np.outer(sd, sd)
+    precision = np.linalg.inv(cov)
+
+    def log_z(u: np.ndarray) -> float:
+        z = u - centre
+        return float(-0.5 * z @ precision @ z)
+
+    values = np.array([log_z(grid.to_u(node)) for node in nodes])
+    starts = [grid.to_u(nodes[i]) for i in np.argsort(-values)[:3]]
+    peak = laplace(log_z, grid, starts)
+    assert peak is not None
+    # Newton's steps stop within a hundredth of an SD
+    np.testing.assert_allclose(peak.u, centre, atol=0.02 * float(np.min(sd)))

@@ -65,7 +65,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         key = (law.name, tuple(node[n] for n in grid.names))
         fp = fit.shaped_passes.get(key)
         if fp is None:
-            fp = fit.shaped_passes[key] = light(node)
+            fp = fit.shaped_passes[key] = light(node, bound)
         st, prior, corr, flags = law_stats(bound, fp, fit)
         exact = ExactPosterior(st, prior, nodes=nodes)
         return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
@@ -273,8 +273,9 @@ class ShapedPass:
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
 
-    def __call__(self, node: dict[str, float]) -> FirstPass:
-        fit, bound = self.fit, self.law.bind(node)
+    def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
+        """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
+        fit, bound = self.fit, bound if bound is not None else self.law.bind(node)
         p, fixed, moving = len(bound.terms), self.fixed, self.moving
         S = np.column_stack(
             [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,

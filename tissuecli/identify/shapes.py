@@ -38,6 +38,8 @@ EDGE_CHECK = 25
 #: evaluations per shape parameter a climb's best point may stay on the prior's edge
 #: before the climb stops there, if the posterior falls away from the edge inwards
 EDGE_SETTLE = 6
+#: where, in grid steps from the edge, the posterior must fall away for a climb to end
+INWARD = (1 / 32, 1 / 8, 1 / 2, 1.0)
 #: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
 KEPT_MASS, MAX_KEPT = 0.999, 12
 
@@ -288,9 +290,11 @@ class _OnEdge(Exception):
 
 def _falls_away(cost: Callable[[Array], float], grid: ShapeGrid, u: Array, c: float) -> bool:
     """Whether ``u`` (of cost ``c``) lies on an edge of the prior's box and the cost
-    rises from it inwards: a quarter and a whole grid step in, along each parameter at
-    its bound. False on the edge where two ordered parameters meet (no single step
-    leads inwards there)."""
+    rises from it inwards: at :data:`INWARD` grid steps in, along each parameter at its
+    bound (a peak more than a sixty-fourth of a step inside is nearer the first of them
+    than the edge is, so a posterior falling off on both sides of it costs less there).
+    False on the edge where two ordered parameters meet (no single step leads inwards
+    there)."""
     edges = 0
     for i, (n, h) in enumerate(zip(grid.names, grid.spacing, strict=True)):
         lo, hi = (grid.params[n].to_u(b) for b in grid.ranges[n])
@@ -301,7 +305,7 @@ def _falls_away(cost: Callable[[Array], float], grid: ShapeGrid, u: Array, c: fl
         else:
             continue
         edges += 1
-        for f in (0.25, 1.0):
+        for f in INWARD:
             v = np.array(u, dtype=float)
             v[i] += f * inward
             if not grid.inside(v) or not cost(v) > c:
