@@ -237,6 +237,23 @@ def test_bounded_posterior_is_the_eager_summary_then_draws(cut_sds: float) -> No
     assert rng_lazy.random() == rng_eager.random()  # the same stream for what follows
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_summary_draws_pick_the_nodes_rng_choice_picks(seed: int) -> None:
+    """The closed form's draws look their uniforms up in the nodes' CDF as
+    ``rng.choice(m, size, p=w)`` does: the same nodes, and the same stream after."""
+    g = np.random.default_rng(seed)
+    w = g.random(int(g.integers(1, 40))) ** 3
+    w /= w.sum()
+    n = int(g.integers(1, 5000))
+    mine, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+    cdf = w.cumsum()
+    cdf /= cdf[-1]
+    np.testing.assert_array_equal(
+        cdf.searchsorted(mine.random(n), side="right"), ref.choice(w.size, size=n, p=w)
+    )
+    assert mine.random() == ref.random()
+
+
 @pytest.mark.parametrize("cut_sds", [8.0, 1.0, -0.5, -3.0])
 def test_bounded_posterior_without_intervals_is_the_same_but_them(cut_sds: float) -> None:
     """A mixture's component skips its own intervals: every other figure, the draws and

@@ -369,16 +369,19 @@ class ExactPosterior:
         return self._summary(*self._summary_draws(rng, draws))
 
     def _summary_draws(self, rng: np.random.Generator, draws: int = 4000) -> tuple[Array, Array]:
-        """The random numbers :meth:`summary` draws, in its order: a node for each draw
-        (draws,) and standard normals (draws, p)."""
-        w = self.mixture()[0]
-        pick = rng.choice(w.size, size=draws, p=w)
-        return pick, rng.standard_normal((draws, self.d.size))
+        """The random numbers :meth:`summary` draws, in its order: a uniform for each
+        draw's node (draws,) and standard normals (draws, p). ``rng.choice(m, draws,
+        p=w)`` draws those uniforms and looks each up in ``w``'s CDF; the lookup, most of
+        its cost, is left to :meth:`_summary`, for the draws that are used."""
+        return rng.random(draws), rng.standard_normal((draws, self.d.size))
 
-    def _summary(self, pick: Array, z: Array, intervals: bool = True) -> Posterior:
+    def _summary(self, uniform: Array, z: Array, intervals: bool = True) -> Posterior:
         """:meth:`summary` from its random numbers (:meth:`_summary_draws`); without
         ``intervals`` the 95 % intervals are left NaN (a mixture's component needs none)."""
         w, mus, covs, idx = self.mixture()
+        cdf = w.cumsum()  # the nodes rng.choice(w.size, p=w) picks with these uniforms
+        cdf /= cdf[-1]
+        pick = cdf.searchsorted(uniform, side="right")
         inside = self.orthant_mass()
         ln_z = self.ln_evidence()
         mean = w @ mus
