@@ -132,7 +132,7 @@ class TestFaultsSetTheExitCode:
         assert _last(result.output).startswith("Error: the play was faulty: the display's")
 
     def test_play_whose_loop_ran_off_its_rate_exits_5(self, display, params, monkeypatch):
-        monkeypatch.setattr(app_play.PlayFigures, "loop_rate", lambda self: 930.0)
+        monkeypatch.setattr(app_play.PlayFigures, "frame_rate", lambda self: 930.0)
         summary = Path(params).with_name("s.json")
         result = CliRunner().invoke(
             cli,
