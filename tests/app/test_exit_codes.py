@@ -218,6 +218,7 @@ class TestFaultsSetTheExitCode:
             ({"lost_frames": 17}, EXIT_LOST_DATA, "the recording lost data: 17 frame(s) lost"),
             ({"watchdog_frames": 12}, EXIT_WATCHDOG, "display's watchdog cut the solenoid on 12"),
             ({"loop_rate_hz": 197.0}, EXIT_OFF_RATE, "the loop ran at 197.0 Hz"),
+            ({"stale_frames": 900}, EXIT_OFF_RATE, "the display ran 900 periods on a late"),
             ({}, 0, ""),
         ],
     )

@@ -87,7 +87,7 @@ def live_lines(summary: Mapping[str, Any]) -> list[str]:
         + (f"{delay:.2f} s after the grasp began" if delay is not None else "never"),
         f"display loop {ren.get('loop_rate_hz') or 0:.1f} Hz (period p99 "
         f"{ren.get('period_p99_ms') or 0:.2f} ms, max {ren.get('period_max_ms') or 0:.2f} ms), "
-        f"{ren.get('missed_periods', 0)} periods without a frame, watchdog frames "
+        f"{ren.get('missed_periods', 0)} periods without a frame, {_late(ren)}, watchdog frames "
         f"{ren.get('watchdog_frames', 0)}; scheduling {sched.get('scheduler', 'n/a')}",
         f"passivity: energy observed {pas['energy_observed_j'] * 1e3:.3f} mJ (min "
         f"{pas['energy_min_j'] * 1e3:.3f} mJ), dissipated "
