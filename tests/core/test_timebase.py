@@ -133,3 +133,26 @@ def test_stamps_read_block_by_block_give_the_clock_of_the_whole_array(monkeypatc
             assert np.array_equal(joined, timebase.regularise(t)[0]), kind
         if kind == "exact":
             assert passes <= 7, passes  # a logger's exact stamps: a few passes, no more
+
+
+@pytest.mark.parametrize("streamed", [False, True])
+def test_irregular_stamps_of_a_long_recording_give_the_one_sample_median_rate(
+    monkeypatch, streamed: bool
+) -> None:
+    """Beyond two blocks the typical step comes from an even sample of the steps: it
+    must still be the step between neighbouring stamps, not over the sample's stride.
+    Blocks of 1024 stamps make 30 000 stamps a long recording (stride 29, so ~1030
+    sampled steps). Steps are exponential with mean 1 ms, median ln 2 ms; the median
+    of N sampled steps has a standard error of 1/(2 f(m) sqrt(N)) = 1 ms/sqrt(N), 4.5 %
+    of it, so 20 % is over four of those, while a step over 29 samples would make the
+    rate about 40 times too low."""
+    from tissuecli.core import timebase
+
+    monkeypatch.setattr(timebase, "BLOCK", 1024)
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.exponential(1e-3, 30_000))
+    fit = timebase.fit_clock(_Column(t) if streamed else t)
+    assert not fit.base.regular
+    expected = 1.0 / (np.log(2) * 1e-3)
+    assert fit.base.rate_hz == pytest.approx(expected, rel=0.2)
+    assert fit.base.rate_hz == pytest.approx(1.0 / np.median(np.diff(t)), rel=0.2)

@@ -311,6 +311,7 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     elif stride == 1:
         held = np.empty(n)
     picks = []
+    last = 0.0  # the previous block's last stamp
     for i in range(0, n, BLOCK):
         block = t[i : i + BLOCK]
         if not math.isfinite(float(np.sum(block))):
@@ -318,15 +319,30 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
             if bad.size:
                 raise InputError(f"time is not a finite number at line {where[i + int(bad[0])]}")
         if held is None:
-            picks.append(block[(-i) % stride :: stride].copy())  # not the whole block
+            # the one-sample steps into every `stride`-th stamp (not the whole block)
+            start = (-i) % stride
+            if start == 0:
+                if i:
+                    picks.append(block[:1] - last)  # the step from the previous block
+                start = stride
+            ends = block[start::stride]
+            picks.append(ends - block[start - 1 :: stride][: ends.size])
+            last = block[-1]
         elif not in_memory:
             held[i : i + block.size] = block
         if first_q is not None and fits_q and i + block.size > HEAD:
             fits_q = _multiples(block[max(0, HEAD - i) :], first_q)
     if held is not None:
         t = held  # type: ignore[assignment]
-    # every step, or the steps over `stride` samples of an even sample of them
-    sampled = np.diff(held[::stride] if held is not None else np.concatenate(picks))
+    # every step, or an even sample of them: the one-sample steps into every
+    # `stride`-th stamp (never steps over `stride` samples, which would make the
+    # typical step of irregular stamps `stride` times too long)
+    if held is not None:
+        ends = held[stride::stride]
+        sampled = ends - held[stride - 1 :: stride][: ends.size]  # np.diff when stride is 1
+        del ends
+    else:
+        sampled = np.concatenate(picks)
     del picks
     up = sampled > 0
     positive = sampled if up.all() else sampled[up]  # no copy when every step is forward
@@ -342,9 +358,8 @@ def fit_clock(stamps: Stamps, lines: Lines | None = None) -> ClockFit:
     count = total = 0.0
     backward = 0
     # read block by block, the same pass keeps the steps that may be lost samples (any
-    # step beyond 1.25 of the first stamps' median step: the typical step above is
-    # over `stride` samples) and an even sample of a million stamps, so that the
-    # sample numbers need no pass of their own (:class:`_Steps`)
+    # step beyond 1.25 of the first stamps' median step) and an even sample of a
+    # million stamps, so that the sample numbers need no pass of their own (:class:`_Steps`)
     steps_kept: _Steps | None = None
     if held is None:
         first = np.diff(head)
