@@ -55,6 +55,10 @@ BELOW_FRACTION = 0.005
 #: fraction of the dip's fastest speed (or closing) is the jaws turning in contact, not a
 #: tissue letting go of jaws that go on opening
 TURN_FRACTION = 0.3
+#: a stretch at the lowest force whose middle half keeps the closure within this many
+#: position-noise SDs is jaws held still, free: its ends take in the first and last few
+#: noise SDs of the grasps beside it, whose force follows the closure
+STILL_SD = 8.0
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
 
@@ -125,7 +129,8 @@ def find_contact(session: Session) -> Contact:
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
-    baseline, free = _baseline(smooth, closure, noise, dt, width)
+    still = STILL_SD * _noise_sd(session.position)
+    baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -179,7 +184,7 @@ def _moving_mean(f: Array, width: int) -> Array:
 
 
 def _baseline(
-    smooth: Array, closure: Array, noise: float, dt: float, width: int = 1
+    smooth: Array, closure: Array, noise: float, dt: float, width: int = 1, still: float = 0.0
 ) -> tuple[float, float]:
     """The lowest level the smoothed force rests at for long stretches (free jaws), and
     the fraction of the session spent within a few noise SDs of it (0 when there is no
@@ -199,7 +204,10 @@ def _baseline(
         if (stop - start) * dt < MIN_GRASP_S:
             continue
         cut = slice(start, stop, step)
-        if _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
+        quarter = (stop - start) // 4
+        if np.ptp(closure[start + quarter : stop - quarter]) <= still:
+            pass  # jaws held still through its middle half: free, whatever its ends do
+        elif _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
         long_free[start:stop] = True
     if not np.any(long_free):
