@@ -55,8 +55,8 @@ BELOW_FRACTION = 0.005
 #: fraction of the dip's fastest speed (or closing) is the jaws turning in contact, not a
 #: tissue letting go of jaws that go on opening
 TURN_FRACTION = 0.3
-#: a stretch at the lowest force whose middle half keeps the closure within this many
-#: position-noise SDs is jaws held still, free: its ends take in the first and last few
+#: a stretch at the lowest force whose middle half keeps the smoothed closure within
+#: this many of its noise SDs is jaws held still, free: its ends take in the first and last few
 #: noise SDs of the grasps beside it, whose force follows the closure
 STILL_SD = 8.0
 #: t statistic above which a stretch's force follows the closure or its speed
@@ -129,7 +129,7 @@ def find_contact(session: Session) -> Contact:
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
-    still = STILL_SD * _noise_sd(session.position)
+    still = STILL_SD * _noise_sd(session.position) / np.sqrt(width)  # the smoothed noise
     baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     if free < MIN_FREE_FRACTION:
         return Contact(
@@ -192,22 +192,56 @@ def _baseline(
 
     ``width`` is the moving mean's width in samples: the smoothed noise has SD
     ``noise / sqrt(width)`` and is nearly independent ``width`` samples apart.
+    ``still`` (m): jaws whose smoothed closure moves less than this are held still.
+
+    The floor is the force's 2nd percentile; where no free stretch rests there (a
+    damped tissue pulls the force below the free-jaw level at every release), the
+    level the force rests at most often in its lower half, if the jaws are held still
+    there.
     """
-    floor = float(np.percentile(smooth, 2))
+    level, free = _baseline_at(float(np.percentile(smooth, 2)), smooth, closure, noise, dt,
+                               width, still)  # fmt: skip
+    if free > 0 or still <= 0:
+        return level, free
+    step = max(width, 1)
+    lo, mid = np.percentile(smooth, [2, 50])
+    bin_n = max(noise / np.sqrt(step), 1e-12 * max(abs(mid), 1.0))
+    if not mid > lo + bin_n:
+        return level, free
+    counts, edges = np.histogram(smooth, bins=np.arange(lo, mid + bin_n, bin_n))
+    mode = float(edges[int(np.argmax(counts))]) + 0.5 * bin_n
+    rest, free_rest = _baseline_at(mode - 0.5 * ENTER_SD * noise, smooth, closure, noise,
+                                   dt, width, still, only_still=True)  # fmt: skip
+    return (rest, free_rest) if free_rest > 0 else (level, free)
+
+
+def _baseline_at(
+    floor: float,
+    smooth: Array,
+    closure: Array,
+    noise: float,
+    dt: float,
+    width: int,
+    still: float,
+    only_still: bool = False,
+) -> tuple[float, float]:
+    """:func:`_baseline` from the stretches within ``ENTER_SD`` noise SDs above
+    ``floor`` (N); ``only_still``: only those whose jaws are held still are free."""
     band = max(ENTER_SD * noise, 1e-12 * max(abs(floor), 1.0))
     near = smooth <= floor + band
     step = max(width, 1)
     speed = np.gradient(closure, dt)
     overall = _follow(closure[::step], speed[::step], smooth[::step])
     long_free = np.zeros_like(near)
+    held = np.zeros_like(near)  # free stretches whose jaws are held still
     for start, stop in _runs(near):
         if (stop - start) * dt < MIN_GRASP_S:
             continue
         cut = slice(start, stop, step)
         quarter = (stop - start) // 4
         if np.ptp(closure[start + quarter : stop - quarter]) <= still:
-            pass  # jaws held still through its middle half: free, whatever its ends do
-        elif _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
+            held[start:stop] = True  # free, whatever the grasps beside it add at its ends
+        elif only_still or _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
         long_free[start:stop] = True
     if not np.any(long_free):
@@ -217,6 +251,10 @@ def _baseline(
     # unless each dip ends with the jaws still opening fast: a tissue that pulls on jaws
     # opening faster than it recovers, until it lets go (a grasp's release). A tissue in
     # contact throughout dips while damping outweighs its spring, until the jaws turn.
+    # Jaws held still at the level for MIN_FREE_FRACTION of the session are free jaws
+    # seen: a dip elsewhere is then a grasped tissue pulling, not a sign against them.
+    if np.mean(held) >= MIN_FREE_FRACTION:
+        return level, float(np.mean(long_free))
     below = smooth < level - ENTER_SD * noise / np.sqrt(step)
     turning = np.zeros_like(below)
     for start, stop in _runs(_close_gaps(below, 2 * step)):  # one dip, however noisy
