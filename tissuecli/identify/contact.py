@@ -239,7 +239,8 @@ def _baseline_at(
             continue
         cut = slice(start, stop, step)
         quarter = (stop - start) // 4
-        if np.ptp(closure[start + quarter : stop - quarter]) <= still:
+        middle = slice(start + quarter, stop - quarter)
+        if np.ptp(closure[middle]) <= still and _flat(smooth[middle][::step], noise, step):
             held[start:stop] = True  # free, whatever the grasps beside it add at its ends
         elif only_still or _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
@@ -265,6 +266,17 @@ def _baseline_at(
     if np.mean(turning) > BELOW_FRACTION:
         return level, 0.0
     return level, float(np.mean(long_free))
+
+
+def _flat(y: Array, noise: float, width: int) -> bool:
+    """Whether the smoothed force ``y`` (taken every ``width`` samples, so its noise of SD
+    ``noise / sqrt(width)`` is nearly independent) keeps one level: the means of its
+    halves within :data:`FOLLOW_T` standard errors. A hold relaxing is not flat."""
+    h = y.size // 2
+    if h < 2:
+        return False
+    se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
+    return bool(abs(float(np.mean(y[h:]) - np.mean(y[:h]))) <= FOLLOW_T * se)
 
 
 def _follow(x: Array, v: Array, y: Array) -> list[tuple[float, float]]:
