@@ -59,6 +59,8 @@ TURN_FRACTION = 0.3
 #: this many of its noise SDs is jaws held still, free: its ends take in the first and last few
 #: noise SDs of the grasps beside it, whose force follows the closure
 STILL_SD = 8.0
+#: most bins of the histogram that finds the level the force rests at most
+MAX_BINS = 4096
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
 
@@ -208,8 +210,9 @@ def _baseline(
     bin_n = max(noise / np.sqrt(step), 1e-12 * max(abs(mid), 1.0))
     if not mid > lo + bin_n:
         return level, free
-    counts, edges = np.histogram(smooth, bins=np.arange(lo, mid + bin_n, bin_n))
-    mode = float(edges[int(np.argmax(counts))]) + 0.5 * bin_n
+    bins = int(min(np.ceil((mid - lo) / bin_n), MAX_BINS))  # noiseless: a bounded count
+    counts, edges = np.histogram(smooth, bins=bins, range=(lo, mid))
+    mode = 0.5 * float(edges[int(np.argmax(counts))] + edges[int(np.argmax(counts)) + 1])
     rest, free_rest = _baseline_at(mode - 0.5 * ENTER_SD * noise, smooth, closure, noise,
                                    dt, width, still, only_still=True)  # fmt: skip
     return (rest, free_rest) if free_rest > 0 else (level, free)
