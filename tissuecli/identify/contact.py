@@ -17,7 +17,14 @@ force follows the closure or the closure speed (the damping term), beyond what t
 smoothed noise explains; or the force falls well below that level elsewhere for more
 than :data:`BELOW_FRACTION` of the session (free jaws read the lowest level there
 is; damping pulls a grasped tissue's force below it while the jaws open and turn).
-Either way the stretch is not free jaw motion. A dip that ends with the jaws still
+Either way the stretch is not free jaw motion, unless its jaws are held still through
+its middle half and its force keeps one level there: such a stretch is free whatever
+its ends do (they take in the first and last few noise SDs of the grasps beside it,
+whose force follows the closure). Where the lowest force has no free stretch (a damped
+tissue pulls the force below the free-jaw level at every release), the level the force
+rests at most often is tried for jaws held still; once such jaws cover
+:data:`MIN_FREE_FRACTION` of the session, a dip below their level is a grasped tissue
+pulling and no sign against them. A dip that ends with the jaws still
 opening fast is the other case: a tissue pulled on jaws opening faster than it
 recovers until it let go, at the end of a grasp; such dips are in contact (a force
 far from the baseline either way is tissue's) and say nothing against free jaws.
