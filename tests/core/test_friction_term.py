@@ -39,3 +39,25 @@ def test_a_smooth_regressor_keeps_its_second_order_mean() -> None:
     u = np.linspace(-2e-3, 2e-3, 9)
     # E[(u + e)^3] = u^3 + 3 u var, exact at second order
     np.testing.assert_allclose(cubic.expected(u, 1e-8), u**3 + 3 * u * 1e-8, rtol=1e-5, atol=1e-15)
+
+
+@pytest.mark.parametrize("sd", [0.0, V_SMOOTH, 10 * V_SMOOTH])
+def test_the_mean_s_slope_is_the_derivative_of_the_mean(sd: float) -> None:
+    """What the errors-in-variables correction takes for dry friction is the slope of the
+    very mean the fit's column is, bounded by one over the widened smoothing speed."""
+    term = _coulomb()
+    u = np.linspace(-4, 4, 33) * max(sd, V_SMOOTH)
+    h = 1e-4 * V_SMOOTH
+    numeric = (term.expected(u + h, sd**2) - term.expected(u - h, sd**2)) / (2 * h)
+    slope = term.expected_slope(u, sd**2)
+    np.testing.assert_allclose(slope, numeric, rtol=1e-6, atol=1e-9 / V_SMOOTH)
+    assert np.max(slope) <= 1.0 / np.sqrt(V_SMOOTH**2 + 0.5 * np.pi * sd**2) * (1 + 1e-12)
+
+
+def test_a_smooth_regressor_s_slope_is_its_own() -> None:
+    for name in ("xdot", "xdot|xdot|"):
+        term = Law.of([name]).terms[0]
+        assert not term.step
+        u = np.linspace(-2e-2, 2e-2, 9)
+        np.testing.assert_array_equal(term.expected_slope(u, 1e-4), term.derivative(u))
+    assert _coulomb().step

@@ -216,6 +216,12 @@ class Term(ABC):
         and damping: contact), ``"grow"`` (added one at a time while it raises the
         evidence: relaxation branches), ``"prune"`` (taken out again where that raises
         the evidence), or None (fitted only when a law names it).
+    step : bool
+        The regressor steps on the scale of a speed estimate's spread (dry friction at a
+        turn): a fit's column is its mean over that spread (:meth:`expected`), and
+        position noise reaches the column through that mean's slope
+        (:meth:`expected_slope`). A smooth regressor keeps the second-order expansion
+        and its own slope.
     shapes, parameters : tuple
         The names of its shape parameters and their :class:`ShapeParameter`
         declarations (unit, prior, range), in the same order; ``shape`` their values
@@ -237,6 +243,7 @@ class Term(ABC):
     max_count: ClassVar[int] = 1
     requires: ClassVar[tuple[str, ...]] = ()
     search: ClassVar[str | None] = None
+    step: ClassVar[bool] = False
 
     #: names of the nonlinear (shape) parameters the term reads, their declarations, and
     #: their values once bound (a term with shapes fits as a family; a tissue holds it bound)
@@ -328,6 +335,14 @@ class Term(ABC):
         how it averages instead."""
         u = np.asarray(u, dtype=float)
         return self(u) + 0.5 * self.curvature(u) * np.asarray(var, dtype=float)
+
+    def expected_slope(self, u: ArrayLike, var: ArrayLike) -> Array:
+        """d :meth:`expected` / du: how an error in the estimate of ``u`` moves the
+        averaged regressor (what the errors-in-variables correction needs of a
+        :attr:`step` term). For a smooth regressor its own slope, as the correction has
+        always taken it (the spread's share, a third derivative times ``var / 2``, is of
+        higher order)."""
+        return self.derivative(u)
 
     def scalar(self, u: float) -> float:
         """The regressor at one float, for real-time loops (subclasses use plain arithmetic)."""
@@ -567,6 +582,7 @@ class Coulomb(Term):
         "sign(xdot)", "Fc", "N", "sign(ẋ)", "friction", "v",
     )  # fmt: skip
     order, display, search = 80.0, "friction", "prune"
+    step = True
 
     def __call__(self, u: ArrayLike) -> Array:
         return np.tanh(np.asarray(u, dtype=float) / V_SMOOTH)
@@ -584,12 +600,25 @@ class Coulomb(Term):
         window smoothing across a turn averages them likewise. With tanh(z) ~
         erf(sqrt(pi) z / 2) that mean is tanh(u / V), the smoothing speed widened to
         V = sqrt(V_SMOOTH^2 + pi var / 2): exact at var = 0, within 0.04 of the exact
-        mean at any var. A second-order expansion (the default) is no use here: the
-        step's curvature, of order 1/V_SMOOTH^2, turned a spread of 10 mm/s at a turn
-        into a column of +-30 where it is +-1. A spread cannot be taken out of a step:
-        a negative ``var`` counts as 0."""
-        spread = np.maximum(np.asarray(var, dtype=float), 0.0)
-        return np.tanh(np.asarray(u, dtype=float) / np.sqrt(V_SMOOTH**2 + 0.5 * np.pi * spread))
+        mean at any var (0.02 where the spread's SD is near V_SMOOTH, one sign at every
+        turn: a small spread's first-order effect is not the expansion's). A second-order
+        expansion (the default) is no use here: the step's curvature, of order
+        1/V_SMOOTH^2, turned a spread of 10 mm/s at a turn into a column of +-30 where it
+        is +-1. A spread cannot be taken out of a step: a negative ``var`` counts as 0."""
+        return np.tanh(np.asarray(u, dtype=float) / _widened(var))
+
+    def expected_slope(self, u: ArrayLike, var: ArrayLike) -> Array:
+        """d/du of :meth:`expected`: ``(1 - tanh^2(u / V)) / V``, at most 1/V where the
+        plain step's slope is 1/V_SMOOTH (80 times less at a spread of 10 mm/s)."""
+        width = _widened(var)
+        return (1.0 - np.tanh(np.asarray(u, dtype=float) / width) ** 2) / width
+
+
+def _widened(var: ArrayLike) -> Array:
+    """Dry friction's smoothing speed widened by a spread of speeds of variance ``var``
+    (m^2/s^2, negative counts as 0): ``sqrt(V_SMOOTH^2 + pi var / 2)``, m/s."""
+    spread = np.maximum(np.asarray(var, dtype=float), 0.0)
+    return np.sqrt(V_SMOOTH**2 + 0.5 * np.pi * spread)
 
 
 @register

@@ -127,7 +127,7 @@ def eiv_correction(
     given, keeps each term's :func:`noise_path` by name, as ``columns`` does in
     :func:`design`.
     """
-    parts = [term_noise_path(t, kin, x_full, paths) for t in law.terms]
+    parts = [term_noise_path(t, kin, x_full, paths, sigma_x) for t in law.terms]
     K = np.array([k for k, _ in parts])
     d = np.column_stack([slope for _, slope in parts])
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
@@ -138,35 +138,41 @@ def term_noise_path(
     kin: Kinematics,
     x_full: Array,
     paths: dict[str, tuple[Array, Array]] | None = None,
+    sigma_x: float = 0.0,
 ) -> tuple[Array, Array]:
     """:func:`noise_path`, kept in ``paths`` (by :func:`column_key`) unless the term has
-    shape parameters: every law with the term shares it, as its column."""
+    shape parameters: every law with the term shares it, as its column (one fit, one
+    ``sigma_x``)."""
     if paths is None or term.shapes:
-        return noise_path(term, kin, x_full)
+        return noise_path(term, kin, x_full, sigma_x)
     key = column_key(term)
     if key not in paths:
-        paths[key] = noise_path(term, kin, x_full)
+        paths[key] = noise_path(term, kin, x_full, sigma_x)
     return paths[key]
 
 
-def noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:
-    """How position noise reaches a term's column (:func:`eiv_correction`): the kernel
-    it passes through, shape (w,), and the term's slope at each fitted sample, shape (m,)
-    (a term with shape parameters: kept among the most recent, as its column is)."""
+def noise_path(
+    term: Term, kin: Kinematics, x_full: Array, sigma_x: float = 0.0
+) -> tuple[Array, Array]:
+    """How position noise of SD ``sigma_x`` (m) reaches a term's column
+    (:func:`eiv_correction`): the kernel it passes through, shape (w,), and the
+    column's slope at each fitted sample, shape (m,) (a term with shape parameters:
+    kept among the most recent, as its column is). Only a :attr:`~Term.step` term's
+    slope depends on ``sigma_x`` (:meth:`Kinematics.damping_slope`)."""
     if not term.shapes:
-        return _noise_path(term, kin, x_full)
-    key = ("path", 0.0, column_key(term))
+        return _noise_path(term, kin, x_full, sigma_x)
+    key = ("path", sigma_x**2 if term.step else 0.0, column_key(term))
     found = RECENT.get(key, kin, x_full)
     if found is None:
-        found = RECENT.put(key, kin, x_full, _noise_path(term, kin, x_full))
+        found = RECENT.put(key, kin, x_full, _noise_path(term, kin, x_full, sigma_x))
     return found  # type: ignore[no-any-return]
 
 
-def _noise_path(term: Term, kin: Kinematics, x_full: Array) -> tuple[Array, Array]:
+def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
     if term.variable == "x":
         return kin.kernels[0], kin.smooth(term.derivative(x_full))
     if term.variable == "v":
-        return kin.kernels[1], term.derivative(kin.v)
+        return kin.kernels[1], kin.damping_slope(term, x_full, sigma_x**2)
     if term.variable == "a":
         return kin.kernels[2], term.derivative(kin.a)
     # a constant, or a history filtered from the raw closure, carries none to first order

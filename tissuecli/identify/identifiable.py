@@ -179,7 +179,7 @@ def examine(
     noise = np.zeros(len(terms))
     if sigma_x > 0:
         for j, t in enumerate(terms):
-            k, slope = term_noise_path(t, kin, x_full)
+            k, slope = term_noise_path(t, kin, x_full, sigma_x=sigma_x)
             noise[j] = sigma_x**2 * float(k @ k) * float(np.mean(slope**2))
     design = Design(list(names), gram, noise, n)
     if scales is not None and n > len(terms):

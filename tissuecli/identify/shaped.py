@@ -257,7 +257,7 @@ class ShapedPass:
         self.yy = float(fit.y @ fit.y)
         self.speed = raw_speed(kin, x)
         if sx > 0:
-            paths = [term_noise_path(terms[j], kin, x, fit.paths) for j in self.fixed]
+            paths = [term_noise_path(terms[j], kin, x, fit.paths, sx) for j in self.fixed]
             width = kin.kernels[0].size
             self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
@@ -291,7 +291,7 @@ class ShapedPass:
         cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
         correction = None
         if fit.sigma_x > 0:
-            paths = [noise_path(bound.terms[j], fit.kin, fit.x_full) for j in moving]
+            paths = [noise_path(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x) for j in moving]
             K = np.empty((p, fit.kin.kernels[0].size))
             K[fixed] = self.K_f
             K[moving] = [k for k, _ in paths]

@@ -91,20 +91,55 @@ class Kinematics:
     def damping_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """The column ``~ g * r(v)`` of a speed term from the untrimmed position.
 
-        With half kernels ``g_h * [r(v_h) + r''(v_h) (s^2 a_h^2 - n_v) / 2]``, where
-        ``v_h = g_h' * x``, ``a_h = g_h'' * x``, ``s`` is g_h's SD and ``n_v`` the
-        variance position noise of ``noise_var`` (m^2) gives v_h: the smoothing
-        term is the second-order effect of smoothing inside the nonlinearity
-        (``g_h * r(v) = r(g_h * v) + r'' Var / 2``) and the noise term removes
-        the same effect of noise. Exact for a linear r. Without half kernels: ``r(v)``.
+        With half kernels ``g_h * E[r](v_h, s^2 a_h^2 - n_v)`` (:meth:`Term.expected`),
+        where ``v_h = g_h' * x``, ``a_h = g_h'' * x``, ``s`` is g_h's SD and ``n_v`` the
+        variance position noise of ``noise_var`` (m^2) gives v_h: the spread
+        ``s^2 a_h^2`` is the other half window's smoothing inside the nonlinearity
+        (``g_h * r(v) = E[r](g_h * v, Var)``) and ``- n_v`` removes the same effect of
+        noise. For a smooth r, ``E[r](u, var) = r(u) + r''(u) var / 2``; exact for a
+        linear r. Without half kernels: ``r(v)``.
         """
         if self.half is None:
             return term(self.v)
-        gh, gh1, gh2, s2 = self.half
-        v = convolve_valid(x_full, gh1)
+        v, spread, n_v = self._half_speed(x_full, noise_var)
+        return self._half_smooth(term.expected(v, spread - n_v), x_full)
+
+    def damping_slope(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
+        """How position noise moves a speed term's column (:meth:`damping_input`): its
+        slope in the filtered speed at each fitted sample, (m,), for the
+        errors-in-variables correction (the noise then passes the speed kernel).
+
+        A smooth regressor's own slope at the filtered speed. For a :attr:`Term.step`
+        (dry friction) the slope of the same mean its column is,
+        ``g_h * E[r]'(v_h, max(s^2 a_h^2 - n_v, 0) + n_v)`` (:meth:`Term.expected_slope`):
+        the column's spread and the noise's together, as the column's error sees them.
+        For Gaussian noise that mean slope is the exact covariance of the column with
+        the speed's error (Bussgang's theorem), where the step's own slope, 1/V_SMOOTH at
+        every turn, put a noise there that the column does not carry, and the
+        correction took it off the friction's share of the data.
+        """
+        if not term.step:
+            return term.derivative(self.v)
+        if self.half is None:
+            k1 = self.kernels[1]
+            return term.expected_slope(self.v, noise_var * float(k1 @ k1))
+        v, spread, n_v = self._half_speed(x_full, noise_var)
+        # the column's own spread (less the noise's, at least none) and the noise's
+        slope = term.expected_slope(v, np.maximum(spread - n_v, 0.0) + n_v)
+        return self._half_smooth(slope, x_full)
+
+    def _half_speed(self, x_full: Array, noise_var: float) -> tuple[Array, Array, float]:
+        """The half window's speed (m/s), the other half's spread of speeds about it
+        (m^2/s^2) and its noise's variance (m^2/s^2), on the raw grid's valid outputs."""
+        assert self.half is not None
+        _, gh1, gh2, s2 = self.half
         a = convolve_valid(x_full, gh2)
-        n_v = noise_var * float(gh1 @ gh1)
-        col = convolve_valid(term(v) + 0.5 * term.curvature(v) * (s2 * a * a - n_v), gh)
+        return convolve_valid(x_full, gh1), s2 * a * a, noise_var * float(gh1 @ gh1)
+
+    def _half_smooth(self, u: Array, x_full: Array) -> Array:
+        """``g_h * u`` for ``u`` on the half window's outputs, on the fitted samples."""
+        assert self.half is not None
+        col = convolve_valid(u, self.half[0])
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
 
