@@ -138,7 +138,12 @@ def find_contact(session: Session) -> Contact:
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
-    still = STILL_SD * _noise_sd(session.position) / np.sqrt(width)  # the smoothed noise
+    # jaws held still, told from a slow turn only where the position's noise resolves
+    # its steps (a closure quantised coarser than its noise stays on one step through
+    # both)
+    step_d = np.diff(session.position)
+    resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
+    still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
     baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     if free < MIN_FREE_FRACTION:
         return Contact(
