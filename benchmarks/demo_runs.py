@@ -8,8 +8,9 @@ Usage::
 Each run is ``tissuecli demo --duration 2`` in a process of its own, with ``--busy``
 processes running ``while 1: pass`` beside it for the whole benchmark. Prints one
 row per run (exit status, loop rate, p99 and longest period, watchdog frames, periods
-without a frame, the simulated display's watchdog limit in periods) and the count of runs
-that exited 0, with the load average before and after.
+without a frame, periods the display ran on a late answer and the longest run of them,
+the simulated display's watchdog limit in periods, seconds, the faults) and the count of
+runs that exited 0, with the load average before and after.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ PLAYED = re.compile(
     r"played [\d.]+ s: (\d+) frames at ([\d.]+) Hz \(period p99 ([\d.]+) ms, max ([\d.]+) ms\)"
     r".*?(\d+) periods without a frame"
 )
+LATE = re.compile(r"(\d+) on a late answer \(longest run (\d+)\)")
 WATCHDOG = re.compile(r"watchdog frames (\d+)")
 LIMIT = re.compile(r"display watchdog (\d+) periods")
 
@@ -40,7 +42,7 @@ def main() -> None:
     ]
     print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
     print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} {'watchdog':>8} "
-          f"{'missed':>6} {'limit':>5} {'s':>5}")
+          f"{'missed':>6} {'late':>5} {'run':>4} {'limit':>5} {'s':>5}  faults")
     passed = 0
     try:
         for run in range(args.runs):
@@ -58,10 +60,17 @@ def main() -> None:
                 print(f"{run:>3} {done.returncode:>4} no play: {last[:100]}")
                 continue
             _, rate, p99, worst, missed = played.groups()
+            late = LATE.search(done.stdout)
+            stale, longest = late.groups() if late else ("?", "?")
+            faults = "; ".join(
+                line[len("FAULT: ") :][:60] for line in done.stdout.splitlines()
+                if line.startswith("FAULT: ")
+            )
             print(
                 f"{run:>3} {done.returncode:>4} {float(rate):8.1f} {float(p99):7.2f} "
                 f"{float(worst):7.2f} {watchdog.group(1) if watchdog else '?':>8} "
-                f"{missed:>6} {limit.group(1) if limit else '?':>5} {time.monotonic() - t0:5.0f}",
+                f"{missed:>6} {stale:>5} {longest:>4} {limit.group(1) if limit else '?':>5} "
+                f"{time.monotonic() - t0:5.0f}  {faults}",
                 flush=True,
             )
     finally:

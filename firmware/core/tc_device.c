@@ -68,6 +68,7 @@ void tc_display_init(tc_display *d, const char *info_json, float v_max, tc_write
     d->write = write;
     d->ctx = ctx;
     d->seq = 0;
+    d->answers = d->streamed = 0;
 }
 
 void tc_display_receive(tc_display *d, const uint8_t *data, size_t n)
@@ -78,12 +79,15 @@ void tc_display_receive(tc_display *d, const uint8_t *data, size_t n)
             continue;
         if (m.type == TC_SET_VOLTAGE) {
             tc_watchdog_command(&d->watchdog, m.volts);
+            d->answers = m.seq; /* the Encoder frame it answers */
         } else if (m.type == TC_COMMAND) {
             if (m.code == TC_IDENTIFY)
                 send_info(d->info_json, d->write, d->ctx);
-            else if (m.code == TC_START)
+            else if (m.code == TC_START) {
+                if (!d->watchdog.streaming)
+                    d->streamed = 0;
                 tc_watchdog_start(&d->watchdog);
-            else if (m.code == TC_STOP)
+            } else if (m.code == TC_STOP)
                 tc_watchdog_stop(&d->watchdog);
         }
     }
@@ -95,8 +99,13 @@ float tc_display_tick(tc_display *d, uint32_t clock_us, int32_t counts, uint8_t 
     if (d->watchdog.streaming) {
         uint8_t frame[TC_ENCODER_FRAME];
         uint8_t flags = (uint8_t)(tc_watchdog_flags(&d->watchdog) | (at_limit ? TC_FLAG_LIMIT : 0));
+        /* once commanded, a period not run on the answer to the frame before is stale */
+        if (d->watchdog.armed && d->streamed
+            && (d->watchdog.tripped || d->answers != (uint32_t)(d->seq - 1u)))
+            flags |= TC_FLAG_STALE;
         d->write(d->ctx, frame,
                  tc_encoder_frame(d->seq++, clock_us, counts, d->watchdog.volts, flags, frame));
+        d->streamed++;
     }
     return d->watchdog.volts;
 }

@@ -54,6 +54,8 @@ typedef struct {
     tc_write_fn write;
     void *ctx;
     uint32_t seq;
+    uint32_t answers;  /* seq of the Encoder frame the command in use answers (section 7) */
+    uint32_t streamed; /* Encoder frames sent since START */
 } tc_display;
 
 void tc_display_init(tc_display *d, const char *info_json, float v_max, tc_write_fn write,

@@ -46,6 +46,8 @@ enum { TC_IDENTIFY = 1, TC_START = 2, TC_STOP = 3 };
 /* Encoder flags (section 7) */
 #define TC_FLAG_WATCHDOG 0x01u
 #define TC_FLAG_LIMIT 0x02u
+/* the voltage in use is not the host's answer to the frame before (a late answer) */
+#define TC_FLAG_STALE 0x04u
 /* the display zeroes the voltage after this many periods without a valid SetVoltage */
 #define TC_WATCHDOG_PERIODS 5u
 

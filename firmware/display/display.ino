@@ -38,7 +38,7 @@
 
 static const char INFO[] =
     "{\"protocol\":1,\"device\":\"display\",\"model\":\"tissuecli reference display\","
-    "\"firmware\":\"1.0\",\"rate_hz\":" STR(RATE_HZ) ",\"clock_hz\":1000000,"
+    "\"firmware\":\"1.0\",\"rate_hz\":" STR(RATE_HZ) ",\"clock_hz\":1000000,\"stale_flag\":true,"
     "\"calibration\":{\"position\":{\"gain\":" STR(ENCODER_GAIN) ",\"offset\":0,\"unit\":\"m\"}}}";
 
 static const uint32_t PERIOD_US = 1000000UL / RATE_HZ;

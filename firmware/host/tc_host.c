@@ -115,7 +115,7 @@ static void make_info(const char *device, double rate)
         snprintf(info_json, sizeof info_json,
                  "{\"protocol\":%d,\"device\":\"display\",\"model\":\"tissuecli reference "
                  "firmware (host build)\",\"firmware\":\"1.0\",\"rate_hz\":%.17g,"
-                 "\"clock_hz\":1000000}",
+                 "\"clock_hz\":1000000,\"stale_flag\":true}",
                  TC_PROTOCOL_VERSION, rate);
 }
 

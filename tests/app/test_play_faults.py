@@ -15,11 +15,16 @@ import pytest
 from click.testing import CliRunner
 
 import tissuecli.app.play as app_play
-from tissuecli.app.faults import MAX_MISSED_FRACTION, TRACKING_ALLOWANCE_M, play_faults
+from tissuecli.app.faults import (
+    MAX_MISSED_FRACTION,
+    TRACKING_ALLOWANCE_M,
+    classify_faults,
+    play_faults,
+)
 from tissuecli.app.play import PlayFaults, play_file
 from tissuecli.app.summaries import play_lines
 from tissuecli.cli import cli
-from tissuecli.core.errors import EXIT_WATCHDOG, RenderError
+from tissuecli.core.errors import EXIT_OFF_RATE, EXIT_WATCHDOG, RenderError
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.formats.jsonfile import write_json
@@ -54,6 +59,11 @@ def test_a_clean_play_has_no_faults():
         ({"loop_rate_hz": 915.0, "period_p99_ms": 5.0}, "915.0 Hz, 8.5 % off 1000 Hz"),
         ({"loop_rate_hz": 1021.0}, "2.1 % off"),
         ({"missed_periods": 400}, "400 periods passed without a frame (8.0 %"),
+        (
+            {"stale_frames": 400, "stale_run_max": 9},
+            "the display ran 400 periods on a late answer (8.0 % of 5000, longest run 9)",
+        ),
+        ({"unanswered_frames": 400}, "400 frames reached the host too late to answer (8.0 %"),
         ({"frames_lost": 200, "frames_bad": 60}, "260 frame(s) lost or corrupt"),
         ({"nonfinite_frames": 1}, "non-finite"),
         ({"tracking_max_m": 1.62e-3, "tracking_bound_m": 0.74e-3}, "reached 1.62 mm"),
@@ -71,12 +81,15 @@ def test_rules_stop_at_their_limits():
         **CLEAN,
         "loop_rate_hz": 980.0,  # 2.0 % off
         "missed_periods": MAX_MISSED_FRACTION * CLEAN["frames"],
+        "stale_frames": MAX_MISSED_FRACTION * CLEAN["frames"],
         "tracking_max_m": 40e-6 + 0.3e-3 + TRACKING_ALLOWANCE_M,
         "check": {"soft_gap_m": 0.3e-3},  # where the display can only show its spring
         "saturated_fraction": 0.05,
         "unrenderable_fraction": 0.3,
     }
     assert play_faults(at_limits, 1000.0) == []
+    # a display that reports its late answers is believed over the host's own count
+    assert play_faults({**CLEAN, "stale_frames": 10, "unanswered_frames": 400}, 1000.0) == []
     # a summary with missing or null figures (an empty play) is not a fault by itself
     assert play_faults({"frames": 0, "tracking_bound_m": None}, 1000.0) == []
 
@@ -153,3 +166,35 @@ def test_the_command_prints_the_figures_then_exits_4(stalling_controller, displa
     assert any(line.startswith("FAULT: the display's watchdog") for line in lines)
     assert lines[-1].startswith("Error: the play was faulty: the display's watchdog")
     assert "Traceback" not in result.output
+
+
+# ------------------------------------------------------------- a host that cannot keep up
+
+SLOW_S = 0.0015  # each frame takes the host 1.5 periods at 1 kHz
+
+
+@pytest.fixture
+def slow_controller(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The controller takes 1.5 ms a frame: a host that cannot keep up with a 1 kHz
+    display by construction, whatever the machine's load (a load only slows it more)."""
+    original = app_play.Controller.update
+
+    def update(self: Any, *args: Any, **kwargs: Any) -> Any:
+        time.sleep(SLOW_S)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(app_play.Controller, "update", update)
+
+
+def test_a_host_that_cannot_keep_up_is_off_its_rate(slow_controller, display, params, tmp_path):
+    summary = tmp_path / "summary.json"
+    with pytest.raises(PlayFaults) as info:
+        play_file(params, str(display.link), 1.0, summary=summary)
+    s = info.value.summary
+    # it ran the display's frames through the loop at 1 / 1.5 ms at best ...
+    assert 0 < s["loop_rate_hz"] < 1.02 / SLOW_S
+    assert any(f.startswith("the loop ran at") and "% off 1000 Hz" in f for f in s["faults"])
+    # ... and the display, which reports it, ran most periods on a late answer
+    assert s["stale_frames"] > MAX_MISSED_FRACTION * s["frames"]
+    assert any("periods on a late answer" in f for f in s["faults"]), s["faults"]
+    assert EXIT_OFF_RATE in {code for code, _ in classify_faults(s, 1000.0)}

@@ -75,3 +75,84 @@ def test_host_stamps_since_1970_map_the_device_clock_as_well_as_small_ones() -> 
     assert small is not None and epoch is not None
     assert abs(epoch.drift_ppm - small.drift_ppm) < 0.1 * small.drift_uncertainty_ppm
     assert abs((epoch.offset_s - EPOCH_S) - small.offset_s) < 1e-5
+
+
+class _Column:
+    """Stamps read a slice at a time, as the files layer reads a session's column."""
+
+    def __init__(self, t: np.ndarray) -> None:
+        self.t = t
+        self.reads = 0
+
+    def __len__(self) -> int:
+        return self.t.size
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        self.reads += 1
+        return self.t[rows].copy()
+
+
+def _kinds(n: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(7)
+    i = np.arange(n)
+    lost = np.sort(rng.choice(n, n // 20, replace=False))
+    return {
+        "exact": i / 1000,
+        "epoch": EPOCH_S + i / 1000,
+        "coarse": np.floor(i * 3.245) / 1000,
+        "jitter": i * 3.245e-3 + rng.uniform(-3e-4, 3e-4, n),
+        "locked": np.delete(i, [5, 6, 7]) * 1e-3 + rng.uniform(-3.5e-4, 3.5e-4, n - 3),
+        "lost": np.delete(i, lost) / 1000,
+        "repeated": np.floor(i / 1200 * 1e3) / 1e3,
+        "irregular": np.cumsum(rng.exponential(1e-3, n)),
+    }
+
+
+@pytest.mark.parametrize("max_gaps", [1 << 16, 100])
+def test_stamps_read_block_by_block_give_the_clock_of_the_whole_array(monkeypatch, max_gaps):
+    """Blocks of 4096 stamps stand for a long recording read back from its file: the
+    sample numbers, the clock's times and every figure are those of the stamps worked
+    on whole, bit for bit (lost samples kept while the period is found, or counted
+    by a pass when they are too many to keep)."""
+    from tissuecli.core import timebase
+
+    monkeypatch.setattr(timebase, "BLOCK", 4096)
+    monkeypatch.setattr(timebase, "MAX_GAPS", max_gaps)
+    for kind, t in _kinds(30_000).items():
+        whole = timebase.fit_clock(t)
+        column = _Column(t)
+        streamed = timebase.fit_clock(column)
+        passes = column.reads / (t.size // 4096 + 1)
+        assert streamed.base == whole.base, kind
+        assert streamed.exact == whole.exact, kind
+        if whole.base.regular:
+            for a, b in zip(streamed.numbers(), whole.numbers(), strict=True):
+                np.testing.assert_array_equal(a, b)
+            joined = np.concatenate(list(streamed.times()))
+            np.testing.assert_array_equal(joined, np.concatenate(list(whole.times())))
+            assert np.array_equal(joined, timebase.regularise(t)[0]), kind
+        if kind == "exact":
+            assert passes <= 7, passes  # a logger's exact stamps: a few passes, no more
+
+
+@pytest.mark.parametrize("streamed", [False, True])
+def test_irregular_stamps_of_a_long_recording_give_the_one_sample_median_rate(
+    monkeypatch, streamed: bool
+) -> None:
+    """Beyond two blocks the typical step comes from an even sample of the steps: it
+    must still be the step between neighbouring stamps, not over the sample's stride.
+    Blocks of 1024 stamps make 30 000 stamps a long recording (stride 29, so ~1030
+    sampled steps). Steps are exponential with mean 1 ms, median ln 2 ms; the median
+    of N sampled steps has a standard error of 1/(2 f(m) sqrt(N)) = 1 ms/sqrt(N), 4.5 %
+    of it, so 20 % is over four of those, while a step over 29 samples would make the
+    rate about 40 times too low."""
+    from tissuecli.core import timebase
+
+    monkeypatch.setattr(timebase, "BLOCK", 1024)
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.exponential(1e-3, 30_000))
+    fit = timebase.fit_clock(_Column(t) if streamed else t)
+    assert not fit.base.regular
+    expected = 1.0 / (np.log(2) * 1e-3)
+    assert fit.base.rate_hz == pytest.approx(expected, rel=0.2)
+    assert fit.base.rate_hz == pytest.approx(1.0 / np.median(np.diff(t)), rel=0.2)

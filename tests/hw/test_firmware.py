@@ -27,6 +27,7 @@ from tissuecli.app.record import record
 from tissuecli.app.record_text import record_text
 from tissuecli.hw.link import Link
 from tissuecli.hw.protocol import (
+    FLAG_STALE,
     FLAG_WATCHDOG,
     Command,
     Encoder,
@@ -201,6 +202,32 @@ def test_the_c_display_clamps_to_v_max_and_its_watchdog_cuts_on_silence(host_bui
             link.send(SetVoltage(100, 0.5))
             later = _encoder_frames(link, 0.02)
             assert any(m.volts == 0.5 and not m.flags & FLAG_WATCHDOG for m in later)
+            link.command("stop")
+
+
+def test_the_c_display_flags_the_periods_run_on_a_late_answer(host_build):
+    """A SetVoltage is numbered by the Encoder frame it answers: the periods after an
+    old answer are flagged stale until the answer to the frame before arrives."""
+    with device(host_build, "display", "1000", "3.0") as (path, proc):
+        with Link(path, kind="display") as link:
+            assert (link.identify() or {}).get("stale_flag") is True
+            link.command("start")
+            first = _encoder_frames(link, 0.02)
+            assert first and not any(m.flags & FLAG_STALE for m in first)  # not yet armed
+            link.send(SetVoltage((first[-1].seq - 10) & 0xFFFFFFFF, 1.0))  # an old answer
+            later = _encoder_frames(link, 0.05)
+            flagged = [i for i, m in enumerate(later) if m.flags & FLAG_STALE]
+            assert flagged and all(m.flags & FLAG_STALE for m in later[flagged[0] :])
+            # answered frame by frame, some periods run on the answer to the frame before
+            # (every one when neither side is held up)
+            fresh = 0
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline and fresh < 5:
+                frames = [m for m in link.poll() if isinstance(m, Encoder)]
+                if frames:
+                    fresh += sum(not m.flags & FLAG_STALE for m in frames)
+                    link.send(SetVoltage(frames[-1].seq, 1.0))
+            assert fresh >= 5
             link.command("stop")
 
 

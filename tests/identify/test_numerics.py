@@ -237,6 +237,45 @@ def test_bounded_posterior_is_the_eager_summary_then_draws(cut_sds: float) -> No
     assert rng_lazy.random() == rng_eager.random()  # the same stream for what follows
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_summary_draws_pick_the_nodes_rng_choice_picks(seed: int) -> None:
+    """The closed form's draws look their uniforms up in the nodes' CDF as
+    ``rng.choice(m, size, p=w)`` does: the same nodes, and the same stream after."""
+    g = np.random.default_rng(seed)
+    w = g.random(int(g.integers(1, 40))) ** 3
+    w /= w.sum()
+    n = int(g.integers(1, 5000))
+    mine, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+    cdf = w.cumsum()
+    cdf /= cdf[-1]
+    np.testing.assert_array_equal(
+        cdf.searchsorted(mine.random(n), side="right"), ref.choice(w.size, size=n, p=w)
+    )
+    assert mine.random() == ref.random()
+
+
+@pytest.mark.parametrize("cut_sds", [8.0, 1.0, -0.5, -3.0])
+def test_bounded_posterior_without_intervals_is_the_same_but_them(cut_sds: float) -> None:
+    """A mixture's component skips its own intervals: every other figure, the draws and
+    the generator's stream after it are those of the full posterior."""
+    from tissuecli.identify.posterior import ExactPosterior
+
+    stats_, prior = _cut_posterior(cut_sds)
+    rng_full, rng_bare = np.random.default_rng(5), np.random.default_rng(5)
+    full = ExactPosterior(stats_, prior).bounded(rng_full)
+    bare = ExactPosterior(stats_, prior).bounded(rng_bare, intervals=False)
+    assert bare.method == full.method and bare.diagnostics == full.diagnostics
+    for name in ("mean", "sd", "cov", "samples"):
+        np.testing.assert_array_equal(getattr(bare, name), getattr(full, name))
+    assert (bare.sigma_mean, bare.ln_evidence, bare.outside) == (
+        full.sigma_mean, full.ln_evidence, full.outside,
+    )  # fmt: skip
+    assert np.all(np.isnan(bare.ci95)) and bare.ci95.shape == full.ci95.shape
+    # the noise's interval costs nothing in closed form, and is kept there
+    assert all(math.isnan(v) for v in bare.sigma_ci95) or bare.sigma_ci95 == full.sigma_ci95
+    assert rng_bare.random() == rng_full.random()
+
+
 @pytest.mark.parametrize("cut_sds", [1.0, -0.5])
 def test_rejection_draws_are_plain_rejection(cut_sds: float) -> None:
     """The rejection draws (near bounds checked first, node by node) keep exactly the

@@ -4,8 +4,10 @@ was set, its bounds, and the firmware's limit kept when asked for."""
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given
@@ -15,6 +17,15 @@ from tissuecli.app.faults import classify_faults
 from tissuecli.app.play import watchdog_periods
 from tissuecli.core.errors import EXIT_WATCHDOG, InputError
 from tissuecli.hw.link import open_device
+from tissuecli.hw.protocol import (
+    FLAG_STALE,
+    START,
+    Command,
+    Encoder,
+    FrameDecoder,
+    SetVoltage,
+    encode,
+)
 from tissuecli.render.profile import PAPER_DISPLAY
 from tissuecli.sim import display as display_module
 from tissuecli.sim.display import (
@@ -171,4 +182,41 @@ def test_ticks_run_to_catch_up_do_not_count_towards_the_watchdog() -> None:
             fw.tick()
         assert fw.trips == 1 and fw.volts == 0.0
     finally:
+        port.close()
+
+
+def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -> None:
+    """The host numbers each SetVoltage by the frame it answers; the display flags each
+    period whose voltage is not the answer to the frame before, but not a tick it runs
+    late to catch up (counted apart)."""
+    port = VirtualPort()
+    host = os.open(port.name, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        fw = _Firmware(PAPER_DISPLAY, port, 1000.0, lambda t: 0.0, None, watchdog_periods=50)
+        decoder = FrameDecoder()
+
+        def send(message: Any) -> None:
+            os.write(host, encode(message))
+            time.sleep(0.02)  # through the pseudo-terminal
+
+        def tick(late: bool = False) -> Encoder:
+            fw.receive()
+            fw.tick(late)
+            time.sleep(0.02)
+            got = [m for m in decoder.feed(os.read(host, 4096)) if isinstance(m, Encoder)]
+            return got[-1]
+
+        send(Command(START))
+        first = tick()
+        assert not first.flags & FLAG_STALE  # not yet commanded
+        send(SetVoltage(first.seq, 1.0))  # the answer to the frame before
+        second = tick()
+        assert not second.flags & FLAG_STALE and second.volts == 1.0
+        assert tick().flags & FLAG_STALE  # no answer to the second frame came
+        send(SetVoltage(second.seq, 1.0))  # an answer, but not to the frame before
+        assert tick().flags & FLAG_STALE
+        assert not tick(late=True).flags & FLAG_STALE  # run to catch up: counted apart
+        assert fw.ages[0] == 1 and sum(fw.ages[1:]) == 2 and sum(fw.ages_late) == 1
+    finally:
+        os.close(host)
         port.close()

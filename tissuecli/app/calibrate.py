@@ -392,8 +392,7 @@ class DisplayBench:
         self.flags: list[int] = []
 
     def send(self, volts: float) -> None:
-        self.link.send(SetVoltage(self.seq & 0xFFFFFFFF, volts))
-        self.seq += 1
+        self.link.send(SetVoltage(self.seq, volts))  # numbered by the frame it answers
 
     def hold(self, stream: Stream, volts: float, seconds: float) -> slice:
         """Hold ``volts`` for ``seconds`` of frames; the slice of the frames it kept."""
@@ -407,16 +406,16 @@ class DisplayBench:
             if not frames:
                 stream.check_idle(time.monotonic())
                 continue
-            self.send(volts)
             for m in frames:
                 assert isinstance(m, Encoder)
                 if self.last_clock is not None:
                     self.ticks += (m.clock - self.last_clock) & 0xFFFFFFFF
-                self.last_clock = m.clock
+                self.last_clock, self.seq = m.clock, m.seq
                 self.t.append(self.ticks / self.clock_hz)
                 self.x.append(m.position * self.resolution)
                 self.volts.append(float(m.volts))
                 self.flags.append(int(m.flags))
+            self.send(volts)
         return slice(first, len(self.t))
 
     def rest(self, kept: slice) -> float:

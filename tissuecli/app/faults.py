@@ -18,12 +18,14 @@ from ..core.errors import (
     EXIT_WATCHDOG,
 )
 
-#: When a play is faulty (docs/rendering.md, "When a play is faulty"): the loop rate more
-#: than this fraction off nominal (on an idle machine it stays within 0.2 %) ...
+#: When a play is faulty (docs/rendering.md, "When a play is faulty"): the loop's rate
+#: (the display's frames the host ran through the loop per second) more than this
+#: fraction off nominal (on an idle machine it stays within 0.2 %) ...
 MAX_RATE_ERROR = 0.02
-#: ... more periods without a frame, or frames lost or corrupt on the line, than this
-#: fraction of the frames (each missed period is bridged with a stale voltage; normal
-#: plays on a 2-core machine running the simulated display miss 0.1-1.1 %) ...
+#: ... more periods without a frame, more periods the display ran on a late answer, or
+#: more frames lost or corrupt on the line, than this fraction of the frames (each such
+#: period runs on a stale voltage; normal plays on a 2-core machine running the
+#: simulated display miss 0.1-1.1 %) ...
 MAX_MISSED_FRACTION = 0.05
 #: ... the tracking error above its bound plus the check's soft gap (where the tissue is
 #: softer than the display's spring) by more than this, m: the bound holds for an
@@ -50,12 +52,13 @@ def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[in
     A play is faulty when the display's watchdog cut the solenoid (watchdog frames
     > 0; :data:`~tissuecli.core.errors.EXIT_WATCHDOG`), the loop ran more than
     :data:`MAX_RATE_ERROR` off ``rate_hz`` or more than :data:`MAX_MISSED_FRACTION` of
-    the periods went without a frame (``EXIT_OFF_RATE``), frames were lost or corrupt on
-    the line beyond that fraction (``EXIT_LOST_DATA``), or the rendering left what the
-    check promised (``EXIT_NOT_RENDERED``): the controller met a non-finite value, the
-    tracking error exceeded its bound (plus the check's ``soft_gap_m``) by more than
-    :data:`TRACKING_ALLOWANCE_M`, or the solenoid was saturated or unable to follow on
-    more frames than :data:`MAX_SATURATED_FRACTION` and :data:`MAX_UNRENDERABLE_FRACTION`.
+    the periods went without a frame or ran on a late answer (``EXIT_OFF_RATE``), frames
+    were lost or corrupt on the line beyond that fraction (``EXIT_LOST_DATA``), or the
+    rendering left what the check promised (``EXIT_NOT_RENDERED``): the controller met a
+    non-finite value, the tracking error exceeded its bound (plus the check's
+    ``soft_gap_m``) by more than :data:`TRACKING_ALLOWANCE_M`, or the solenoid was
+    saturated or unable to follow on more frames than :data:`MAX_SATURATED_FRACTION` and
+    :data:`MAX_UNRENDERABLE_FRACTION`.
     A watchdog cut or a slow loop names what the loop's scheduling could guarantee.
     """
 
@@ -90,6 +93,27 @@ def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[in
                 EXIT_OFF_RATE,
                 f"the loop ran at {rate:.1f} Hz, {100 * abs(rate / rate_hz - 1):.1f} % off "
                 f"{rate_hz:g} Hz (p99 period {num('period_p99_ms'):.2f} ms)",
+            )
+        )
+    # periods on a late answer: as the display reports them, else the frames the host
+    # could answer only together with a later one (a period on a stale voltage each)
+    stale = summary.get("stale_frames")
+    late, what = (
+        (num("stale_frames"), "the display ran {n:.0f} periods on a late answer")
+        if isinstance(stale, (int, float))
+        else (num("unanswered_frames"), "{n:.0f} frames reached the host too late to answer")
+    )
+    if late > MAX_MISSED_FRACTION * frames:
+        faults.append(
+            (
+                EXIT_OFF_RATE,
+                what.format(n=late)
+                + f" ({100 * late / frames:.1f} % of {frames:.0f}"
+                + (
+                    f", longest run {num('stale_run_max'):.0f})"
+                    if isinstance(stale, (int, float))
+                    else ")"
+                ),
             )
         )
     if num("missed_periods") > MAX_MISSED_FRACTION * frames:

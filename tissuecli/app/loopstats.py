@@ -14,7 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from ..core.flags import FLAG_LIMIT, FLAG_WATCHDOG, NONFINITE, SATURATED, UNRENDERABLE
+from ..core.flags import (
+    FLAG_LIMIT,
+    FLAG_STALE,
+    FLAG_WATCHDOG,
+    NONFINITE,
+    SATURATED,
+    UNRENDERABLE,
+)
 from ..hw.protocol import Encoder
 from ..hw.stream import Stream
 from ..render.controller import Controller, Step, tracking_bound
@@ -40,11 +47,17 @@ class PlayFigures:
     def __init__(self) -> None:
         self.frames = self.saturated = self.unrenderable = self.nonfinite = 0
         self.watchdog = self.limit = self.sends = 0
+        self.stale = self.stale_run = self.stale_run_max = 0
+        self.reports_stale = False  # the display raises FLAG_STALE (it says so)
         self.sum_e2 = self.max_e = self.max_a = self.work = 0.0
         self.x_lo, self.x_hi = math.inf, -math.inf
         self.hist = [0] * 1001
         self.max_period = 0.0
         self.first_send: float | None = None
+        # the frames the host ran through the loop, and when (its own clock): its pace
+        self.first_batch: float | None = None
+        self.batch_frames = 0
+        self.last_batch = 0.0
         self.last_send = 0.0
         self.prev_x: float | None = None
         self.prev_volts = 0.0
@@ -59,6 +72,20 @@ class PlayFigures:
         self.last_send = now
         self.sends += 1
 
+    def handled(self, now: float, frames: int) -> None:
+        """``frames`` frames run through the loop in one poll, ending at ``now`` (s)."""
+        if self.first_batch is None:
+            self.first_batch = now
+        else:
+            self.batch_frames += frames
+        self.last_batch = now
+
+    def frame_rate(self) -> float:
+        """Frames the host ran through the loop per second of its own clock, after the
+        first poll that brought any; 0 before two such polls."""
+        span = self.last_batch - (self.first_batch or 0.0)
+        return self.batch_frames / span if self.batch_frames and span > 0 else 0.0
+
     def percentile(self, q: float) -> float:
         """Loop period percentile, s (upper edge of its 10 us bin; NaN before two sends)."""
         total = sum(self.hist)
@@ -71,7 +98,28 @@ class PlayFigures:
                 return (i + 1) * self.HIST_BIN_S if i < 1000 else self.max_period
         return self.max_period
 
+    def rates(self) -> dict[str, Any]:
+        """The loop's pace and the display's late answers, for the summary.
+
+        ``loop_rate_hz`` is the rate at which the host ran the display's frames through
+        the loop (its own clock); ``answer_rate_hz`` the rate at which it answered, once
+        per poll that brought frames, so frames that reach it together are answered once
+        (by the answer to the newest); ``unanswered_frames`` counts those others.
+        ``stale_frames`` are the periods the display ran on a command that was not the
+        answer to its previous frame (``FLAG_STALE``: a late answer, whichever way it was
+        late), ``stale_run_max`` the longest run of them; None if the display does not
+        report it.
+        """
+        return {
+            "loop_rate_hz": self.frame_rate(),
+            "answer_rate_hz": self.loop_rate(),
+            "unanswered_frames": self.frames - self.sends,
+            "stale_frames": self.stale if self.reports_stale else None,
+            "stale_run_max": self.stale_run_max if self.reports_stale else None,
+        }
+
     def loop_rate(self) -> float:
+        """Answers per second, once per poll that brought frames (its own clock)."""
         span = self.last_send - (self.first_send or 0.0)
         return (self.sends - 1) / span if self.sends > 1 and span > 0 else 0.0
 
@@ -95,6 +143,12 @@ class PlayFigures:
         self.nonfinite += bool(flags & NONFINITE)
         self.watchdog += bool(flags & FLAG_WATCHDOG)
         self.limit += bool(flags & FLAG_LIMIT)
+        if flags & FLAG_STALE:
+            self.stale += 1
+            self.stale_run += 1
+            self.stale_run_max = max(self.stale_run_max, self.stale_run)
+        else:
+            self.stale_run = 0
         return flags
 
     def summary(self, ctrl: Controller, profile: DisplayProfile) -> dict[str, Any]:
@@ -119,7 +173,7 @@ class PlayFigures:
             "watchdog_frames": self.watchdog,
             "limit_frames": self.limit,
             "actuator_work_j": self.work,
-            "loop_rate_hz": self.loop_rate(),
+            **self.rates(),
             "period_p99_ms": self.percentile(99) * 1e3,
             "period_p50_ms": self.percentile(50) * 1e3,
             "period_max_ms": self.max_period * 1e3,

@@ -267,7 +267,10 @@ def play(
     -------
     dict
         The summary: ``tracking_rms_m``, ``tracking_max_m``, ``tracking_bound_m``,
-        ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz``,
+        ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz`` (frames run
+        through the loop per second), ``answer_rate_hz``, ``unanswered_frames``,
+        ``stale_frames`` and ``stale_run_max`` (periods the display ran on a late answer,
+        as it reports them; see :meth:`.loopstats.PlayFigures.rates`),
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``watchdog_periods``
         (the display's stated watchdog limit), ``commands_sent``,
@@ -562,18 +565,23 @@ class HostLoop:
         self.period = 1.0 / rate_hz
         self.clock_hz = clock_hz
         self.figures = PlayFigures()
+        # a display that says so marks the periods it ran on a late answer (FLAG_STALE)
+        info = getattr(link, "info", None)
+        self.figures.reports_stale = isinstance(info, dict) and info.get("stale_flag") is True
         self.volts = 0.0
         self.sent = 0
         self.clamped = 0  # commands clamped to [0, v_max] before sending
         self.missed = self.misses_in_row = 0
         self.last_clock: int | None = None
+        self.answers = 0  # seq of the last Encoder frame: the one the next command answers
         self.elapsed = 0.0  # display clock since the first frame, s
 
     def send(self, value: float) -> None:
         # every command within the limits the display reported (or a lower --profile)
         value, clamped = clamp_volts(value, self.profile.v_max)
         self.clamped += clamped
-        self.link.send(SetVoltage(self.sent & 0xFFFFFFFF, value))
+        # numbered by the frame it answers: the display tells a late answer (FLAG_STALE)
+        self.link.send(SetVoltage(self.answers, value))
         self.sent += 1
 
     def run(
@@ -636,6 +644,7 @@ class HostLoop:
                 if got:
                     self.send(self.volts)
                     self.figures.send(now)
+                    self.figures.handled(now, got)
                     self.misses_in_row = 0
                     if clock is None:
                         # host deadlines half a period after each expected frame
@@ -686,7 +695,7 @@ class HostLoop:
                 else:
                     dt = ((msg.clock - self.last_clock) & 0xFFFFFFFF) / self.clock_hz
                     self.elapsed += dt
-                self.last_clock = msg.clock
+                self.last_clock, self.answers = msg.clock, msg.seq
                 x = msg.position * self.profile.resolution
                 step = self.step(x, msg.volts, dt)
                 self.volts = step.volts
@@ -724,7 +733,7 @@ class HostLoop:
                 "frames_bad": self.link.bad_frames,
                 "missed_periods": self.missed,
                 "watchdog_frames": f.watchdog,
-                "loop_rate_hz": f.loop_rate(),
+                **f.rates(),
                 "period_p99_ms": f.percentile(99) * 1e3,
                 "period_p50_ms": f.percentile(50) * 1e3,
                 "period_max_ms": f.max_period * 1e3,

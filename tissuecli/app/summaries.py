@@ -22,7 +22,7 @@ def play_lines(summary: Mapping[str, Any]) -> list[str]:
         f"{num('loop_rate_hz')} Hz (period p99 {num('period_p99_ms', fmt='.2f')} ms, max "
         f"{num('period_max_ms', fmt='.2f')} ms), {summary.get('frames_lost', 0)} lost, "
         f"{summary.get('frames_bad', 0)} bad, {summary.get('missed_periods', 0)} periods "
-        "without a frame",
+        "without a frame, " + _late(summary),
         f"tracking error rms {num('tracking_rms_m', 1e6, '.2f')} um, max "
         f"{num('tracking_max_m', 1e6)} um, bound {num('tracking_bound_m', 1e6)} um "
         "(|M - Mp| max|xp''| / (k + Cp) + encoder resolution)",
@@ -40,6 +40,16 @@ def play_lines(summary: Mapping[str, Any]) -> list[str]:
     if faults:
         lines.append("the display did not render the tissue as checked (docs/rendering.md)")
     return lines
+
+
+def _late(summary: Mapping[str, Any]) -> str:
+    """``48 on a late answer (longest run 6)``: the periods the display ran on a command
+    that did not answer its previous frame, as it reported them (else the host's count
+    of frames it answered only together with a later one)."""
+    stale = summary.get("stale_frames")
+    if stale is None:
+        return f"{summary.get('unanswered_frames', 0)} answered only with a later frame"
+    return f"{stale} on a late answer (longest run {summary.get('stale_run_max', 0)})"
 
 
 def tissue_words(described: Mapping[str, Any] | None) -> str:
@@ -77,7 +87,7 @@ def live_lines(summary: Mapping[str, Any]) -> list[str]:
         + (f"{delay:.2f} s after the grasp began" if delay is not None else "never"),
         f"display loop {ren.get('loop_rate_hz') or 0:.1f} Hz (period p99 "
         f"{ren.get('period_p99_ms') or 0:.2f} ms, max {ren.get('period_max_ms') or 0:.2f} ms), "
-        f"{ren.get('missed_periods', 0)} periods without a frame, watchdog frames "
+        f"{ren.get('missed_periods', 0)} periods without a frame, {_late(ren)}, watchdog frames "
         f"{ren.get('watchdog_frames', 0)}; scheduling {sched.get('scheduler', 'n/a')}",
         f"passivity: energy observed {pas['energy_observed_j'] * 1e3:.3f} mJ (min "
         f"{pas['energy_min_j'] * 1e3:.3f} mJ), dissipated "

@@ -304,9 +304,16 @@ def simulate_display(
     )
     click.echo(
         f"stopped: {counters['sent']} frames sent, {counters['commands']} SetVoltage received, "
-        f"{counters['watchdog_trips']} watchdog trips",
+        f"{counters['watchdog_trips']} watchdog trips; command age by tick "
+        f"{_ages(counters['command_ages'])}, catching up {_ages(counters['command_ages_late'])}",
         err=True,
     )
+
+
+def _ages(counts: list[int]) -> str:
+    """Ticks by the age of the command in use: ``0:1990 1:10 2:0 3:0 4+:0``."""
+    last = len(counts) - 1
+    return " ".join(f"{a}{'+' if a == last else ''}:{n}" for a, n in enumerate(counts))
 
 
 @simulate.command("study")

@@ -12,7 +12,8 @@ EXIT_ERROR = 1
 EXIT_LOST_DATA = 3
 #: Exit status of a run during which the display's watchdog cut the solenoid.
 EXIT_WATCHDOG = 4
-#: Exit status of a run whose loop ran off its rate (or missed its periods).
+#: Exit status of a run whose loop ran off its rate (or missed its periods, or ran them on
+#: late answers).
 EXIT_OFF_RATE = 5
 #: Exit status of a play that did not render the tissue as checked (tracking, saturation).
 EXIT_NOT_RENDERED = 6

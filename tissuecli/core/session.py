@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from .calibration import Adc
 from .errors import InputError
+from .timebase import median
 
 Array = NDArray[np.float64]
 
@@ -117,7 +118,7 @@ class Session:
         """Sample rate from the median sample interval (robust to lost frames)."""
         if len(self) < 2:
             return 0.0
-        return float(1.0 / np.median(np.diff(self.time)))
+        return float(1.0 / median(np.diff(self.time)))
 
     def replace(self, time: Array, force: Array, position: Array) -> Session:
         """The same session (name, meta, ADC) with other samples: a part of it, or a grid."""

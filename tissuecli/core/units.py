@@ -201,7 +201,10 @@ PHYSICAL_LIMITS = {"force": 1e9, "position": 1e6}
 
 def beyond_physical(quantity: str, values: NDArray[np.float64]) -> int | None:
     """Index of the first of `values` (SI) beyond :data:`PHYSICAL_LIMITS`, or None."""
-    bad = np.flatnonzero(np.abs(values) > PHYSICAL_LIMITS[quantity])
+    limit = PHYSICAL_LIMITS[quantity]
+    if values.size and -limit <= values.min() and values.max() <= limit:
+        return None  # two reductions: no array of flags for the usual block
+    bad = np.flatnonzero(np.abs(values) > limit)
     return int(bad[0]) if bad.size else None
 
 

@@ -235,6 +235,7 @@ def session_writer(
     flush_interval_s: float = 0.25,
     fsync: bool = True,
     min_free_bytes: int | None = None,
+    chunk_rows: int = CHUNK_ROWS,
 ) -> SeriesWriter:
     """Start writing session `name` into `path` (see :class:`SeriesWriter`).
 
@@ -250,7 +251,7 @@ def session_writer(
         Device calibration, see :func:`session_columns`.
     raw : bool, optional
         Include the ``raw/*`` columns; blocks must then carry them too.
-    flush_interval_s, fsync
+    flush_interval_s, fsync, chunk_rows
         See :class:`SeriesWriter`.
     min_free_bytes : int, optional
         Free space needed before the file is touched, bytes; by default 10 s of data
@@ -284,6 +285,7 @@ def session_writer(
         fsync=fsync,
         kind="session",
         min_free_bytes=min_free_bytes,
+        chunk_rows=chunk_rows,
     )
 
 

@@ -14,7 +14,6 @@ still counted with its number.
 from __future__ import annotations
 
 import codecs
-import io
 import math
 import os
 import re
@@ -300,10 +299,10 @@ class Layout:
 
     # -- the body
 
-    def _bodies(self) -> Iterator[tuple[int, bytes, int]]:
+    def _bodies(self) -> Iterator[tuple[int, bytes | memoryview, int]]:
         """Blocks of whole lines from the first data row on, as UTF-8 bytes with LF or
-        CRLF line ends, each with the line number of its first line and its count of
-        line ends."""
+        CRLF line ends (a view of the bytes read, not a copy), each with the line number
+        of its first line and its count of line ends."""
         utf8 = self.codec == "utf-8"
         decoder = None if utf8 else codecs.getincrementaldecoder(self.codec)("replace")
         line = self.first_line
@@ -318,10 +317,9 @@ class Layout:
                     chunk = decoder.decode(chunk, final=eof).encode("utf-8")
                 if self.lone_cr:
                     chunk = chunk.replace(b"\r", b"\n")
-                data = carry + chunk
-                if eof:
-                    body, carry = data, b""
-                else:
+                data = carry + chunk if carry else chunk
+                end = len(data)
+                if not eof:
                     cut = data.rfind(b"\n")
                     if cut < 0:
                         if len(data) > MAX_LINE_BYTES:
@@ -331,27 +329,31 @@ class Layout:
                             )
                         carry = data
                         continue
-                    body, carry = data[: cut + 1], data[cut + 1 :]
-                    if cut > MAX_LINE_BYTES and body.find(b"\n") > MAX_LINE_BYTES:
+                    end, carry = cut + 1, data[cut + 1 :]
+                    if cut > MAX_LINE_BYTES and data.find(b"\n", 0, end) > MAX_LINE_BYTES:
                         raise InputError(
                             f"{self.path}: line {line} is longer than "
                             f"{MAX_LINE_BYTES >> 20} MB; not a table of samples"
                         )
-                if body:
-                    count = body.count(b"\n")
-                    yield line, body, count
+                if end:
+                    count = data.count(b"\n", 0, end)
+                    yield line, memoryview(data)[:end], count
                     line += count
                 if eof:
                     return
 
-    def _parse(self, body: bytes, first_line: int, count: int, columns: list[int]) -> Block:
+    def _parse(
+        self, body: bytes | memoryview, first_line: int, count: int, columns: list[int]
+    ) -> Block:
         if self.delimiter == " ":
-            body = re.sub(rb"[ \t]+", b" ", body)
+            body = re.sub(rb"[ \t]+", b" ", bytes(body))
             body = re.sub(rb"(?m)^ | (?=\r?$)", b"", body)
         fast = self._fast(body, first_line, count, columns)
         return fast if fast is not None else self._slow(body, first_line, columns)
 
-    def _fast(self, body: bytes, first_line: int, count: int, columns: list[int]) -> Block | None:
+    def _fast(
+        self, body: bytes | memoryview, first_line: int, count: int, columns: list[int]
+    ) -> Block | None:
         """The block (``count`` line ends) parsed whole by pyarrow, in pieces of
         :data:`PARSE_BYTES` on every core, or None if it holds anything but rows."""
         import pyarrow as pa
@@ -367,7 +369,7 @@ class Layout:
         types = {names[c]: pa.float64() if self.numeric[c] else pa.string() for c in columns}
         try:
             table = csv.read_csv(
-                io.BytesIO(body),
+                pa.BufferReader(pa.py_buffer(body)),  # the bytes read, not a copy
                 read_options=csv.ReadOptions(column_names=names, block_size=PARSE_BYTES),
                 parse_options=csv.ParseOptions(
                     delimiter=self.delimiter, invalid_row_handler=handler
@@ -385,9 +387,9 @@ class Layout:
             pa.default_memory_pool().release_unused()  # the pool keeps what it freed
         m = table.num_rows
         # a blank line is skipped by the parser without a word: every line must be a row
-        if invalid or m != count + (not body.endswith(b"\n")):
+        if invalid or m != count + (body[-1:] != b"\n"):
             return None
-        values = np.empty((m, len(columns)))
+        values = np.empty((len(columns), m)).T  # each column contiguous, as it is used
         text: dict[int, list[str]] = {}
         for j, c in enumerate(columns):
             column = table.column(names[c])
@@ -407,14 +409,14 @@ class Layout:
                 row += len(chunk)
         return Block(values, np.arange(first_line, first_line + m, dtype=np.int64), text)
 
-    def _slow(self, body: bytes, first_line: int, columns: list[int]) -> Block:
+    def _slow(self, body: bytes | memoryview, first_line: int, columns: list[int]) -> Block:
         """The block line by line: rows, comments, blank lines and junk told apart."""
         width = len(self.names)
         wanted = [self.numeric[i] and i in columns for i in range(width)]
         rows: list[list[float]] = []
         lines: list[int] = []
         text: dict[int, list[str]] = {c: [] for c in columns if not self.numeric[c]}
-        for i, raw_line in enumerate(body.decode("utf-8", "replace").split("\n")):
+        for i, raw_line in enumerate(str(body, "utf-8", "replace").split("\n")):
             line = raw_line.strip()
             if not line:
                 continue

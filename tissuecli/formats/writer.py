@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import os
 import time as _time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from types import TracebackType
 from typing import Any, NoReturn
 
@@ -122,6 +122,9 @@ class SeriesWriter:
     min_free_bytes : int, optional
         Free space (and file-size limit) needed before the file is created or opened,
         bytes; default :data:`~.space.HEADROOM_BYTES`.
+    chunk_rows : int, optional
+        Rows per HDF5 chunk (default :data:`~.hdf5.CHUNK_ROWS`); larger chunks suit a
+        file written in large blocks and read back whole (an import).
 
     Raises
     ------
@@ -144,8 +147,10 @@ class SeriesWriter:
         kind: str = "session",
         option: str = "--out",
         min_free_bytes: int | None = None,
+        chunk_rows: int = CHUNK_ROWS,
     ) -> None:
         self.path = os.fspath(path)
+        self.chunk_rows = int(chunk_rows)
         self.group_path = group_path(group)
         self.columns = list(columns)
         self.flush_interval_s = float(flush_interval_s)
@@ -248,7 +253,7 @@ class SeriesWriter:
                     col.name.strip("/"),
                     shape=(0, *col.shape),
                     maxshape=(None, *col.shape),
-                    chunks=(CHUNK_ROWS, *col.shape),
+                    chunks=(self.chunk_rows, *col.shape),
                     dtype=dtype,
                     fillvalue=fill,
                 )
@@ -379,6 +384,40 @@ class SeriesWriter:
         except WRITE_ERRORS as exc:
             self._broke(exc)
 
+    def column(self, name: str) -> StoredRows:
+        """Flush, then the rows of column `name` written so far, read a block at a time
+        (a slice of it reads those rows from the file)."""
+        self.flush()
+        if self._closed:
+            raise ValueError("writer is closed")
+        return StoredRows(self._datasets[name.strip("/")], self._written)
+
+    def rewrite_blocks(self, name: str, blocks: Iterable[ArrayLike]) -> None:
+        """Flush, then replace the rows of column `name` with `blocks`, in order from the
+        first row, each written as it comes (so a block may be made from the rows it
+        replaces, read just before); as :meth:`rewrite` otherwise."""
+        if self._fault is not None:
+            return
+        if self._closed:
+            raise ValueError("writer is closed")
+        self.flush()
+        ds = self._datasets[name.strip("/")]
+        row = 0
+        try:
+            for block in blocks:
+                values = np.asarray(block)
+                if row + values.shape[0] > self._written:
+                    raise ValueError(f"{name}: more values than the {self._written} rows")
+                ds[row : row + values.shape[0]] = values
+                row += values.shape[0]
+            if row != self._written:
+                raise ValueError(f"{name}: {row} values for {self._written} rows")
+            self._file.flush()
+            if self.fsync:
+                fsync_file(self._file, self.path)
+        except WRITE_ERRORS as exc:
+            self._broke(exc)
+
     def flush(self) -> None:
         """Write buffered rows and pending attributes, then commit them to disk.
 
@@ -483,8 +522,9 @@ class SeriesWriter:
 
     def _chunk_bytes(self, n_old: int, n_new: int) -> int:
         """Bytes of the chunks HDF5 allocates to grow every column from n_old to n_new rows."""
-        chunks = -(-n_new // CHUNK_ROWS) - -(-n_old // CHUNK_ROWS)
-        return chunks * CHUNK_ROWS * row_bytes(self.columns)
+        size = self.chunk_rows
+        chunks = -(-n_new // size) - -(-n_old // size)
+        return chunks * size * row_bytes(self.columns)
 
     def _make_room(self, need: int) -> None:
         """Stop cleanly (before HDF5 writes a byte) unless `need` bytes fit past the file's end."""
@@ -614,6 +654,27 @@ class SeriesWriter:
                     else f"error: {exc_type.__name__}"
                 )
             self.close(complete=False)
+
+
+class StoredRows:
+    """Rows ``0 .. n - 1`` of a dataset, read a slice at a time (what :meth:`SeriesWriter.
+    column` gives)."""
+
+    def __init__(self, dataset: h5py.Dataset, rows: int) -> None:
+        self._dataset, self._rows = dataset, rows
+
+    def __len__(self) -> int:
+        return self._rows
+
+    def __getitem__(self, rows: slice) -> NDArray[Any]:
+        start, stop, step = rows.indices(self._rows)
+        if step != 1:
+            raise ValueError("rows are read in runs, step 1")
+        if stop <= start:
+            return np.empty((0, *self._dataset.shape[1:]), self._dataset.dtype)
+        out = np.empty((stop - start, *self._dataset.shape[1:]), self._dataset.dtype)
+        self._dataset.read_direct(out, np.s_[start:stop])
+        return out
 
 
 def _opens(path: str) -> bool:

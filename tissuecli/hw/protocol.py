@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 
 # the display's flag bits travel in Encoder frames; their table lives with the controller's
 from ..core.flags import FLAG_LIMIT as FLAG_LIMIT
+from ..core.flags import FLAG_STALE as FLAG_STALE
 from ..core.flags import FLAG_WATCHDOG as FLAG_WATCHDOG
 
 PROTOCOL_VERSION = 1
@@ -129,7 +130,12 @@ class Encoder(Message):
 
 @dataclass(frozen=True)
 class SetVoltage(Message):
-    """Host -> display: the solenoid voltage to apply now, in volts."""
+    """Host -> display: the solenoid voltage to apply now, in volts.
+
+    ``seq`` is the ``seq`` of the Encoder frame the voltage answers (the last one the
+    host had), so the display can tell whether each period runs on the answer to the
+    frame before it (:data:`FLAG_STALE`).
+    """
 
     TYPE: ClassVar[int] = 0x21
     FORMAT: ClassVar[str] = "If"

@@ -165,12 +165,13 @@ def law_stats(
     """The tempered statistics and prior of one law, and the flags of its noise
     correction."""
     corr = fp.correction
-    uncorrected = corr is not None and not _correctable(fp, corr)
+    rss_c = _correctable(fp, corr) if corr is not None else None
+    uncorrected = corr is not None and rss_c is None
     if uncorrected:
         corr = None  # noise dominates a column: the correction would be meaningless
     G, b, yy, rss = fp.gram, fp.b, fp.yy, fp.rss
-    if corr is not None:  # centred on the corrected fit, with its sampling covariance
-        rss = max(_corrected_rss(fp, corr), 0.0)
+    if corr is not None and rss_c is not None:  # centred on the corrected fit
+        rss = max(rss_c, 0.0)
         G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, rss)
     w, n = fit.weight, fit.y.size
     st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
@@ -242,15 +243,17 @@ def not_evaluated(res: ModelResult, why: str) -> None:
     res.ln_evidence = -math.inf
 
 
-def _correctable(fp: FirstPass, corr: Array) -> bool:
-    """Whether the errors-in-variables correction leaves a proper regression: ``A^T A - C``
+def _correctable(fp: FirstPass, corr: Array) -> float | None:
+    """The corrected fit's residual sum of squares (:func:`_corrected_rss`, N^2) if the
+    errors-in-variables correction leaves a proper regression, else None: ``A^T A - C``
     positive definite, and a corrected residual of at least a tenth of the raw one (the
     correction takes off what position noise adds to the residual; taking off nearly
     all of it, or more, says the noise is as large as the motion)."""
     G = fp.gram - corr
     if np.any(np.linalg.eigvalsh(G) <= 0):
-        return False
-    return _corrected_rss(fp, corr) > 0.1 * fp.rss
+        return None
+    rss = _corrected_rss(fp, corr)
+    return rss if rss > 0.1 * fp.rss else None
 
 
 def _corrected_rss(fp: FirstPass, corr: Array) -> float:

@@ -65,7 +65,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         key = (law.name, tuple(node[n] for n in grid.names))
         fp = fit.shaped_passes.get(key)
         if fp is None:
-            fp = fit.shaped_passes[key] = light(node)
+            fp = fit.shaped_passes[key] = light(node, bound)
         st, prior, corr, flags = law_stats(bound, fp, fit)
         exact = ExactPosterior(st, prior, nodes=nodes)
         return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
@@ -113,7 +113,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         else:
             nodes_u, w = hermite_nodes(peak)
             inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD)
+            alone = len(inside) == 1  # a mixture's components need no intervals
+            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD,
+                                                                     intervals=alone)
                      for i in inside]  # fmt: skip
             post = mix(posts, w[inside], fit.rng)
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
@@ -127,7 +129,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         ln_evidence = float(_logsumexp(log_post))
         heavy = kept(log_post)
         weights = np.exp(log_post[heavy] - log_post[heavy[0]])
-        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in heavy]
+        alone = len(heavy) == 1
+        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD, intervals=alone)
+                 for i in heavy]  # fmt: skip
         post = mix(posts, weights, fit.rng)
         shape_post, point = shape_summary(grid, log_post)
         how = f"quadrature over {len(grid.nodes)} shape nodes"
@@ -181,9 +185,12 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 summary[name]["tau_steps"] = diag["tau"][j]
             pick = fit.rng.choice(draws.shape[0], size=min(SHAPE_MIXTURE, draws.shape[0]),
                                   replace=False)  # fmt: skip
+            alone = len(pick) == 1
             posts = [
-                evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD) for i in pick
-            ]
+                evaluate(grid.from_u(draws[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD,
+                                                              intervals=alone)
+                for i in pick
+            ]  # fmt: skip
             mixed = mix(posts, np.ones(len(posts)), fit.rng)
             mixed.ln_evidence = res.ln_evidence
             median = np.median(draws, axis=0)
@@ -231,7 +238,7 @@ def shaped_result(
     fp, st, prior, corr, flags, exact = evaluate(point)[1]
     if post.diagnostics.get("shape_nodes", 1) > 1:
         post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
-        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD).mean
+        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD, intervals=False).mean
     return result_of(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
 
 
@@ -249,6 +256,9 @@ class ShapedPass:
         terms = law.terms
         self.fixed = [j for j, t in enumerate(terms) if not t.shapes]
         self.moving = [j for j, t in enumerate(terms) if t.shapes]
+        fixed, moving = self.fixed, self.moving
+        self._blocks = (np.ix_(fixed, fixed), np.ix_(moving, fixed), np.ix_(fixed, moving),
+                        np.ix_(moving, moving))  # fmt: skip
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         cols = [term_column(terms[j], kin, x, sx, fit.columns) for j in self.fixed]
         self.F = np.column_stack(cols) if cols else np.zeros((fit.y.size, 0))
@@ -263,8 +273,9 @@ class ShapedPass:
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
 
-    def __call__(self, node: dict[str, float]) -> FirstPass:
-        fit, bound = self.fit, self.law.bind(node)
+    def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
+        """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
+        fit, bound = self.fit, bound if bound is not None else self.law.bind(node)
         p, fixed, moving = len(bound.terms), self.fixed, self.moving
         S = np.column_stack(
             [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,
@@ -303,13 +314,13 @@ class ShapedPass:
     def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
         """A (p, p) matrix of products from its blocks: fixed with fixed, moving with
         fixed, moving with moving."""
-        fixed, moving = self.fixed, self.moving
-        p = len(fixed) + len(moving)
+        p = len(self.fixed) + len(self.moving)
         out = np.empty((p, p))
-        out[np.ix_(fixed, fixed)] = ff
-        out[np.ix_(moving, fixed)] = mf
-        out[np.ix_(fixed, moving)] = mf.T
-        out[np.ix_(moving, moving)] = mm
+        ff_at, mf_at, fm_at, mm_at = self._blocks
+        out[ff_at] = ff
+        out[mf_at] = mf
+        out[fm_at] = mf.T
+        out[mm_at] = mm
         return out
 
 

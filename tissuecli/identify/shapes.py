@@ -20,6 +20,7 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,11 @@ Array = NDArray[np.float64]
 #: evaluations per shape parameter after which the search for the peak checks whether
 #: it is heading for the prior's edge
 EDGE_CHECK = 25
+#: evaluations per shape parameter a climb's best point may stay on the prior's edge
+#: before the climb stops there, if the posterior falls away from the edge inwards
+EDGE_SETTLE = 6
+#: where, in grid steps from the edge, the posterior must fall away for a climb to end
+INWARD = (1 / 32, 1 / 8, 1 / 2, 1.0)
 #: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
 KEPT_MASS, MAX_KEPT = 0.999, 12
 
@@ -234,7 +240,29 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
             "fatol": 0.01,
             "maxfev": maxfev,
         }
-        return minimize(cost, start, method="Nelder-Mead", options=options)
+        # the simplex's best point is the best evaluated so far: once it has stayed on
+        # the edge a while and the posterior falls away inwards, the climb ends there
+        # (what the rest of it did, at the cost of most of a law's evaluations)
+        best: list[Any] = [math.inf, None, 0]  # cost, point, evaluations on the edge
+
+        def watched(u: Array) -> float:
+            c = cost(u)
+            if c < best[0]:
+                best[0], best[1] = c, np.array(u, dtype=float)
+            if best[0] < 1e300 and _at_edge(grid, best[1]):
+                best[2] += 1
+                if best[2] >= EDGE_SETTLE * start.size:
+                    if _falls_away(cost, grid, best[1], best[0]):
+                        raise _OnEdge
+                    best[2] = 0
+            else:
+                best[2] = 0
+            return c
+
+        try:
+            return minimize(watched, start, method="Nelder-Mead", options=options)
+        except _OnEdge:
+            return SimpleNamespace(x=best[1], fun=best[0], success=False)
 
     for start in starts:  # the next start only if the peak from the last is not one
         # a first short climb: one that ends against the prior's edge has found no
@@ -254,6 +282,35 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
             if peak is not None:
                 return peak
     return None
+
+
+class _OnEdge(Exception):
+    """A climb's best point has settled on the prior's edge."""
+
+
+def _falls_away(cost: Callable[[Array], float], grid: ShapeGrid, u: Array, c: float) -> bool:
+    """Whether ``u`` (of cost ``c``) lies on an edge of the prior's box and the cost
+    rises from it inwards: at :data:`INWARD` grid steps in, along each parameter at its
+    bound (a peak more than a sixty-fourth of a step inside is nearer the first of them
+    than the edge is, so a posterior falling off on both sides of it costs less there).
+    False on the edge where two ordered parameters meet (no single step leads inwards
+    there)."""
+    edges = 0
+    for i, (n, h) in enumerate(zip(grid.names, grid.spacing, strict=True)):
+        lo, hi = (grid.params[n].to_u(b) for b in grid.ranges[n])
+        if u[i] - lo < 0.05 * h:
+            inward = h
+        elif hi - u[i] < 0.05 * h:
+            inward = -h
+        else:
+            continue
+        edges += 1
+        for f in INWARD:
+            v = np.array(u, dtype=float)
+            v[i] += f * inward
+            if not grid.inside(v) or not cost(v) > c:
+                return False
+    return edges > 0
 
 
 def _at_edge(grid: ShapeGrid, u: Array) -> bool:

@@ -8,6 +8,8 @@ these to them to 1e-12; importing ``scipy.signal`` costs about 0.4 s, twice the 
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
@@ -16,6 +18,26 @@ Array = NDArray[np.float64]
 
 #: most samples transformed in one batch of blocks (bounds the memory of long records)
 BATCH_SAMPLES = 1 << 20
+
+#: kernel spectra kept (a fit filters hundreds of columns through its few kernels)
+KERNEL_SPECTRA = 16
+_spectra: dict[tuple[bytes, int], Array] = {}
+_spectra_lock = threading.Lock()
+
+
+def _kernel_spectrum(k: Array, nfft: int) -> Array:
+    """``np.fft.rfft(k, nfft)``, kept for the last :data:`KERNEL_SPECTRA` kernels and
+    lengths (by value, so a new kernel is never given an old one's spectrum)."""
+    key = (k.tobytes(), nfft)
+    found = _spectra.get(key)
+    if found is None:
+        found = np.fft.rfft(k, nfft)
+        found.flags.writeable = False
+        with _spectra_lock:
+            while len(_spectra) >= KERNEL_SPECTRA:
+                _spectra.pop(next(iter(_spectra)))
+            _spectra[key] = found
+    return found
 
 
 def power_spectrum(
@@ -112,11 +134,11 @@ def convolve_valid(u: Array, kernel: Array) -> Array:
     nfft = 1 << int(np.ceil(np.log2(n + m - 1)))
     if nfft <= 8 * (1 << int(np.ceil(np.log2(m)))):
         # one transform of the whole record
-        full = np.fft.irfft(np.fft.rfft(u, nfft) * np.fft.rfft(k, nfft), nfft)
+        full = np.fft.irfft(np.fft.rfft(u, nfft) * _kernel_spectrum(k, nfft), nfft)
         return full[m - 1 : n]
     nfft = 8 * (1 << int(np.ceil(np.log2(m))))  # blocks about 7 kernel lengths long
     block = nfft - m + 1
-    kf = np.fft.rfft(k, nfft)
+    kf = _kernel_spectrum(k, nfft)
     nb = -(-n // block)
     full = np.zeros((nb + 1) * block)
     per_batch = max(1, BATCH_SAMPLES // nfft)

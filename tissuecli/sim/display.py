@@ -23,6 +23,7 @@ from .._version import __version__
 from ..core.errors import InputError
 from ..hw.protocol import (
     FLAG_LIMIT,
+    FLAG_STALE,
     FLAG_WATCHDOG,
     IDENTIFY,
     PROTOCOL_VERSION,
@@ -81,6 +82,9 @@ CATCH_UP_S = 0.02
 #: ticks); one that does not is not waited for longer, so catching up still gains at
 #: least half a period a tick.
 ANSWER_WAIT_PERIODS = 0.5
+#: The display counts its ticks by the age of the command in use, in periods, up to
+#: this one (and more).
+AGES = 4
 #: Heaviest reference mass the simulated piston carries, kg.
 MAX_LOAD_KG = 5.0
 #: Standard gravity, m/s^2.
@@ -139,6 +143,7 @@ def display_info(
         "rate_hz": rate_hz,
         "clock_hz": CLOCK_HZ,
         "watchdog_periods": watchdog_periods,
+        "stale_flag": True,
         "calibration": {"position": {"gain": profile.resolution, "offset": 0.0, "unit": "m"}},
         "profile": profile.as_dict(),
     }
@@ -269,6 +274,9 @@ def simulate_display(
         "bad_frames": fw.decoder.bad_frames,
         "missed_deadlines": clock.missed,
         "late_ticks": clock.behind,
+        "stale_ticks": sum(fw.ages[1:]),
+        "command_ages": fw.ages,
+        "command_ages_late": fw.ages_late,
         "overrun_bytes": port.overruns,
     }
 
@@ -298,6 +306,14 @@ class _Firmware:
         self.x = self.v = self.volts = 0.0
         self.at_limit = self.streaming = self.armed = self.tripped = False
         self.answered = False  # a SetVoltage came since the last tick
+        # which Encoder frame the command in use answers (its seq; None before one), the
+        # frames sent since START, and the ticks by the age of their command in periods
+        # (0: the answer to the frame before; the last entry counts that age and more),
+        # those on time and those run late to catch up
+        self.answers: int | None = None
+        self.streamed = 0
+        self.ages = [0] * (AGES + 1)
+        self.ages_late = [0] * (AGES + 1)
         self.seq = self.sent = self.commands = self.trips = 0
         self.last_command: float | None = None
         self.max_command: float | None = None
@@ -325,6 +341,7 @@ class _Firmware:
                         self.max_command = value
                     self.commands += 1
                     self.answered = True
+                    self.answers = msg.seq
                     self.armed, self.tripped = True, False
             elif isinstance(msg, Command):
                 if msg.code == IDENTIFY:
@@ -332,6 +349,7 @@ class _Firmware:
                 elif msg.code == START and not self.streaming:
                     self.streaming, self.armed, self.tripped = True, False, False
                     self.k_start = -1  # set by the next tick
+                    self.answers, self.streamed = None, 0
                 elif msg.code == STOP:
                     self.streaming, self.armed, self.volts = False, False, 0.0
 
@@ -358,6 +376,13 @@ class _Firmware:
                 )
         if self.streaming:
             flags = (FLAG_WATCHDOG if self.tripped else 0) | (FLAG_LIMIT if self.at_limit else 0)
+            if self.armed and self.streamed:
+                # the voltage in use answers the frame sent a tick ago, or is stale; a tick
+                # run late to catch up comes before the host could answer (its watchdog
+                # rule): counted apart and not flagged
+                age = AGES if self.tripped else (self.seq - 1 - (self.answers or 0)) & 0xFFFFFFFF
+                (self.ages_late if late else self.ages)[min(age, AGES)] += 1
+                flags |= FLAG_STALE if age and not late else 0
             ticks = int(round(self.ticks_run * self.period * CLOCK_HZ)) & 0xFFFFFFFF
             counts = int(round(self.x / self.profile.resolution))
             self.port.write(
@@ -365,6 +390,7 @@ class _Firmware:
             )
             self.seq += 1
             self.sent += 1
+            self.streamed += 1
 
     def advance(self) -> None:
         """Integrate the piston over one period, voltage held."""
