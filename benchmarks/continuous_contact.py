@@ -43,6 +43,20 @@ def noisy_contact(
 ) -> Session:
     """A paper-form ``x^3`` session in contact throughout (the closure never reaches 0);
     arguments left unset are drawn from ``seed``."""
+    return noisy_contact_truth(
+        seed, rate_hz=rate_hz, noise_fraction=noise_fraction, duration_s=duration_s
+    )[0]
+
+
+def noisy_contact_truth(
+    seed: int,
+    *,
+    rate_hz: float | None = None,
+    noise_fraction: float | None = None,
+    duration_s: float | None = None,
+) -> tuple[Session, Tissue]:
+    """:func:`noisy_contact`'s session and the tissue it was drawn with (its law and
+    coefficients in SI units)."""
     rng = np.random.default_rng(seed)
     rate = float(rng.uniform(250, 2000)) if rate_hz is None else rate_hz
     speed = str(rng.choice(["xdot", "xdot|xdot|"]))
@@ -73,7 +87,7 @@ def noisy_contact(
         position_noise_m=10 ** rng.uniform(-6.5, -5),
     )
     model = ForcepsModel(tissue=tissue, rate_hz=rate, operator=operator, sensors=sensors, seed=seed)
-    return synthesize(model, duration)[0]
+    return synthesize(model, duration)[0], tissue
 
 
 def main() -> None:

@@ -8,7 +8,18 @@ are stated for, drawn over the stress space and fitted with the truth's law. For
 coefficient: the share of intervals that hold the truth and the RMS of
 ``(mean - truth) / sd`` (1 when the intervals are calibrated).
 
-    python benchmarks/coverage.py --sessions 100 --draws 40
+Then randomised paper-form sessions from a fresh seed (printed; ``--seed`` repeats a
+run), each fitted as ``tissuecli fit --forms FORM`` would with the truth's form (grasp
+detection on): the paper's four forms drawn by :func:`tissuecli.sim.scenes.random_scene`
+(250 Hz-10 kHz, 8-16 bits, force noise 0.5-10 % of its range, grasps with free jaws or
+continuous contact, 3-60 s cut at 20,000 samples, slow squeezes to fast taps), grasp
+sessions apart by whether detection found their free jaws or read them as one contact;
+and noisy sessions in contact throughout (``continuous_contact.py``: an ``x^3`` law, an
+8-bit ADC, 250-2000 Hz, force noise up to 10 % of the range). K, S and M are the
+stiffness, damping and inertia of each form (``K3`` and ``S2`` pooled with ``K`` and
+``S``); refusals are counted.
+
+    python benchmarks/coverage.py --sessions 100 --draws 40 --scenes 200
 """
 
 from __future__ import annotations
@@ -20,12 +31,16 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+from continuous_contact import noisy_contact_truth
 from scipy.stats import binom
 
+from tissuecli.core.errors import TissueError
+from tissuecli.core.session import Session
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.identify import BayesianFit
 from tissuecli.sim.protocols import random_protocol
+from tissuecli.sim.scenes import FAMILIES, random_scene
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
 PAPER = [
@@ -84,18 +99,83 @@ def protocols(draws: int) -> None:
         print(row(name, symbols or [], np.array(z), time.process_time() - c0), flush=True)
 
 
+#: the paper's four forms among the random scenes' families
+PAPER_FAMILIES = [name for name in FAMILIES if name.startswith("paper")]
+
+
+def _inside(session: Session, law: Law, truth: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Which of the coefficients' 95 % intervals hold the truth, the truth's form fitted
+    with grasp detection, and whether detection read the session as one contact."""
+    est = BayesianFit(forms=law.name, seed=0).fit(session)
+    lo, hi = est.best_.posterior.ci95.T
+    return (truth >= lo) & (truth <= hi), bool(est.contact_.all_contact)
+
+
+def _cover_row(label: str, inside: list[np.ndarray], refused: int, cpu: float) -> str:
+    """One line: coverage of K, S and M (each form's three coefficients in that order)."""
+    if not inside:
+        return f"{label:<34} n=0    refused {refused}"
+    share = np.mean(np.array(inside), axis=0)
+    parts = " ".join(f"{s} {c:.3f}" for s, c in zip("KSM", share, strict=True))
+    pooled = f"pooled {np.mean(inside):.3f}"  # three intervals a session: not independent
+    return (f"{label:<34} n={len(inside):<4} {band(len(inside))} {parts}  {pooled}  "
+            f"refused {refused}  cpu {cpu:.1f} s")  # fmt: skip
+
+
+def randomised(scenes: int, seed: int) -> None:
+    """Coverage over random paper-form scenes and noisy continuous-contact sessions."""
+    groups: dict[str, list[np.ndarray]] = {
+        "grasps found": [], "grasps read as one contact": [], "continuous contact": [],
+    }  # fmt: skip
+    refused, c0 = 0, time.process_time()
+    for i in range(scenes):
+        scene = random_scene(seed + i, families=PAPER_FAMILIES, max_samples=20_000)
+        try:
+            inside, whole = _inside(scene.session, scene.tissue.law,
+                                    np.asarray(scene.coefficients, float))  # fmt: skip
+        except TissueError:
+            refused += 1
+            continue
+        if scene.settings["contact"] == "continuous":
+            groups["continuous contact"].append(inside)
+        else:
+            groups["grasps read as one contact" if whole else "grasps found"].append(inside)
+    cpu = time.process_time() - c0
+    every = [v for g in groups.values() for v in g]
+    print(_cover_row("random paper forms, all", every, refused, cpu), flush=True)
+    for name, got in groups.items():
+        print(_cover_row(f"  {name}", got, 0, 0.0).rsplit("  refused", 1)[0], flush=True)
+    inside_c, refused, c0 = [], 0, time.process_time()
+    for i in range(scenes):
+        session, tissue = noisy_contact_truth(seed + i)
+        try:
+            inside_c.append(_inside(session, tissue.law, np.asarray(tissue.coef, float))[0])
+        except TissueError:
+            refused += 1
+    print(_cover_row("noisy continuous contact", inside_c, refused,
+                     time.process_time() - c0), flush=True)  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=100, help="seeds per paper form")
     ap.add_argument("--draws", type=int, default=40, help="draws of each protocol")
-    ap.add_argument("--only", choices=["paper", "protocols"], help="one half of the table")
+    ap.add_argument("--scenes", type=int, default=200,
+                    help="random paper-form scenes, and as many in continuous contact")  # fmt: skip
+    ap.add_argument("--seed", type=int, help="first seed of the random sessions (fresh if unset)")
+    ap.add_argument("--only", choices=["paper", "protocols", "random"],
+                    help="one part of the table")  # fmt: skip
     args = ap.parse_args(argv)
+    seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2**31)
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; coverage of each "
           "coefficient's 95 % interval (RMS z); [binomial 95 % range]", flush=True)  # fmt: skip
-    if args.only != "protocols":
+    if args.only in (None, "paper"):
         paper(args.sessions)
-    if args.only != "paper":
+    if args.only in (None, "protocols"):
         protocols(args.draws)
+    if args.only in (None, "random"):
+        print(f"random sessions from seed {seed} (--seed {seed} repeats them)", flush=True)
+        randomised(args.scenes, seed)
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -3,7 +3,7 @@ on the same file, and of ``sessions`` on the file written, side by side in one r
 
 Usage::
 
-    python benchmarks/import_scale.py [--rows 1e6,1e7] [--slow] [--dir /tmp]
+    python benchmarks/import_scale.py [--rows 1e6,1e7] [--repeat 5] [--slow] [--dir /tmp]
 
 For each row count a CSV of a 1 kHz session (time, force, position, 27-30 bytes a
 row) is written once, then three child processes run one after the other on it:
@@ -14,7 +14,10 @@ text table, pyarrow), then times its one call and reports its peak resident memo
 (``ru_maxrss``), which includes the interpreter and those libraries (60-90 MB), and
 the CPU time of its call (every thread: pyarrow parses on every core). The CPU times'
 ratio depends little on the machine's load; the wall times' does.
-``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
+With ``--repeat N`` the pandas and import children take turns N times on the same file
+and each figure is the median of its N runs; the ratios are the medians of the N
+side-by-side pairs, so a burst of load on the shared machine moves one pair, not the
+verdict. ``--slow`` adds 1e8 rows (a 28-hour 1 kHz log, 2.9 GB of text).
 """
 
 from __future__ import annotations
@@ -96,14 +99,23 @@ def child(what: str, path: Path, out: Path) -> dict[str, float]:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
+def _median(runs: list[dict[str, float]]) -> dict[str, float]:
+    """Each figure's median over the runs of one child."""
+    return {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", default="1e6,1e7")
+    parser.add_argument("--repeat", type=int, default=5, help="pandas/import pairs per size")
     parser.add_argument("--slow", action="store_true", help="add 1e8 rows")
     parser.add_argument("--dir", default=None, help="where to write the files")
     args = parser.parse_args()
     counts = [int(float(r)) for r in args.rows.split(",")] + ([10**8] if args.slow else [])
-    print(f"load average before: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
+    print(
+        f"load average before: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores); "
+        f"medians of {args.repeat} pandas/import pairs"
+    )
     print(
         f"{'rows':>10} {'CSV MB':>7} | {'pandas s':>8} {'CPU s':>6} {'MB':>5} | "
         f"{'import s':>8} {'CPU s':>6} {'MB':>5} | {'ratio':>5} {'CPU':>5} | "
@@ -113,15 +125,22 @@ def main() -> None:
         for rows in counts:
             path, out = Path(tmp) / f"r{rows}.csv", Path(tmp) / f"r{rows}.h5"
             write_csv(path, rows)
-            ref = child("pandas", path, out)
-            imp = child("import", path, out)
+            refs, imps = [], []
+            for _ in range(max(1, args.repeat if rows < 10**8 else 1)):
+                out.unlink(missing_ok=True)
+                refs.append(child("pandas", path, out))
+                imps.append(child("import", path, out))
             lst = child("sessions", path, out)
-            assert imp["rows"] == ref["rows"] == lst["rows"] == rows, (imp, ref, lst)
+            assert all(r["rows"] == rows for r in (*refs, *imps, lst)), (refs, imps, lst)
+            ref, imp = _median(refs), _median(imps)
+            pairs = list(zip(refs, imps, strict=True))
+            ratio = float(np.median([i["wall_s"] / r["wall_s"] for r, i in pairs]))
+            ratio_cpu = float(np.median([i["cpu_s"] / r["cpu_s"] for r, i in pairs]))
             print(
                 f"{rows:>10.0e} {path.stat().st_size / 1e6:>7.0f} | {ref['wall_s']:>8.2f} "
                 f"{ref['cpu_s']:>6.2f} {ref['peak_bytes'] / 1e6:>5.0f} | {imp['wall_s']:>8.2f} "
                 f"{imp['cpu_s']:>6.2f} {imp['peak_bytes'] / 1e6:>5.0f} | "
-                f"{imp['wall_s'] / ref['wall_s']:>5.2f} {imp['cpu_s'] / ref['cpu_s']:>5.2f} | "
+                f"{ratio:>5.2f} {ratio_cpu:>5.2f} | "
                 f"{lst['wall_s']:>10.2f} {lst['peak_bytes'] / 1e6:>5.0f}",
                 flush=True,
             )

@@ -76,6 +76,26 @@ def test_grasps_of_a_tissue_that_pulls_on_release_are_found() -> None:
     assert min(free_read_free) > 0.9, free_read_free
 
 
+def test_free_jaws_held_still_between_grasps_are_free() -> None:
+    """Paper-form grasp sessions whose jaws rest open between grasps: the stretches at the
+    free-jaw level take in the first and last few noise SDs of the grasps beside them,
+    and a damped tissue pulls the force below that level at each release; neither makes
+    the held jaws tissue. Of 40 such sessions 21 were read as one contact, now 9 (the
+    limit leaves room for 3 more; those left have a closure quantised coarser than its
+    noise, on which held jaws and a slow turn look alike)."""
+    from tissuecli.sim.scenes import FAMILIES as SCENE_FAMILIES
+    from tissuecli.sim.scenes import random_scene
+
+    paper = [name for name in SCENE_FAMILIES if name.startswith("paper")]
+    whole = sum(
+        find_contact(
+            random_scene(seed, families=paper, max_samples=20000, contact="grasps").session
+        ).all_contact
+        for seed in range(40)
+    )
+    assert whole <= 12, whole
+
+
 @settings(
     max_examples=25,
     deadline=None,

@@ -17,7 +17,14 @@ force follows the closure or the closure speed (the damping term), beyond what t
 smoothed noise explains; or the force falls well below that level elsewhere for more
 than :data:`BELOW_FRACTION` of the session (free jaws read the lowest level there
 is; damping pulls a grasped tissue's force below it while the jaws open and turn).
-Either way the stretch is not free jaw motion. A dip that ends with the jaws still
+Either way the stretch is not free jaw motion, unless its jaws are held still through
+its middle half and its force keeps one level there: such a stretch is free whatever
+its ends do (they take in the first and last few noise SDs of the grasps beside it,
+whose force follows the closure). Where the lowest force has no free stretch (a damped
+tissue pulls the force below the free-jaw level at every release), the level the force
+rests at most often is tried for jaws held still; once such jaws cover
+:data:`MIN_FREE_FRACTION` of the session, a dip below their level is a grasped tissue
+pulling and no sign against them. A dip that ends with the jaws still
 opening fast is the other case: a tissue pulled on jaws opening faster than it
 recovers until it let go, at the end of a grasp; such dips are in contact (a force
 far from the baseline either way is tissue's) and say nothing against free jaws.
@@ -55,6 +62,12 @@ BELOW_FRACTION = 0.005
 #: fraction of the dip's fastest speed (or closing) is the jaws turning in contact, not a
 #: tissue letting go of jaws that go on opening
 TURN_FRACTION = 0.3
+#: a stretch at the lowest force whose middle half keeps the smoothed closure within
+#: this many of its noise SDs is jaws held still, free: its ends take in the first and last few
+#: noise SDs of the grasps beside it, whose force follows the closure
+STILL_SD = 8.0
+#: most bins of the histogram that finds the level the force rests at most
+MAX_BINS = 4096
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
 
@@ -125,7 +138,13 @@ def find_contact(session: Session) -> Contact:
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
-    baseline, free = _baseline(smooth, closure, noise, dt, width)
+    # jaws held still, told from a slow turn only where the position's noise resolves
+    # its steps (a closure quantised coarser than its noise stays on one step through
+    # both)
+    step_d = np.diff(session.position)
+    resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
+    still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
+    baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -179,7 +198,7 @@ def _moving_mean(f: Array, width: int) -> Array:
 
 
 def _baseline(
-    smooth: Array, closure: Array, noise: float, dt: float, width: int = 1
+    smooth: Array, closure: Array, noise: float, dt: float, width: int = 1, still: float = 0.0
 ) -> tuple[float, float]:
     """The lowest level the smoothed force rests at for long stretches (free jaws), and
     the fraction of the session spent within a few noise SDs of it (0 when there is no
@@ -187,19 +206,58 @@ def _baseline(
 
     ``width`` is the moving mean's width in samples: the smoothed noise has SD
     ``noise / sqrt(width)`` and is nearly independent ``width`` samples apart.
+    ``still`` (m): jaws whose smoothed closure moves less than this are held still.
+
+    The floor is the force's 2nd percentile; where no free stretch rests there (a
+    damped tissue pulls the force below the free-jaw level at every release), the
+    level the force rests at most often in its lower half, if the jaws are held still
+    there.
     """
-    floor = float(np.percentile(smooth, 2))
+    level, free = _baseline_at(float(np.percentile(smooth, 2)), smooth, closure, noise, dt,
+                               width, still)  # fmt: skip
+    if free > 0 or still <= 0:
+        return level, free
+    step = max(width, 1)
+    lo, mid = np.percentile(smooth, [2, 50])
+    bin_n = max(noise / np.sqrt(step), 1e-12 * max(abs(mid), 1.0))
+    if not mid > lo + bin_n:
+        return level, free
+    bins = int(min(np.ceil((mid - lo) / bin_n), MAX_BINS))  # noiseless: a bounded count
+    counts, edges = np.histogram(smooth, bins=bins, range=(lo, mid))
+    mode = 0.5 * float(edges[int(np.argmax(counts))] + edges[int(np.argmax(counts)) + 1])
+    rest, free_rest = _baseline_at(mode - 0.5 * ENTER_SD * noise, smooth, closure, noise,
+                                   dt, width, still, only_still=True)  # fmt: skip
+    return (rest, free_rest) if free_rest > 0 else (level, free)
+
+
+def _baseline_at(
+    floor: float,
+    smooth: Array,
+    closure: Array,
+    noise: float,
+    dt: float,
+    width: int,
+    still: float,
+    only_still: bool = False,
+) -> tuple[float, float]:
+    """:func:`_baseline` from the stretches within ``ENTER_SD`` noise SDs above
+    ``floor`` (N); ``only_still``: only those whose jaws are held still are free."""
     band = max(ENTER_SD * noise, 1e-12 * max(abs(floor), 1.0))
     near = smooth <= floor + band
     step = max(width, 1)
     speed = np.gradient(closure, dt)
     overall = _follow(closure[::step], speed[::step], smooth[::step])
     long_free = np.zeros_like(near)
+    held = np.zeros_like(near)  # free stretches whose jaws are held still
     for start, stop in _runs(near):
         if (stop - start) * dt < MIN_GRASP_S:
             continue
         cut = slice(start, stop, step)
-        if _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
+        quarter = (stop - start) // 4
+        middle = slice(start + quarter, stop - quarter)
+        if np.ptp(closure[middle]) <= still and _flat(smooth[middle][::step], noise, step):
+            held[start:stop] = True  # free, whatever the grasps beside it add at its ends
+        elif only_still or _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
         long_free[start:stop] = True
     if not np.any(long_free):
@@ -209,6 +267,10 @@ def _baseline(
     # unless each dip ends with the jaws still opening fast: a tissue that pulls on jaws
     # opening faster than it recovers, until it lets go (a grasp's release). A tissue in
     # contact throughout dips while damping outweighs its spring, until the jaws turn.
+    # Jaws held still at the level for MIN_FREE_FRACTION of the session are free jaws
+    # seen: a dip elsewhere is then a grasped tissue pulling, not a sign against them.
+    if np.mean(held) >= MIN_FREE_FRACTION:
+        return level, float(np.mean(long_free))
     below = smooth < level - ENTER_SD * noise / np.sqrt(step)
     turning = np.zeros_like(below)
     for start, stop in _runs(_close_gaps(below, 2 * step)):  # one dip, however noisy
@@ -219,6 +281,17 @@ def _baseline(
     if np.mean(turning) > BELOW_FRACTION:
         return level, 0.0
     return level, float(np.mean(long_free))
+
+
+def _flat(y: Array, noise: float, width: int) -> bool:
+    """Whether the smoothed force ``y`` (taken every ``width`` samples, so its noise of SD
+    ``noise / sqrt(width)`` is nearly independent) keeps one level: the means of its
+    halves within :data:`FOLLOW_T` standard errors. A hold relaxing is not flat."""
+    h = y.size // 2
+    if h < 2:
+        return False
+    se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
+    return bool(abs(float(np.mean(y[h:]) - np.mean(y[:h]))) <= FOLLOW_T * se)
 
 
 def _follow(x: Array, v: Array, y: Array) -> list[tuple[float, float]]:
