@@ -29,6 +29,7 @@ from ..core.errors import FitError
 from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
 from ..core.terms import Law, term
+from .blas import one_blas_thread
 from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
@@ -183,6 +184,11 @@ class BayesianFit(Estimator):
             If the session cannot identify anything (too short, constant, not finite);
             no fitted attribute is set then.
         """
+        with one_blas_thread():
+            return self._fit(session)
+
+    def _fit(self, session: Session) -> BayesianFit:
+        """:meth:`fit`, with BLAS on one thread."""
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         self._strategy = search_strategy(self.search)
