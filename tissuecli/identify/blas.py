@@ -22,15 +22,18 @@ _limits: Any = None
 
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
-    """BLAS limited to one thread inside; restored when the last of the fits running
-    at once in this process leaves (one ending never lets another's threads back)."""
+    """BLAS limited to one thread inside; restored as the first of the fits running at
+    once in this process found it when the last of them leaves (one ending never lets
+    another's threads back). Each entrant sets the limit itself, in case its BLAS
+    keeps it per calling thread."""
     global _depth, _limits
-    with _lock:
-        if _depth == 0:
-            # loaded here: importing the fit stays light
-            from threadpoolctl import threadpool_limits
+    # loaded here: importing the fit stays light
+    from threadpoolctl import threadpool_limits
 
-            _limits = threadpool_limits(limits=1, user_api="blas")
+    with _lock:
+        limits = threadpool_limits(limits=1, user_api="blas")
+        if _depth == 0:
+            _limits = limits
         _depth += 1
     try:
         yield
