@@ -5,8 +5,8 @@ Each scene of ``random_scene(seed, families=["friction", "friction+offset"],
 contact="continuous", max_samples=N)`` is fitted with its own law on its first 70 %
 (the default seed of the fit) and predicted on the rest; the held-out RMS error
 against the noise-free force is divided by the floor, the best cubic Savitzky-Golay
-smoother of the measured force against the same truth (as in
-``tests/identify/test_predict_friction.py``).
+smoother of the measured force against the same truth (``generalisation.sg_floor``,
+as in ``tests/identify/test_predict_friction.py``).
 
 Usage::
 
@@ -20,22 +20,12 @@ import os
 import time
 
 import numpy as np
-from scipy.signal import savgol_filter
+from generalisation import sg_floor as floor
 
 from tissuecli.identify import BayesianFit
 from tissuecli.sim.scenes import random_scene
 
 FRICTION = ["friction", "friction+offset"]
-
-
-def floor(measured: np.ndarray, truth: np.ndarray) -> float:
-    """The best cubic Savitzky-Golay smoother of the measured force against the truth, N."""
-    windows = sorted({int(w) | 1 for w in np.geomspace(5, max(5, measured.size // 3), 24)})
-    return min(
-        float(np.sqrt(np.mean((savgol_filter(measured, w, 3) - truth) ** 2)))
-        for w in windows
-        if w <= measured.size
-    )
 
 
 def scene_figures(seed: int, max_samples: int) -> dict[str, object]:

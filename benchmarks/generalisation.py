@@ -83,12 +83,14 @@ def prediction(est: BayesianFit, rest: Session) -> tuple[np.ndarray, np.ndarray]
     return pred[ok], idx[ok]
 
 
-def sg_floor(measured: np.ndarray, truth: np.ndarray, idx: np.ndarray) -> float:
-    """RMS error against ``truth`` at ``idx`` of the best cubic Savitzky-Golay smoother of
-    ``measured`` (windows 5 samples to a third of the series, geometrically spaced)."""
+def sg_floor(measured: np.ndarray, truth: np.ndarray, idx: np.ndarray | None = None) -> float:
+    """RMS error against ``truth`` at ``idx`` (every sample when None) of the best cubic
+    Savitzky-Golay smoother of ``measured`` (windows 5 samples to a third of the series,
+    geometrically spaced)."""
     from scipy.signal import savgol_filter
 
     n = measured.size
+    idx = np.arange(n) if idx is None else idx
     top = max(5, n // 3)
     windows = sorted({int(w) | 1 for w in np.geomspace(5, top, 24)})
     best = np.inf

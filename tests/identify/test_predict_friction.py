@@ -4,13 +4,19 @@ the true force of random scenes held out."""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
-from scipy.signal import savgol_filter
 
-from tissuecli.core.session import Session
-from tissuecli.identify import BayesianFit
-from tissuecli.sim.scenes import Scene, random_scene
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+from generalisation import sg_floor as _floor  # noqa: E402
+
+from tissuecli.core.session import Session  # noqa: E402
+from tissuecli.identify import BayesianFit  # noqa: E402
+from tissuecli.sim.scenes import Scene, random_scene  # noqa: E402
 
 FRICTION = ["friction", "friction+offset"]
 
@@ -22,16 +28,6 @@ def _split(scene: Scene) -> tuple[Session, Session, int]:
         s.replace(s.time[:i], s.force[:i], s.position[:i]),
         s.replace(s.time[i:], s.force[i:], s.position[i:]),
         i,
-    )
-
-
-def _floor(measured: np.ndarray, truth: np.ndarray) -> float:
-    """The best cubic Savitzky-Golay smoother of the measured force against the truth."""
-    windows = sorted({int(w) | 1 for w in np.geomspace(5, max(5, measured.size // 3), 24)})
-    return min(
-        float(np.sqrt(np.mean((savgol_filter(measured, w, 3) - truth) ** 2)))
-        for w in windows
-        if w <= measured.size
     )
 
 
