@@ -22,6 +22,8 @@ import subprocess
 import sys
 import time
 
+from _busy import busy
+
 PLAYED = re.compile(
     r"played [\d.]+ s: (\d+) frames at ([\d.]+) Hz \(period p99 ([\d.]+) ms, max ([\d.]+) ms\)"
     r".*?(\d+) periods without a frame"
@@ -37,14 +39,11 @@ def main() -> None:
     ap.add_argument("--busy", type=int, default=2)
     ap.add_argument("--duration", type=float, default=2.0)
     args = ap.parse_args()
-    hogs = [
-        subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.busy)
-    ]
-    print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
-    print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} {'watchdog':>8} "
-          f"{'missed':>6} {'late':>5} {'run':>4} {'limit':>5} {'s':>5}  faults")
     passed = 0
-    try:
+    with busy(args.busy):
+        print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
+        print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} "
+              f"{'watchdog':>8} {'missed':>6} {'late':>5} {'run':>4} {'limit':>5} {'s':>5}  faults")
         for run in range(args.runs):
             t0 = time.monotonic()
             done = subprocess.run(
@@ -73,10 +72,6 @@ def main() -> None:
                 f"{time.monotonic() - t0:5.0f}  {faults}",
                 flush=True,
             )
-    finally:
-        for hog in hogs:
-            hog.kill()
-            hog.wait()
     print(f"{passed} of {args.runs} runs exited 0; load average after: {os.getloadavg()[0]:.2f}")
 
 

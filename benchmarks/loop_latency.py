@@ -29,10 +29,10 @@ import os
 import pty
 import select
 import struct
-import subprocess
-import sys
 import time
 import tty
+
+from _busy import busy
 
 from tissuecli.hw.realtime import wait_until
 
@@ -160,16 +160,9 @@ def main() -> None:
         f"{'max ms':>7} {'load1':>6}"
     )
     measure("idle", args.seconds)
-    hogs = [
-        subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.busy)
-    ]
-    try:
+    with busy(args.busy):
         time.sleep(1.0)
         measure(f"busy x{args.busy}", args.seconds)
-    finally:
-        for hog in hogs:
-            hog.kill()
-            hog.wait()
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 

@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from _busy import busy
 
 from tissuecli.app.live import live
 from tissuecli.app.play import play
@@ -99,13 +99,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         print(head, flush=True)
         for load in ("idle", f"busy x{args.busy}"):
-            hogs = []
-            if load != "idle":
-                hogs = [
-                    subprocess.Popen([sys.executable, "-c", "while 1: pass"])
-                    for _ in range(args.busy)
-                ]
-            try:
+            with busy(args.busy if load != "idle" else 0):
                 for run in range(args.runs):
                     for label in labels:
                         loop, rt = VARIANTS[label]
@@ -123,10 +117,6 @@ def main() -> None:
                             disp.stop()
                 if args.live > 0:
                     lives.append(_live(Path(tmp), load, args))
-            finally:
-                for hog in hogs:
-                    hog.kill()
-                    hog.wait()
     if lives:
         print()
         print(

@@ -59,6 +59,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "formats"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _busy import busy  # noqa: E402
 from storage_faults import Tmpfs  # noqa: E402
 
 from tests.app.fakedevice import TICKS, FakeForceps, good_info, sample_frames  # noqa: E402
@@ -1320,20 +1321,12 @@ def _(ctx: Ctx) -> None:
 )
 def _(ctx: Ctx) -> None:
     params_file(ctx.root / "p.json")
-    busy = [
-        subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)
-    ]  # fmt: skip
-    try:
-        with ctx.sim("display"):
-            ctx.begin()
-            s = ctx.run(
-                "play", "p.json", "--port", "display", "--duration", 5,
-                "--summary", "s.json", "--log", "plays.h5", expect=(0, 3, 4, 5, 6, 7),
-            )  # fmt: skip
-    finally:
-        for p in busy:
-            p.kill()
-            p.wait()
+    with busy(2), ctx.sim("display"):
+        ctx.begin()
+        s = ctx.run(
+            "play", "p.json", "--port", "display", "--duration", 5,
+            "--summary", "s.json", "--log", "plays.h5", expect=(0, 3, 4, 5, 6, 7),
+        )  # fmt: skip
     summary_path = ctx.root / "s.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
     if s.code == 0:
