@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_data  # noqa: E402
 
 from tissuecli.identify import BayesianFit  # noqa: E402
-from tissuecli.sim.synth import ForcepsModel, synthesize  # noqa: E402
+from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize  # noqa: E402
 
 
 def cpu(fn: object) -> float:
@@ -47,12 +47,14 @@ def load() -> str:
 def main() -> None:
     repeats = int(sys.argv[1]) if len(sys.argv) > 1 and sys.argv[1].isdigit() else 5
     print(f"load average {load()}")
-    paper = synthesize(ForcepsModel(seed=1), 10.0)[0]
-    cpu(lambda: BayesianFit().fit(paper))  # loads SciPy
-    times = [cpu(lambda: BayesianFit().fit(paper)) for _ in range(repeats)]
-    print(f"default fit, 10 s at 1 kHz ({len(paper)} samples): CPU median "
-          f"{np.median(times):.2f} s, min {min(times):.2f} s of {repeats} (goal 0.5 s)",
-          flush=True)  # fmt: skip
+    # the session of benchmarks/search_timing.py, and the simulated forceps' own sensors
+    for bits in (16, 8):
+        paper = synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=bits)), 10.0)[0]
+        cpu(lambda p=paper: BayesianFit().fit(p))  # loads SciPy
+        times = [cpu(lambda p=paper: BayesianFit().fit(p)) for _ in range(repeats)]
+        print(f"default fit, 10 s at 1 kHz, {bits}-bit ({len(paper)} samples): CPU median "
+              f"{np.median(times):.2f} s, min {min(times):.2f} s of {repeats} (goal 0.5 s)",
+              flush=True)  # fmt: skip
     long = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), 60.0)[0]
     times = [cpu(lambda: BayesianFit().fit(long)) for _ in range(3)]
     print(f"default fit, 60 s at 10 kHz ({len(long)} samples): CPU median "
