@@ -5,7 +5,7 @@ recordings' own commands (data/recordings.json) and as a plain ``tissuecli fit F
 
 Usage::
 
-    python benchmarks/time_budget.py [REPEATS] [--skip-data]
+    python benchmarks/time_budget.py [REPEATS] [--skip-data | --data-only]
 
 CPU seconds of this process (``time.process_time``): on a shared machine wall time
 measures the queue. The 10 s session's figure is the median of REPEATS fits (default 5)
@@ -47,25 +47,30 @@ def load() -> str:
 def main() -> None:
     repeats = int(sys.argv[1]) if len(sys.argv) > 1 and sys.argv[1].isdigit() else 5
     print(f"load average {load()}")
+    data_only = "--data-only" in sys.argv
     # the session of benchmarks/search_timing.py, and the simulated forceps' own sensors
-    for bits in (16, 8):
+    for bits in () if data_only else (16, 8):
         paper = synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=bits)), 10.0)[0]
         cpu(lambda p=paper: BayesianFit().fit(p))  # loads SciPy
         times = [cpu(lambda p=paper: BayesianFit().fit(p)) for _ in range(repeats)]
         print(f"default fit, 10 s at 1 kHz, {bits}-bit ({len(paper)} samples): CPU median "
               f"{np.median(times):.2f} s, min {min(times):.2f} s of {repeats} (goal 0.5 s)",
               flush=True)  # fmt: skip
-    long = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), 60.0)[0]
-    times = [cpu(lambda: BayesianFit().fit(long)) for _ in range(3)]
-    print(f"default fit, 60 s at 10 kHz ({len(long)} samples): CPU median "
-          f"{np.median(times):.2f} s, max {max(times):.2f} s of 3 (goal 5 s)",
-          flush=True)  # fmt: skip
+    if not data_only:
+        long = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), 60.0)[0]
+        times = [cpu(lambda: BayesianFit().fit(long)) for _ in range(3)]
+        print(f"default fit, 60 s at 10 kHz ({len(long)} samples): CPU median "
+              f"{np.median(times):.2f} s, max {max(times):.2f} s of 3 (goal 5 s)",
+              flush=True)  # fmt: skip
     if "--skip-data" not in sys.argv:
         with tempfile.TemporaryDirectory() as tmp:
             for entry in real_data.manifest():
                 lines = sum(1 for _ in open(real_data.DATA / entry["file"], "rb"))
-                own = cpu(lambda e=entry: real_data.run(e, Path(tmp)))
-                plain = cpu(lambda e=entry: real_data.run({**e, "fit": []}, Path(tmp)))
+                own_dir, plain_dir = Path(tmp, "own"), Path(tmp, "plain")
+                own_dir.mkdir(exist_ok=True)
+                plain_dir.mkdir(exist_ok=True)
+                own = cpu(lambda e=entry, d=own_dir: real_data.run(e, d))
+                plain = cpu(lambda e=entry, d=plain_dir: real_data.run({**e, "fit": []}, d))
                 print(f"{entry['file']} ({lines} lines): import and fit CPU {own:.2f} s with its "
                       f"own options, {plain:.2f} s with none (goal 10 s)", flush=True)  # fmt: skip
     print(f"load average {load()}")
