@@ -96,16 +96,41 @@ class RecordResult:
     identify_note: str = ""
 
 
+@dataclass(frozen=True)
+class RecordOptions:
+    """What a recording takes whatever the device speaks (:func:`record`'s keywords but
+    the text logger's reading): the binary and the text recorders read it alike."""
+
+    duration_s: float | None = None
+    tissue: str = ""
+    note: str = ""
+    calibration: Calibration | None = None
+    baudrate: int | None = None
+    stop: StopFlag = field(default_factory=StopFlag)
+    on_status: Callable[[RecordStatus], None] | None = None
+    status_interval_s: float = 0.5
+    flush_interval_s: float = 0.25
+    idle_timeout_s: float = 2.0
+    on_samples: Callable[[SampleBlock], None] | None = None
+    identify: bool = True
+    forgetting_s: float = 5.0
+
+
+#: the protocols :func:`record` speaks
+PROTOCOLS = ("binary", "text")
+
+
 def record(
     url: str,
     out: str | os.PathLike[str],
     session: str,
     *,
+    protocol: str = "binary",
     duration_s: float | None = None,
     tissue: str = "",
     note: str = "",
     calibration: Calibration | None = None,
-    baudrate: int = DEFAULT_BAUD,
+    baudrate: int | None = None,
     stop: StopFlag | None = None,
     on_status: Callable[[RecordStatus], None] | None = None,
     status_interval_s: float = 0.5,
@@ -114,6 +139,9 @@ def record(
     on_samples: Callable[[SampleBlock], None] | None = None,
     identify: bool = True,
     forgetting_s: float = 5.0,
+    columns: str | None = None,
+    units: str | None = None,
+    jaw_length_m: float | None = None,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -121,7 +149,9 @@ def record(
     clock stamp and sequence number against what the last good frames predict
     (:class:`~tissuecli.core.clock.TimeBase`), so stored time is strictly increasing
     whatever the device sends. The session is created when the first sample is kept;
-    a recording that keeps none leaves nothing behind.
+    a recording that keeps none leaves nothing behind. A logger that prints lines of
+    text (``protocol="text"``) is read as ``import`` reads files
+    (:mod:`tissuecli.app.record_text`).
 
     Parameters
     ----------
@@ -131,15 +161,19 @@ def record(
         HDF5 file; created if missing. Existing sessions are never touched.
     session : str
         Name of the new session; refused if the file already has it.
+    protocol : {"binary", "text"}
+        tissuecli's framed protocol, or a logger printing lines of text.
     duration_s : float, optional
         Stop after this much device time (s, on the repaired time base); otherwise run
         until ``stop``.
     tissue, note : str
         Stored with the session.
     calibration : Calibration, optional
-        Counts-to-SI conversion; by default the one the device reports.
-    baudrate : int
-        Line rate, bit/s.
+        Counts-to-SI conversion; by default the one the device reports. A text logger
+        that prints ADC counts for force and position: SI = gain * counts + offset
+        (``units`` may then name the time column's unit only).
+    baudrate : int, optional
+        Line rate, bit/s [default: 921600 binary, 115200 text].
     stop : StopFlag, optional
         Polled every read; SIGINT/SIGTERM handlers set it for a clean stop.
     on_status : callable, optional
@@ -160,24 +194,60 @@ def record(
         in it stops the identification, never the recording.
     forgetting_s : float
         Forgetting time constant of the online identification, s.
+    columns, units, jaw_length_m
+        Text only: as for ``import``
+        (:func:`tissuecli.formats.recording.read_recording`).
 
     Raises
     ------
     DeviceError
-        If the device reports an unusable Info, or the recording is stopped before
-        any sample was kept (nothing is written then).
+        If the device reports an unusable Info, a text logger prints nothing that
+        reads as samples, or the recording is stopped before any sample was kept
+        (nothing is written then).
     DeviceLost
         If the device vanishes; everything kept until then is saved first.
+    InputError
+        For options that do not fit the protocol or the lines.
     """
+    if protocol not in PROTOCOLS:
+        raise InputError(f"unknown protocol {protocol!r}; choose binary or text")
     if duration_s is not None and not duration_s > 0:
         raise InputError("--duration must be a positive number of seconds")
+    given = [n for n, v in (("columns", columns), ("units", units),
+                            ("jaw-length", jaw_length_m)) if v is not None]  # fmt: skip
+    if protocol != "text" and given:
+        raise InputError(f"--{given[0]} is for --protocol text")
     check_name(session, "session")
-    stop = stop if stop is not None else StopFlag()
+    options = RecordOptions(
+        duration_s=duration_s,
+        tissue=tissue,
+        note=note,
+        calibration=calibration,
+        baudrate=baudrate,
+        stop=stop if stop is not None else StopFlag(),
+        on_status=on_status,
+        status_interval_s=status_interval_s,
+        flush_interval_s=flush_interval_s,
+        idle_timeout_s=idle_timeout_s,
+        on_samples=on_samples,
+        identify=identify,
+        forgetting_s=forgetting_s,
+    )
     out = Path(out)
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
-    _check_not_stopped(stop, url)
-    link = Forceps(url, baudrate=baudrate).open(
+    _check_not_stopped(options.stop, url)
+    if protocol == "text":
+        from .record_text import record_lines
+
+        return record_lines(url, out, session, options, columns, units, jaw_length_m)
+    return _record_frames(url, out, session, options)
+
+
+def _record_frames(url: str, out: Path, session: str, options: RecordOptions) -> RecordResult:
+    """:func:`record` from a forceps speaking the framed protocol, its arguments checked."""
+    stop, calibration, duration_s = options.stop, options.calibration, options.duration_s
+    link = Forceps(url, baudrate=options.baudrate or DEFAULT_BAUD).open(
         require_info=calibration is None,
         no_info_hint="; for a forceps that streams without identifying, give --calibration FILE"
         "; for a logger that prints lines of text, --protocol text",
@@ -192,8 +262,8 @@ def record(
         clock_hz = float((info or {}).get("clock_hz", DEFAULT_CLOCK_HZ))
         rate_hz = float((info or {}).get("rate_hz", math.nan))
         meta = {
-            "tissue": tissue,
-            "note": note,
+            "tissue": options.tissue,
+            "note": options.note,
             "start_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
             "source": f"serial:{url}",
             "device": info or {},
@@ -207,17 +277,17 @@ def record(
                 session,
                 meta=meta,
                 calibration=cal.as_dict(),
-                flush_interval_s=flush_interval_s,
+                flush_interval_s=options.flush_interval_s,
             )
 
         timebase: TimeBase[Sample] = TimeBase(
             clock_hz / rate_hz if math.isfinite(rate_hz) else None,
             limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
-        online = _Online(rate_hz, forgetting_s) if identify else None
+        online = _Online(rate_hz, options.forgetting_s) if options.identify else None
         if online is not None:
             online.prepare()
-        listeners = [f for f in (online, on_samples) if f is not None]
+        listeners = [f for f in (online, options.on_samples) if f is not None]
 
         def listen(block: SampleBlock) -> None:
             for f in listeners:
@@ -232,11 +302,11 @@ def record(
                 link,
                 Sample,
                 stop=stop,
-                idle_timeout_s=idle_timeout_s,
-                status_interval_s=status_interval_s,
+                idle_timeout_s=options.idle_timeout_s,
+                status_interval_s=options.status_interval_s,
                 track_sequence=False,  # the time base counts losses among kept frames
             ),
-            on_status,
+            options.on_status,
         )
     finally:
         link.close()
@@ -570,7 +640,6 @@ def record_live(
     on_status: Callable[[RecordStatus], None] | None = None,
     on_samples: Callable[[SampleBlock], None] | None = None,
     status_interval_s: float = 0.5,
-    recorder: Callable[..., RecordResult] | None = None,
     **options: Any,
 ) -> RecordResult:
     """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
@@ -581,9 +650,7 @@ def record_live(
     memory; the pages are served from another process, which ends with this one. The
     view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
-    and once at the end. ``recorder`` records (:func:`record` by default; a text
-    logger's is :func:`tissuecli.app.record_text.record_text`).
-    Other parameters as :func:`record`.
+    and once at the end. Other parameters (``protocol`` among them) as :func:`record`.
     """
     from ..live.server import LiveServer, parse_address
     from ..live.state import LiveState
@@ -613,7 +680,7 @@ def record_live(
         with LiveServer(state, host, port) as server:
             on_url(server.url)
             try:
-                return (recorder or record)(
+                return record(
                     url,
                     out,
                     session,
