@@ -16,7 +16,6 @@ arrival times. Malformed lines are counted, never fatal.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from datetime import datetime, timezone
@@ -48,14 +47,13 @@ from ..hw.text import (
     read_lines,
     sniff_dialect,
 )
-from .record import (
+from .recording import (
+    Online,
     RecordOptions,
     RecordResult,
     RecordStatus,
     SampleBlock,
-    _check_not_stopped,
-    _Online,
-    record,
+    check_not_stopped,
 )
 
 #: lines read to learn the dialect and columns, and how long to wait for them, s
@@ -65,14 +63,6 @@ SNIFF_S = 2.0
 MIN_RATE_HZ = 1.0
 #: line rate when none is given: what Arduino sketches use most
 TEXT_BAUD = 115200
-
-
-def record_text(
-    url: str, out: str | os.PathLike[str], session: str, **options: Any
-) -> RecordResult:
-    """:func:`tissuecli.app.record.record` with ``protocol="text"``: its keywords, the
-    text logger's ``columns``, ``units`` and ``jaw_length_m`` among them."""
-    return record(url, out, session, protocol="text", **options)
 
 
 def record_lines(
@@ -112,13 +102,13 @@ def record_lines(
             "--calibration turns counts into N and m; give --units for time only "
             "(e.g. --units time=ms), or leave --calibration out"
         )
-    online = _Online(math.nan, options.forgetting_s) if options.identify else None
+    online = Online(math.nan, options.forgetting_s) if options.identify else None
     if online is not None:
         online.prepare()  # slow (SciPy): before the lines start to queue
     link = TextLogger(url, baudrate=options.baudrate or TEXT_BAUD).open()
     try:
         first = read_lines(link, count=SNIFF_LINES, within_s=SNIFF_S)
-        _check_not_stopped(stop, url)
+        check_not_stopped(stop, url)
         if not first:
             raise DeviceError(
                 f"{url} printed no line within {SNIFF_S:g} s; is the logger running and "
@@ -411,7 +401,7 @@ class _TextRecording:
         rate_hz: float,
         duration_s: float | None,
         listeners: list[Callable[[SampleBlock], None]],
-        online: _Online | None,
+        online: Online | None,
     ) -> None:
         self.link, self.reader, self.open_writer = link, reader, open_writer
         self.out, self.session, self.meta = out, session, meta
