@@ -1,4 +1,5 @@
-"""Shared fixtures: simulated devices on real pseudo-terminals."""
+"""Shared fixtures: simulated devices on real pseudo-terminals, and device classes
+registered for one test."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tissuecli.hw.device import DEVICES, register
 from tissuecli.sim.process import SimulatorProcess
 
 
@@ -25,6 +27,25 @@ def forceps(tmp_path: Path) -> Iterator[callable]:
     yield start
     for sim in started:
         sim.stop()
+
+
+@pytest.fixture
+def registered_device() -> Iterator[callable]:
+    """Factory: ``registered_device(cls)`` puts a new kind of device in the registry for
+    this test and returns it; at teardown the entry is removed (and a class's
+    ``opened`` instance, if it keeps one, forgotten)."""
+    added: list[type] = []
+
+    def add(cls: type) -> type:
+        register(cls)
+        added.append(cls)
+        return cls
+
+    yield add
+    for cls in added:
+        DEVICES.pop(cls.kind, None)
+        if hasattr(cls, "opened"):
+            cls.opened = None
 
 
 def tissuecli(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
