@@ -3,6 +3,7 @@ registered for one test."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -12,6 +13,18 @@ import pytest
 
 from tissuecli.hw.device import DEVICES, register
 from tissuecli.sim.process import SimulatorProcess
+
+
+@pytest.fixture(autouse=True)
+def _signal_handlers_put_back() -> Iterator[None]:
+    """A long command run in this process (CliRunner) installs its stop flag for Ctrl-C,
+    SIGTERM and SIGHUP; put the handlers back, so that Ctrl-C still ends the test run."""
+    sigs = [getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    saved = {sig: signal.getsignal(sig) for sig in sigs}
+    yield
+    for sig, handler in saved.items():
+        if handler is not None and signal.getsignal(sig) is not handler:
+            signal.signal(sig, handler)
 
 
 @pytest.fixture
