@@ -355,14 +355,7 @@ def file_bytes(draw: st.DrawFn) -> bytes:
 COUNT = {"files": 0, "valid": 0, "refused": 0}
 
 
-@settings(
-    max_examples=400,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
-@given(file_bytes())
-def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+def _read_or_refuse(tmp_path_factory: pytest.TempPathFactory, content: bytes) -> None:
     path = _write(tmp_path_factory.mktemp("gen"), content)
     for what, reader in READERS.items():
         COUNT["files"] += 1
@@ -378,6 +371,30 @@ def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, conte
                 check(value)
             except InputError as exc:
                 _one_line(str(exc), path)
+
+
+# 150 fixed examples: about 20 of each of the seven kinds of file, each read by every
+# reader; the slow run draws 1000 new ones each time
+@settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(file_bytes())
+def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+    _read_or_refuse(tmp_path_factory, content)
+
+
+@pytest.mark.slow
+@settings(
+    max_examples=1000,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(file_bytes())
+def test_many_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+    _read_or_refuse(tmp_path_factory, content)
 
 
 # --------------------------------------------------------------------------- commands
