@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import traceback
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -70,6 +71,24 @@ def tissuecli(*args: str, **kwargs: object) -> subprocess.CompletedProcess[str]:
         timeout=kwargs.pop("timeout", 60),
         **kwargs,
     )  # type: ignore[arg-type]
+
+
+def tissuecli_here(*args: str) -> subprocess.CompletedProcess[str]:
+    """The command line run in this process (click's CliRunner), answered as
+    :func:`tissuecli` answers: for tests of what a command computes and prints, without
+    a new interpreter's start for each command. An exception that escapes the command
+    comes back as the traceback an interpreter would print, with exit status 1."""
+    from click.testing import CliRunner
+
+    from tissuecli.cli import cli
+
+    result = CliRunner().invoke(cli, list(args))
+    stderr = result.stderr
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        stderr += "Traceback (most recent call last):\n" + "".join(
+            traceback.format_exception(result.exception)
+        )
+    return subprocess.CompletedProcess(list(args), result.exit_code, result.stdout, stderr)
 
 
 def popen(*args: str) -> subprocess.Popen[str]:
