@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _malformed import Spec, clean, specs, write_spec  # noqa: E402
 from test_storage import make_raw, make_session  # noqa: E402
 
-from ..conftest import assert_clean_error, tissuecli  # noqa: E402
+from ..conftest import assert_clean_error, tissuecli_here  # noqa: E402
 
 SETTINGS = settings(
     max_examples=200,
@@ -194,30 +194,30 @@ def test_read_group_refuses_text_columns(tmp_path: Path) -> None:
 
 def test_command_line_on_damaged_files(tmp_path: Path) -> None:
     text = _session_file(tmp_path, _replace("force", np.array([b"1.0"] * 300)))
-    listed = tissuecli("sessions", str(text))
+    listed = tissuecli_here("sessions", str(text))
     assert listed.returncode == 0, listed.stderr
     assert "damaged" in listed.stdout and "force holds text" in listed.stdout
-    rows = json.loads(tissuecli("sessions", str(text), "--json").stdout)
+    rows = json.loads(tissuecli_here("sessions", str(text), "--json").stdout)
     assert rows[0]["status"].startswith("damaged: dataset force holds text")
-    assert_clean_error(tissuecli("fit", str(text)), "is damaged", "force holds text")
+    assert_clean_error(tissuecli_here("fit", str(text)), "is damaged", "force holds text")
     out = tmp_path / "x.csv"
     assert_clean_error(
-        tissuecli("export", str(text), "--csv", str(out)), "is damaged", "force holds text"
+        tissuecli_here("export", str(text), "--csv", str(out)), "is damaged", "force holds text"
     )
     assert not out.exists()
 
     truncated = tmp_path / "cut.h5"
     truncated.write_bytes(text.read_bytes()[:3000])
     for args in (["sessions"], ["fit"], ["export", "--csv", str(out)]):
-        assert_clean_error(tissuecli(args[0], str(truncated), *args[1:]), "truncated")
+        assert_clean_error(tissuecli_here(args[0], str(truncated), *args[1:]), "truncated")
 
     (tmp_path / "m").mkdir()
     missing = _session_file(tmp_path / "m", lambda g: g.__delitem__("time"))
-    listed = tissuecli("sessions", str(missing))
+    listed = tissuecli_here("sessions", str(missing))
     assert listed.returncode == 0 and "time is missing" in listed.stdout, listed.stdout
 
     (tmp_path / "w").mkdir()
     odd = _session_file(tmp_path / "w", lambda g: g.attrs.__setitem__("frames_lost", "three"))
-    listed = tissuecli("sessions", str(odd))
+    listed = tissuecli_here("sessions", str(odd))
     (line,) = [ln for ln in listed.stdout.splitlines() if ln.startswith("s1 ")]
     assert "complete" in line and "(attribute frames_lost is text" in line, line
