@@ -80,6 +80,25 @@ def column_key(term: Term) -> str:
     return f"{term.name}|{term.symbol}|{shape}"
 
 
+def held_closure(x: Array, free: NDArray[np.bool_]) -> Array:
+    """The closure that drives a term with memory (a relaxation branch), shape (n,), m:
+    ``x`` in contact, and across each stretch of free jaws (``free``) the straight line
+    between the closures at its two edges (held at the one edge at either end).
+
+    The tissue is indented only in contact: while the jaws are open it relaxes at a
+    constant indentation, as if held at the contact closure, and the open jaws' travel
+    (away and back) is no strain of it. Driven by the raw closure, a branch of the
+    true law predicted the held-out grasps of random scenes 1.1-7 times the force's
+    noise floor; held, at the floor."""
+    x = np.asarray(x, dtype=float)
+    free = np.asarray(free, dtype=bool)
+    touching = np.flatnonzero(~free)
+    if not free.any() or touching.size == 0:
+        return x
+    i = np.arange(x.size)
+    return np.where(free, np.interp(i, touching, x[touching]), x)
+
+
 def raw_speed(kin: Kinematics, x_full: Array) -> tuple[float, Array]:
     """The sample interval (s) and the central-difference speed on the raw grid (m/s)
     that terms of the closure's history and of closure and speed together are formed
@@ -107,6 +126,8 @@ def _column(
         # the central-difference speed's noise is uncorrelated with the closure at the
         # same sample, so the product carries no noise bias
         dt, v_full = speed or raw_speed(kin, x_full)
+        if term.memory and kin.drive is not None:
+            x_full = kin.drive  # the tissue is not indented while the jaws are free
         return kin.smooth(term.series(dt, x_full, v_full, np.zeros_like(x_full)))
     return term(np.ones(kin.time.size))
 
