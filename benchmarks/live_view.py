@@ -210,8 +210,8 @@ def loop_parts(rate: float, duration: float, identify: bool, root: Path) -> None
         (rec._Recording, "_take", "a block, all of it"),
         (wr.SeriesWriter, "append", "writer append"),
         (wr.SeriesWriter, "flush", "writer flush"),
-        (rec._Online, "__call__", "identification update"),
-        (rec._Online, "estimate", "identification estimate"),
+        (rec.Online, "__call__", "identification update"),
+        (rec.Online, "estimate", "identification estimate"),
     ]:
         timed(cls, name, label)
     pauses: list[float] = []

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from tissuecli import formats  # noqa: E402
-from tissuecli.app.record_text import record_text  # noqa: E402
+from tissuecli.app.record import record as record_session  # noqa: E402
 from tissuecli.hw.text import MalformedLine, sniff_dialect  # noqa: E402
 from tissuecli.sim.process import SimulatorProcess  # noqa: E402
 from tissuecli.sim.synth import ForcepsModel  # noqa: E402
@@ -68,9 +68,10 @@ def record(rates: list[float], duration: float) -> None:
             args = ["--protocol", "text", "--rate", f"{rate:g}", "--broken", "0.01", "--seed", "2"]
             with SimulatorProcess("forceps", link, args):
                 cpu = time.process_time()
-                res = record_text(
-                    str(link), Path(tmp) / "t.h5", "t", duration_s=duration, identify=False
-                )
+                res = record_session(
+                    str(link), Path(tmp) / "t.h5", "t", protocol="text", duration_s=duration,
+                    identify=False,
+                )  # fmt: skip
                 cpu = time.process_time() - cpu
             s = formats.read_session(Path(tmp) / "t.h5")
             k0 = int(s.meta["device_stamp_first"] * rate // 1e6)

@@ -186,3 +186,20 @@ def test_a_display_is_not_recorded(tmp_path):
         )
     assert_clean_error(result, "not a forceps")
     assert not (tmp_path / "g.h5").exists()
+
+
+def test_one_record_service_refuses_what_its_protocol_cannot_use(tmp_path) -> None:
+    """``record`` serves both protocols: an unknown one, or a text logger's reading
+    options beside the binary protocol, are refused before any port is opened or file
+    written."""
+    from tissuecli.app.record import record as record_any
+    from tissuecli.core.errors import InputError
+
+    out = tmp_path / "r.h5"
+    with pytest.raises(InputError, match="unknown protocol 'serial'"):
+        record_any("/nonexistent", out, "s", protocol="serial")
+    with pytest.raises(InputError, match="--columns is for --protocol text"):
+        record_any("/nonexistent", out, "s", columns="time=1,force=2,position=3")
+    with pytest.raises(InputError, match="--jaw-length is for --protocol text"):
+        record_any("/nonexistent", out, "s", jaw_length_m=0.02)
+    assert not out.exists()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+from functools import partial
 
 import numpy as np
 import pytest
@@ -12,12 +13,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tissuecli import formats
-from tissuecli.app.record_text import record_text as record
+from tissuecli.app.record import record as record_any
 from tissuecli.core.errors import DeviceError, InputError
 from tissuecli.sim.synth import ForcepsModel
 from tissuecli.sim.textlogger import TextLogger
 
 from ..conftest import assert_clean_error, tissuecli
+
+#: the text logger's recording: the one record service with the text protocol
+record = partial(record_any, protocol="text")
 
 STARVED = "host starved of CPU (load average {:.1f} on {} cores): {} lines lost to a full port"
 

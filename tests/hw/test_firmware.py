@@ -24,7 +24,6 @@ import pytest
 
 from tissuecli import formats
 from tissuecli.app.record import record
-from tissuecli.app.record_text import record_text
 from tissuecli.hw.link import Link
 from tissuecli.hw.protocol import (
     FLAG_STALE,
@@ -256,7 +255,7 @@ def test_the_c_text_logger_at_1_khz_loses_no_line_and_counts_every_broken_one(ho
     rate, every = 1000.0, 97
     with device(host_build, "text", "1000", str(every)) as (path, _):
         out = tmp_path / "t.h5"
-        res = record_text(path, out, "t", duration_s=3.0, identify=False)
+        res = record(path, out, "t", protocol="text", duration_s=3.0, identify=False)
     load, cores = os.getloadavg()[0], os.cpu_count() or 1
     if res.lost_frames and load > cores:
         pytest.skip(f"host starved of CPU (load {load:.1f} on {cores} cores): lines lost")

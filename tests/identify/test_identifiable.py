@@ -72,3 +72,14 @@ def test_default_search_never_compares_what_the_design_cannot_tell_apart():
         names = {t.name for t in (r.family or r.model).terms}
         assert "xddot" not in names, r.name
         assert len(names & shared) <= 1, r.name
+
+
+def test_a_law_of_shaped_terms_alone_is_fitted():
+    """``--forms contact``: no column of the examined kind; the design is empty and the
+    law is fitted (once a traceback from stacking no columns)."""
+    s, _ = constant_speed(0, duration=4.0)
+    ready = BayesianFit(grasps="none").prepare(s)
+    d = examine(ready.kinematics, ready.session.position, names=[])
+    assert d.summary == "" and not d.unexcited
+    est = BayesianFit("contact", grasps="none").fit(s)
+    assert est.best_.name == "contact"

@@ -7,7 +7,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.calibration import Calibration, calibration_from_dict
-from ..core.clock import ClockFaults, ClockMap, Stamped, TimeBase, fit_clock_map
+from ..core.clock import ClockMap, Stamped, TimeBase, fit_clock_map
 from ..core.errors import DeviceError, DeviceLost, InputError
 from ..core.session import check_name
 from ..formats.outputs import Output, check_outputs
@@ -27,73 +27,19 @@ from ..hw.link import DEFAULT_BAUD, calibration_problem
 from ..hw.protocol import Sample
 from ..hw.realtime import StopFlag
 from ..hw.stream import Stream
+from .record_text import record_lines
+from .recording import (
+    Online,
+    RecordOptions,
+    RecordResult,
+    RecordStatus,
+    SampleBlock,
+    check_not_stopped,
+    stopped_by,
+)
 
-
-@dataclass
-class RecordStatus:
-    """What the live status line shows."""
-
-    elapsed_s: float = 0.0
-    samples: int = 0
-    rate_hz: float = 0.0
-    bad_frames: int = 0
-    lost_frames: int = 0
-    file_bytes: int = 0
-    faults: ClockFaults = field(default_factory=ClockFaults)
-    #: the online identification's current estimate (an
-    #: :class:`~tissuecli.identify.online.OnlineEstimate`), None before it has one or
-    #: without identification
-    estimate: Any = None
-
-
-@dataclass(frozen=True)
-class SampleBlock:
-    """Samples just handed to the writer, shape ``(n,)`` each, SI.
-
-    Attributes
-    ----------
-    time : ndarray
-        Device time on the repaired time base, s (not yet drift-corrected).
-    position : ndarray
-        Jaw closure, m.
-    force : ndarray
-        Grasp force, N.
-    host_time : ndarray
-        Host monotonic time each sample's frame arrived, s from the start of the stream.
-    """
-
-    time: NDArray[np.float64]
-    position: NDArray[np.float64]
-    force: NDArray[np.float64]
-    host_time: NDArray[np.float64]
-
-
-@dataclass
-class RecordResult:
-    """Summary of a finished recording.
-
-    ``faults`` holds what the time base check found (clock jumps and steps, sequence
-    restarts, rejected frames, clock wraps); ``clock_map`` the device-to-host map and
-    ``time_rescaled`` whether the stored time was put on host seconds by it (only when
-    its drift is resolved, see :attr:`ClockMap.resolved`).
-    """
-
-    path: str
-    session: str
-    samples: int
-    duration_s: float
-    rate_hz: float
-    bad_frames: int
-    lost_frames: int
-    stop_reason: str
-    clock_map: ClockMap | None
-    meta: dict[str, Any] = field(default_factory=dict)
-    faults: ClockFaults = field(default_factory=ClockFaults)
-    time_rescaled: bool = False
-    #: the online identification's last estimate (None without one) and why it
-    #: stopped, if it did
-    estimate: Any = None
-    identify_note: str = ""
+#: the protocols :func:`record` speaks
+PROTOCOLS = ("binary", "text")
 
 
 def record(
@@ -101,11 +47,12 @@ def record(
     out: str | os.PathLike[str],
     session: str,
     *,
+    protocol: str = "binary",
     duration_s: float | None = None,
     tissue: str = "",
     note: str = "",
     calibration: Calibration | None = None,
-    baudrate: int = DEFAULT_BAUD,
+    baudrate: int | None = None,
     stop: StopFlag | None = None,
     on_status: Callable[[RecordStatus], None] | None = None,
     status_interval_s: float = 0.5,
@@ -114,6 +61,9 @@ def record(
     on_samples: Callable[[SampleBlock], None] | None = None,
     identify: bool = True,
     forgetting_s: float = 5.0,
+    columns: str | None = None,
+    units: str | None = None,
+    jaw_length_m: float | None = None,
 ) -> RecordResult:
     """Record from the forceps at ``url`` into session ``session`` of ``out``.
 
@@ -121,7 +71,9 @@ def record(
     clock stamp and sequence number against what the last good frames predict
     (:class:`~tissuecli.core.clock.TimeBase`), so stored time is strictly increasing
     whatever the device sends. The session is created when the first sample is kept;
-    a recording that keeps none leaves nothing behind.
+    a recording that keeps none leaves nothing behind. A logger that prints lines of
+    text (``protocol="text"``) is read as ``import`` reads files
+    (:mod:`tissuecli.app.record_text`).
 
     Parameters
     ----------
@@ -131,15 +83,19 @@ def record(
         HDF5 file; created if missing. Existing sessions are never touched.
     session : str
         Name of the new session; refused if the file already has it.
+    protocol : {"binary", "text"}
+        tissuecli's framed protocol, or a logger printing lines of text.
     duration_s : float, optional
         Stop after this much device time (s, on the repaired time base); otherwise run
         until ``stop``.
     tissue, note : str
         Stored with the session.
     calibration : Calibration, optional
-        Counts-to-SI conversion; by default the one the device reports.
-    baudrate : int
-        Line rate, bit/s.
+        Counts-to-SI conversion; by default the one the device reports. A text logger
+        that prints ADC counts for force and position: SI = gain * counts + offset
+        (``units`` may then name the time column's unit only).
+    baudrate : int, optional
+        Line rate, bit/s [default: 921600 binary, 115200 text].
     stop : StopFlag, optional
         Polled every read; SIGINT/SIGTERM handlers set it for a clean stop.
     on_status : callable, optional
@@ -160,24 +116,58 @@ def record(
         in it stops the identification, never the recording.
     forgetting_s : float
         Forgetting time constant of the online identification, s.
+    columns, units, jaw_length_m
+        Text only: as for ``import``
+        (:func:`tissuecli.formats.recording.read_recording`).
 
     Raises
     ------
     DeviceError
-        If the device reports an unusable Info, or the recording is stopped before
-        any sample was kept (nothing is written then).
+        If the device reports an unusable Info, a text logger prints nothing that
+        reads as samples, or the recording is stopped before any sample was kept
+        (nothing is written then).
     DeviceLost
         If the device vanishes; everything kept until then is saved first.
+    InputError
+        For options that do not fit the protocol or the lines.
     """
+    if protocol not in PROTOCOLS:
+        raise InputError(f"unknown protocol {protocol!r}; choose binary or text")
     if duration_s is not None and not duration_s > 0:
         raise InputError("--duration must be a positive number of seconds")
+    given = [n for n, v in (("columns", columns), ("units", units),
+                            ("jaw-length", jaw_length_m)) if v is not None]  # fmt: skip
+    if protocol != "text" and given:
+        raise InputError(f"--{given[0]} is for --protocol text")
     check_name(session, "session")
-    stop = stop if stop is not None else StopFlag()
+    options = RecordOptions(
+        duration_s=duration_s,
+        tissue=tissue,
+        note=note,
+        calibration=calibration,
+        baudrate=baudrate,
+        stop=stop if stop is not None else StopFlag(),
+        on_status=on_status,
+        status_interval_s=status_interval_s,
+        flush_interval_s=flush_interval_s,
+        idle_timeout_s=idle_timeout_s,
+        on_samples=on_samples,
+        identify=identify,
+        forgetting_s=forgetting_s,
+    )
     out = Path(out)
     check_outputs([Output(out, "--out", appends=True)])
     check_new_session(out, session)
-    _check_not_stopped(stop, url)
-    link = Forceps(url, baudrate=baudrate).open(
+    check_not_stopped(options.stop, url)
+    if protocol == "text":
+        return record_lines(url, out, session, options, columns, units, jaw_length_m)
+    return _record_frames(url, out, session, options)
+
+
+def _record_frames(url: str, out: Path, session: str, options: RecordOptions) -> RecordResult:
+    """:func:`record` from a forceps speaking the framed protocol, its arguments checked."""
+    stop, calibration, duration_s = options.stop, options.calibration, options.duration_s
+    link = Forceps(url, baudrate=options.baudrate or DEFAULT_BAUD).open(
         require_info=calibration is None,
         no_info_hint="; for a forceps that streams without identifying, give --calibration FILE"
         "; for a logger that prints lines of text, --protocol text",
@@ -185,15 +175,15 @@ def record(
     )
     info = link.info
     try:
-        _check_not_stopped(stop, url)
+        check_not_stopped(stop, url)
         cal = calibration or calibration_from_dict((info or {})["calibration"])
         if calibration is not None:
             _check_calibration(calibration, (info or {}).get("adc_bits", 16))
         clock_hz = float((info or {}).get("clock_hz", DEFAULT_CLOCK_HZ))
         rate_hz = float((info or {}).get("rate_hz", math.nan))
         meta = {
-            "tissue": tissue,
-            "note": note,
+            "tissue": options.tissue,
+            "note": options.note,
             "start_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
             "source": f"serial:{url}",
             "device": info or {},
@@ -207,17 +197,17 @@ def record(
                 session,
                 meta=meta,
                 calibration=cal.as_dict(),
-                flush_interval_s=flush_interval_s,
+                flush_interval_s=options.flush_interval_s,
             )
 
         timebase: TimeBase[Sample] = TimeBase(
             clock_hz / rate_hz if math.isfinite(rate_hz) else None,
             limit_ticks=duration_s * clock_hz if duration_s is not None else math.inf,
         )
-        online = _Online(rate_hz, forgetting_s) if identify else None
+        online = Online(rate_hz, options.forgetting_s) if options.identify else None
         if online is not None:
             online.prepare()
-        listeners = [f for f in (online, on_samples) if f is not None]
+        listeners = [f for f in (online, options.on_samples) if f is not None]
 
         def listen(block: SampleBlock) -> None:
             for f in listeners:
@@ -232,11 +222,11 @@ def record(
                 link,
                 Sample,
                 stop=stop,
-                idle_timeout_s=idle_timeout_s,
-                status_interval_s=status_interval_s,
+                idle_timeout_s=options.idle_timeout_s,
+                status_interval_s=options.status_interval_s,
                 track_sequence=False,  # the time base counts losses among kept frames
             ),
-            on_status,
+            options.on_status,
         )
     finally:
         link.close()
@@ -244,23 +234,6 @@ def record(
 
 #: device clock rate of protocol version 1, for a forceps that does not identify, Hz
 DEFAULT_CLOCK_HZ = 1e6
-
-
-def _check_not_stopped(stop: StopFlag, url: str) -> None:
-    if stop:
-        raise _stopped(
-            DeviceError(
-                f"stopped by signal before recording from {url} began; nothing was recorded"
-            ),
-            stop,
-        )
-
-
-def _stopped(error: DeviceError, stop: StopFlag) -> DeviceError:
-    """``error`` with the exit status of the signal that ended the run, if one did."""
-    if stop:
-        error.exit_code = stop.exit_code
-    return error
 
 
 def _check_calibration(cal: Calibration, bits: object) -> None:
@@ -271,84 +244,6 @@ def _check_calibration(cal: Calibration, bits: object) -> None:
         raise InputError(
             f"--calibration {name.removeprefix('calibration.')} = {value}; it must be {must}"
         )
-
-
-class _Online:
-    """The online identification as a sample listener: made before the acquisition
-    loop (with the device's rate; at the first block, from the rate of its stamps, for
-    a device that does not tell it), fed on the samples' time stamps (lost frames
-    become holes) in batches of at least :data:`ONLINE_BATCH_S`, and switched off by
-    any error.
-
-    Everything slow is kept out of the loop: the modules the fit and its first
-    estimate load (SciPy's special functions among them, a few hundred ms) are loaded
-    by :meth:`prepare`, and the fit is fed in batches because an update costs much
-    the same whatever its size (fed every block, a few samples at 10 kHz, it took a
-    fifth of the loop's core; in batches of 0.05 s, about a twentieth).
-    """
-
-    def __init__(self, rate_hz: float, forgetting_s: float) -> None:
-        self.rate_hz, self.forgetting_s = rate_hz, forgetting_s
-        self.fit: Any = None
-        self.note = ""
-        self.pending: list[SampleBlock] = []
-
-    def prepare(self) -> None:
-        """Load what the fit needs and make it, if the rate is known; before the loop."""
-        try:
-            from ..identify.online import OnlineFit
-            from ..identify.orthant import normal_cdf
-
-            normal_cdf(np.zeros(1))  # the first estimate's SciPy import, here
-            if math.isfinite(self.rate_hz) and self.rate_hz > 0:
-                self.fit = OnlineFit(rate_hz=self.rate_hz, forgetting_s=self.forgetting_s)
-        except Exception as exc:  # noqa: BLE001  (identification must never cost a recording)
-            self.note = f"online identification stopped: {exc}"
-
-    def __call__(self, block: SampleBlock) -> None:
-        if self.note or block.time.size == 0:
-            return
-        self.pending.append(block)
-        if block.time[-1] - self.pending[0].time[0] >= ONLINE_BATCH_S:
-            self.feed()
-
-    def feed(self) -> None:
-        """Hand the pending blocks to the fit in one update."""
-        blocks, self.pending = self.pending, []
-        if self.note or not blocks:
-            return
-        try:
-            t, x, f = (
-                np.concatenate([getattr(b, k) for b in blocks])
-                for k in ("time", "position", "force")
-            )
-            if self.fit is None:
-                rate = self.rate_hz
-                if not (math.isfinite(rate) and rate > 0):
-                    if t.size < 2:
-                        self.pending = blocks  # too few stamps to tell the rate yet
-                        return
-                    rate = 1.0 / float(np.median(np.diff(t)))
-                from ..identify.online import OnlineFit
-
-                self.fit = OnlineFit(rate_hz=rate, forgetting_s=self.forgetting_s)
-            self.fit.update(x, f, time=t)
-        except Exception as exc:  # noqa: BLE001  (identification must never cost a recording)
-            self.note = f"online identification stopped: {exc}"
-
-    def estimate(self) -> Any:
-        self.feed()
-        if self.fit is None or self.note:
-            return None
-        try:
-            return self.fit.estimate()
-        except Exception as exc:  # noqa: BLE001
-            self.note = f"online identification stopped: {exc}"
-            return None
-
-
-#: the online identification is fed samples in batches spanning at least this, s
-ONLINE_BATCH_S = 0.05
 
 
 class _Recording:
@@ -366,7 +261,7 @@ class _Recording:
         session: str,
         meta: dict[str, Any],
         on_samples: Callable[[SampleBlock], None] | None = None,
-        online: _Online | None = None,
+        online: Online | None = None,
     ) -> None:
         self.link, self.open_writer, self.timebase = link, open_writer, timebase
         self.on_samples = on_samples
@@ -418,7 +313,7 @@ class _Recording:
                 raise DeviceLost(f"{lost}; nothing was recorded")
             raise DeviceLost(f"{lost}; the {self.samples} samples received are saved {where}")
         if not self.samples:
-            raise _stopped(
+            raise stopped_by(
                 DeviceError(
                     f"{stream.reason} before any sample arrived from {self.link.url}; "
                     "nothing was recorded"
@@ -570,7 +465,6 @@ def record_live(
     on_status: Callable[[RecordStatus], None] | None = None,
     on_samples: Callable[[SampleBlock], None] | None = None,
     status_interval_s: float = 0.5,
-    recorder: Callable[..., RecordResult] | None = None,
     **options: Any,
 ) -> RecordResult:
     """:func:`record`, with the live view served at ``address`` (``HOST:PORT``) meanwhile.
@@ -581,9 +475,7 @@ def record_live(
     memory; the pages are served from another process, which ends with this one. The
     view takes the status at least every
     :data:`LIVE_STATUS_S`; ``on_status`` is still called every ``status_interval_s``
-    and once at the end. ``recorder`` records (:func:`record` by default; a text
-    logger's is :func:`tissuecli.app.record_text.record_text`).
-    Other parameters as :func:`record`.
+    and once at the end. Other parameters (``protocol`` among them) as :func:`record`.
     """
     from ..live.server import LiveServer, parse_address
     from ..live.state import LiveState
@@ -613,7 +505,7 @@ def record_live(
         with LiveServer(state, host, port) as server:
             on_url(server.url)
             try:
-                return (recorder or record)(
+                return record(
                     url,
                     out,
                     session,

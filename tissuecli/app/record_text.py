@@ -16,7 +16,6 @@ arrival times. Malformed lines are counted, never fatal.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from datetime import datetime, timezone
@@ -29,16 +28,14 @@ from numpy.typing import NDArray
 from ..core.calibration import Calibration
 from ..core.clock import ClockFaults, ClockMap, fit_clock_map
 from ..core.errors import DeviceError, DeviceLost, InputError, TissueError
-from ..core.session import COLUMNS, check_name
+from ..core.session import COLUMNS
 from ..core.timebase import regularise
 from ..core.units import ColumnUnits, parse_units
-from ..formats.outputs import Output, check_outputs
 from ..formats.recording import Reading, reading_of
-from ..formats.sessions import check_new_session, session_writer
+from ..formats.sessions import session_writer
 from ..formats.tables import Block, Table
 from ..formats.writer import SeriesWriter
 from ..hw.device import TextLogger
-from ..hw.realtime import StopFlag
 from ..hw.stream import Stream
 from ..hw.text import (
     Delimited,
@@ -50,7 +47,14 @@ from ..hw.text import (
     read_lines,
     sniff_dialect,
 )
-from .record import RecordResult, RecordStatus, SampleBlock, _check_not_stopped, _Online
+from .recording import (
+    Online,
+    RecordOptions,
+    RecordResult,
+    RecordStatus,
+    SampleBlock,
+    check_not_stopped,
+)
 
 #: lines read to learn the dialect and columns, and how long to wait for them, s
 SNIFF_LINES = 64
@@ -61,40 +65,27 @@ MIN_RATE_HZ = 1.0
 TEXT_BAUD = 115200
 
 
-def record_text(
+def record_lines(
     url: str,
-    out: str | os.PathLike[str],
+    out: Path,
     session: str,
-    *,
-    duration_s: float | None = None,
-    tissue: str = "",
-    note: str = "",
-    calibration: Calibration | None = None,
-    baudrate: int = TEXT_BAUD,
-    stop: StopFlag | None = None,
-    on_status: Callable[[RecordStatus], None] | None = None,
-    status_interval_s: float = 0.5,
-    flush_interval_s: float = 0.25,
-    idle_timeout_s: float = 2.0,
-    on_samples: Callable[[SampleBlock], None] | None = None,
-    identify: bool = True,
-    forgetting_s: float = 5.0,
-    columns: str | None = None,
-    units: str | None = None,
-    jaw_length_m: float | None = None,
+    options: RecordOptions,
+    columns: str | None,
+    units: str | None,
+    jaw_length_m: float | None,
 ) -> RecordResult:
     """Record from the text logger at ``url`` into session ``session`` of ``out``: what
-    :func:`tissuecli.app.record.record` does for the binary protocol.
+    :func:`tissuecli.app.record.record` does for a logger printing lines, its arguments
+    checked there.
 
     Parameters
     ----------
     columns, units, jaw_length_m
         As for ``import`` (:func:`tissuecli.formats.recording.read_recording`).
-    calibration : Calibration, optional
-        The logger prints ADC counts for force and position: SI = gain * counts + offset.
-        ``units`` may then name the time column's unit only.
-    Others
-        As :func:`tissuecli.app.record.record`.
+    options : RecordOptions
+        What every recording takes; ``calibration`` turns ADC counts for force and
+        position into SI (gain * counts + offset), and ``units`` may then name the time
+        column's unit only.
 
     Raises
     ------
@@ -105,26 +96,19 @@ def record_text(
     InputError
         For ``--columns`` or ``--units`` that do not fit the lines.
     """
-    if duration_s is not None and not duration_s > 0:
-        raise InputError("--duration must be a positive number of seconds")
-    check_name(session, "session")
-    stop = stop if stop is not None else StopFlag()
-    out = Path(out)
-    check_outputs([Output(out, "--out", appends=True)])
-    check_new_session(out, session)
-    _check_not_stopped(stop, url)
+    stop, calibration = options.stop, options.calibration
     if calibration is not None and {"force", "position"} & parse_units(units).given:
         raise InputError(
             "--calibration turns counts into N and m; give --units for time only "
             "(e.g. --units time=ms), or leave --calibration out"
         )
-    online = _Online(math.nan, forgetting_s) if identify else None
+    online = Online(math.nan, options.forgetting_s) if options.identify else None
     if online is not None:
         online.prepare()  # slow (SciPy): before the lines start to queue
-    link = TextLogger(url, baudrate=baudrate).open()
+    link = TextLogger(url, baudrate=options.baudrate or TEXT_BAUD).open()
     try:
         first = read_lines(link, count=SNIFF_LINES, within_s=SNIFF_S)
-        _check_not_stopped(stop, url)
+        check_not_stopped(stop, url)
         if not first:
             raise DeviceError(
                 f"{url} printed no line within {SNIFF_S:g} s; is the logger running and "
@@ -148,8 +132,8 @@ def record_text(
         )
         rate = reader.rate_from(first)
         meta = {
-            "tissue": tissue,
-            "note": note,
+            "tissue": options.tissue,
+            "note": options.note,
             "start_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
             "source": f"serial:{url}",
             "protocol": "text",
@@ -167,24 +151,25 @@ def record_text(
                 meta=meta,
                 calibration=calibration.as_dict() if calibration is not None else None,
                 raw=False,
-                flush_interval_s=flush_interval_s,
+                flush_interval_s=options.flush_interval_s,
             )
 
         if online is not None:
             online.rate_hz = rate
-        listeners = [f for f in (online, on_samples) if f is not None]
+        listeners = [f for f in (online, options.on_samples) if f is not None]
         recording = _TextRecording(
-            link, reader, open_writer, out, session, meta, rate, duration_s, listeners, online
-        )
+            link, reader, open_writer, out, session, meta, rate, options.duration_s,
+            listeners, online,
+        )  # fmt: skip
         stream = Stream(
             link,  # a text logger: START and STOP send nothing
             Line,  # type: ignore[arg-type]
             stop=stop,
-            idle_timeout_s=idle_timeout_s,
-            status_interval_s=status_interval_s,
+            idle_timeout_s=options.idle_timeout_s,
+            status_interval_s=options.status_interval_s,
             track_sequence=False,
         )
-        return recording.run(stream, first, on_status)
+        return recording.run(stream, first, options.on_status)
     finally:
         link.close()
 
@@ -416,7 +401,7 @@ class _TextRecording:
         rate_hz: float,
         duration_s: float | None,
         listeners: list[Callable[[SampleBlock], None]],
-        online: _Online | None,
+        online: Online | None,
     ) -> None:
         self.link, self.reader, self.open_writer = link, reader, open_writer
         self.out, self.session, self.meta = out, session, meta

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from ..core.tissue import DEFAULT_TISSUE, Tissue
@@ -20,18 +21,57 @@ from ..sim.textlogger import TextLogger, run_text_logger
 StrPath = str | os.PathLike[str]
 
 
+@dataclass(frozen=True)
+class SimulatedForceps:
+    """The simulated forceps every ``simulate`` service runs, whatever it speaks: the
+    tissue it squeezes, its sample rate, its sensors and ADC, its clock.
+
+    Attributes
+    ----------
+    params : path, optional
+        Tissue parameter file (as ``fit --out`` writes it); a liver-like default
+        otherwise.
+    rate_hz : float
+        Sample rate, Hz.
+    adc_bits : int
+        ADC resolution, bits.
+    force_noise_n, position_noise_m : float
+        Sensor noise SDs before quantisation, N and m.
+    drift_ppm : float
+        The device clock runs this many ppm fast.
+    seed : int
+        Seed of noise and operator.
+    """
+
+    params: StrPath | None = None
+    rate_hz: float = 1000.0
+    adc_bits: int = 8
+    force_noise_n: float = 0.005
+    position_noise_m: float = 5e-6
+    drift_ppm: float = 0.0
+    seed: int = 0
+
+    def model(self) -> ForcepsModel:
+        """The forceps model these options describe (its tissue read from ``params``)."""
+        return ForcepsModel(
+            tissue=read_tissue(self.params) if self.params else DEFAULT_TISSUE,
+            rate_hz=self.rate_hz,
+            drift_ppm=self.drift_ppm,
+            seed=self.seed,
+            sensors=Sensors(
+                bits=self.adc_bits,
+                force_noise_n=self.force_noise_n,
+                position_noise_m=self.position_noise_m,
+            ),
+        )
+
+
 def simulate_forceps(
     link: StrPath | None = None,
     *,
-    params: StrPath | None = None,
-    rate_hz: float = 1000.0,
-    adc_bits: int = 8,
-    force_noise_n: float = 0.005,
-    position_noise_m: float = 5e-6,
+    forceps: SimulatedForceps | None = None,
     corrupt: float = 0.0,
     drop: float = 0.0,
-    drift_ppm: float = 0.0,
-    seed: int = 0,
     duration_s: float | None = None,
     on_ready: Callable[[VirtualPort, Tissue], None] | None = None,
 ) -> dict[str, int]:
@@ -41,20 +81,10 @@ def simulate_forceps(
     ----------
     link : path, optional
         Make a symlink to the pty here.
-    params : path, optional
-        Tissue parameter file; a liver-like default otherwise.
-    rate_hz : float
-        Sample rate, Hz.
-    adc_bits : int
-        ADC resolution.
-    force_noise_n, position_noise_m : float
-        Sensor noise SDs before quantisation, N and m.
+    forceps : SimulatedForceps, optional
+        Tissue, rate, sensors and clock (the defaults of :class:`SimulatedForceps`).
     corrupt, drop : float
         Fault injection: probabilities per frame.
-    drift_ppm : float
-        The device clock runs this many ppm fast.
-    seed : int
-        Seed of noise and operator.
     duration_s : float, optional
         Exit after this many seconds.
     on_ready : callable, optional
@@ -65,16 +95,7 @@ def simulate_forceps(
     dict
         The firmware's counters (``sent`` frames, ...).
     """
-    tissue = read_tissue(params) if params else DEFAULT_TISSUE
-    model = ForcepsModel(
-        tissue=tissue,
-        rate_hz=rate_hz,
-        drift_ppm=drift_ppm,
-        seed=seed,
-        sensors=Sensors(
-            bits=adc_bits, force_noise_n=force_noise_n, position_noise_m=position_noise_m
-        ),
-    )
+    model = (forceps or SimulatedForceps()).model()
     faults = Faults(corrupt=corrupt, drop=drop)
     stop = StopFlag().install()
     port = VirtualPort(link)
@@ -86,7 +107,7 @@ def simulate_forceps(
                 faults=faults,
                 stop=stop,
                 duration_s=duration_s,
-                on_ready=None if on_ready is None else lambda p: on_ready(p, tissue),
+                on_ready=None if on_ready is None else lambda p: on_ready(p, model.tissue),
             )
     finally:
         port.close()
@@ -132,19 +153,13 @@ def simulate_display(
 def simulate_text_logger(
     link: StrPath | None = None,
     *,
-    params: StrPath | None = None,
-    rate_hz: float = 1000.0,
-    adc_bits: int = 12,
-    force_noise_n: float = 0.005,
-    position_noise_m: float = 5e-6,
+    forceps: SimulatedForceps | None = None,
     line_format: str = "csv",
     stamps: str = "us",
     header_every_s: float = 1.0,
     jitter: float = 0.2,
     broken: float = 0.001,
-    drift_ppm: float = 0.0,
     clock_start: int = 0,
-    seed: int = 0,
     duration_s: float | None = None,
     on_ready: Callable[[VirtualPort, Tissue], None] | None = None,
 ) -> dict[str, int]:
@@ -172,16 +187,7 @@ def simulate_text_logger(
     dict
         ``sent`` lines, ``broken`` among them, ``overrun_bytes``.
     """
-    tissue = read_tissue(params) if params else DEFAULT_TISSUE
-    model = ForcepsModel(
-        tissue=tissue,
-        rate_hz=rate_hz,
-        drift_ppm=drift_ppm,
-        seed=seed,
-        sensors=Sensors(
-            bits=adc_bits, force_noise_n=force_noise_n, position_noise_m=position_noise_m
-        ),
-    )
+    model = (forceps or SimulatedForceps()).model()
     logger = TextLogger(
         model,
         format=line_format,
@@ -199,7 +205,7 @@ def simulate_text_logger(
             port,
             stop=stop,
             duration_s=duration_s,
-            on_ready=(lambda p: on_ready(p, tissue)) if on_ready is not None else None,
+            on_ready=(lambda p: on_ready(p, model.tissue)) if on_ready is not None else None,
         )
     finally:
         port.close()

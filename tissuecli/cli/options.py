@@ -42,6 +42,88 @@ def seed_option(help: str) -> Decorator:
     return click.option("--seed", type=int, default=0, show_default=True, help=help)
 
 
+def forceps_options() -> Decorator:
+    """``--params``, ``--adc-bits``, ``--force-noise`` and ``--position-noise``: the
+    simulated forceps' tissue and sensors, whatever it speaks (with ``--rate``, ``--seed``
+    and :func:`drift_option`, a :class:`tissuecli.app.simulate.SimulatedForceps`, built
+    by :func:`simulated_forceps`)."""
+
+    def apply(fn: Callable[..., Any]) -> Callable[..., Any]:
+        for option in reversed(
+            [
+                click.option(
+                    "--params",
+                    "params_file",
+                    type=click.Path(dir_okay=False),
+                    default=None,
+                    help="Tissue parameter file (as written by `fit --out`); a liver-like "
+                    "default otherwise.",
+                ),
+                click.option(
+                    "--adc-bits",
+                    type=click.IntRange(8, 16),
+                    default=8,
+                    show_default=True,
+                    help="ADC resolution; the paper's microcontroller has 8 bits.",
+                ),
+                click.option(
+                    "--force-noise",
+                    type=click.FloatRange(min=0),
+                    default=0.005,
+                    show_default=True,
+                    help="Force sensor noise SD in N, before quantisation.",
+                ),
+                click.option(
+                    "--position-noise",
+                    type=click.FloatRange(min=0),
+                    default=5e-6,
+                    show_default=True,
+                    help="Jaw position sensor noise SD in m, before quantisation.",
+                ),
+            ]
+        ):
+            fn = option(fn)
+        return fn
+
+    return apply
+
+
+def drift_option() -> Decorator:
+    """``--drift-ppm``: the simulated device's clock error (part of :func:`forceps_options`'
+    forceps, listed among the fault injections)."""
+    return click.option(
+        "--drift-ppm",
+        type=float,
+        default=0.0,
+        show_default=True,
+        help="Fault injection: the device clock runs this many ppm fast.",
+    )
+
+
+def simulated_forceps(
+    rate: float,
+    seed: int,
+    params_file: str | None,
+    adc_bits: int,
+    force_noise: float,
+    position_noise: float,
+    drift_ppm: float,
+) -> Any:
+    """The :class:`tissuecli.app.simulate.SimulatedForceps` of :func:`forceps_options`',
+    :func:`drift_option`'s, ``--rate``'s and ``--seed``'s values."""
+    from ..app.simulate import SimulatedForceps
+
+    return SimulatedForceps(
+        params=params_file,
+        rate_hz=rate,
+        adc_bits=adc_bits,
+        force_noise_n=force_noise,
+        position_noise_m=position_noise,
+        drift_ppm=drift_ppm,
+        seed=seed,
+    )
+
+
 def session_option(help: str, required: bool = False) -> Decorator:
     return click.option("--session", default=None, required=required, help=help)
 

@@ -218,23 +218,22 @@ def record(
     name = session or "session-" + datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
     status = None if quiet else _status_line(name, identify)
     text = _text_options(protocol, columns, units, jaw_length)
-    if protocol == "text":
-        from ..app.record_text import record_text as run
     if live is not None:
         from ..app.record import record_live
 
-        run = partial(record_live, live, on_url=_show_url, recorder=run)
+        run = partial(record_live, live, on_url=_show_url)
     try:
         result = run(
             port,
             out,
             name,
+            protocol=protocol,
             status_interval_s=0.5 if sys.stderr.isatty() else 5.0,  # logs get a line every 5 s
             duration_s=duration,
             tissue=tissue,
             note=note,
             calibration=read_calibration(calibration) if calibration else None,
-            baudrate=baud or (115200 if protocol == "text" else 921600),
+            baudrate=baud,
             stop=stop,
             **text,
             on_status=status,

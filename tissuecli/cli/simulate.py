@@ -9,7 +9,16 @@ from typing import Any
 import click
 
 from .base import cli, end_live_line, live_line
-from .options import duration_option, link_option, profile_option, rate_option, seed_option
+from .options import (
+    drift_option,
+    duration_option,
+    forceps_options,
+    link_option,
+    profile_option,
+    rate_option,
+    seed_option,
+    simulated_forceps,
+)
 
 
 @cli.group()
@@ -27,34 +36,7 @@ def _announce(port: Any, detail: str) -> None:
 @simulate.command("forceps")
 @link_option("forceps")
 @rate_option("Sample rate in Hz.")
-@click.option(
-    "--params",
-    "params_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Tissue parameter file (as written by `fit --out`); a liver-like default otherwise.",
-)
-@click.option(
-    "--adc-bits",
-    type=click.IntRange(8, 16),
-    default=8,
-    show_default=True,
-    help="ADC resolution; the paper's microcontroller has 8 bits.",
-)
-@click.option(
-    "--force-noise",
-    type=click.FloatRange(min=0),
-    default=0.005,
-    show_default=True,
-    help="Force sensor noise SD in N, before quantisation.",
-)
-@click.option(
-    "--position-noise",
-    type=click.FloatRange(min=0),
-    default=5e-6,
-    show_default=True,
-    help="Jaw position sensor noise SD in m, before quantisation.",
-)
+@forceps_options()
 @click.option(
     "--corrupt",
     type=click.FloatRange(0, 1),
@@ -69,13 +51,7 @@ def _announce(port: Any, detail: str) -> None:
     show_default=True,
     help="Fault injection: probability that a frame is never sent.",
 )
-@click.option(
-    "--drift-ppm",
-    type=float,
-    default=0.0,
-    show_default=True,
-    help="Fault injection: the device clock runs this many ppm fast.",
-)
+@drift_option()
 @seed_option("Seed of noise and operator.")
 @duration_option("Exit after this many seconds (default: run until Ctrl-C or SIGTERM).")
 @click.option(
@@ -162,6 +138,9 @@ def simulate_forceps(
         tissuecli simulate forceps --link /tmp/forceps --rate 1000 &
         tissuecli simulate forceps --link /tmp/logger --protocol text --rate 500 &
     """
+    forceps = simulated_forceps(
+        rate, seed, params_file, adc_bits, force_noise, position_noise, drift_ppm
+    )
     if protocol == "text":
         from ..app.simulate import simulate_text_logger
 
@@ -179,19 +158,13 @@ def simulate_forceps(
 
         counters = simulate_text_logger(
             link,
-            params=params_file,
-            rate_hz=rate,
-            adc_bits=adc_bits,
-            force_noise_n=force_noise,
-            position_noise_m=position_noise,
+            forceps=forceps,
             line_format=line_format,
             stamps=stamps,
             header_every_s=header_every,
             jitter=jitter,
             broken=broken,
-            drift_ppm=drift_ppm,
             clock_start=clock_start,
-            seed=seed,
             duration_s=duration,
             on_ready=announce,
         )
@@ -213,15 +186,9 @@ def simulate_forceps(
 
     counters = run(
         link,
-        params=params_file,
-        rate_hz=rate,
-        adc_bits=adc_bits,
-        force_noise_n=force_noise,
-        position_noise_m=position_noise,
+        forceps=forceps,
         corrupt=corrupt,
         drop=drop,
-        drift_ppm=drift_ppm,
-        seed=seed,
         duration_s=duration,
         on_ready=ready,
     )

@@ -173,6 +173,8 @@ def examine(
     Design
     """
     terms: list[Term] = [Law.of([n]).terms[0] for n in names]
+    if not terms:  # laws of shaped terms alone (contact): nothing here to examine
+        return Design([], np.zeros((0, 0)), np.zeros(0), kin.force.size)
     cols = np.column_stack([term_column(t, kin, x_full, sigma_x, columns) for t in terms])
     n = cols.shape[0]
     gram = cols.T @ cols
