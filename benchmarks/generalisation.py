@@ -21,7 +21,10 @@ held out; the rest is fitted by
 For each it reports, overall and by family group:
 
 - right: the chosen law has the truth's structure (a term whose force stands below the
-  noise in that session, see ``scenes.DETECTABLE``, may be in or out);
+  noise in that session, see ``scenes.DETECTABLE``, may be in or out; a relaxation
+  branch counts by the part of its force the law's other terms cannot carry,
+  ``scenes.branch_detectability``, so a law may leave out a branch no recording of that
+  motion can tell from a spring or a damper);
 - cover: the fraction of 95 % intervals (coefficients and shape parameters of the
   laws chosen right) that hold the truth, with the range a binomial count of that many
   intervals at 0.95 falls in 95 % of the time;
