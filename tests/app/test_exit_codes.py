@@ -329,6 +329,30 @@ def _wait_for(path: Path, proc: Any, timeout: float = 30.0) -> None:
         time.sleep(0.05)
 
 
+def _wait_for_handler(proc: Any, sig: int, timeout: float = 60.0) -> None:
+    """Until ``proc`` catches ``sig`` (its command line is running), read from
+    /proc/PID/status; where there is no /proc, a few seconds instead."""
+    status = Path(f"/proc/{proc.pid}/status")
+    if not status.exists():
+        time.sleep(3.0)
+        return
+    deadline = time.monotonic() + timeout
+    while True:
+        assert proc.poll() is None, proc.communicate()
+        caught = next(
+            (
+                line.split()[1]
+                for line in status.read_text().splitlines()
+                if line.startswith("SigCgt:")
+            ),
+            "0",
+        )
+        if int(caught, 16) >> (sig - 1) & 1:
+            return
+        assert time.monotonic() < deadline, f"no handler for signal {sig} after {timeout} s"
+        time.sleep(0.02)
+
+
 @pytest.mark.parametrize(("sig", "name"), [(signal.SIGHUP, "SIGHUP"), (signal.SIGTERM, "SIGTERM")])
 def test_a_signal_ends_record_cleanly_with_128_plus_n(tmp_path, forceps, sig, name) -> None:
     sim = forceps()
@@ -396,7 +420,11 @@ def test_an_interrupted_fit_removes_its_outputs_and_exits_128_plus_n(tmp_path, s
     write_session(h5, session)
     out, report = tmp_path / "p.json", tmp_path / "r.html"
     proc = popen("fit", str(h5), "--out", str(out), "--report", str(report))
-    time.sleep(2.5)
+    # a signal before the command's handlers are in place would kill the interpreter
+    # mid-import, which no command can answer: wait for them (however long a loaded
+    # machine takes to start Python), then give the fit a moment to get under way
+    _wait_for_handler(proc, signal.SIGTERM)
+    time.sleep(0.5)
     if proc.poll() is not None:
         pytest.skip("the fit ended before the signal: the machine is faster than assumed")
     proc.send_signal(sig)

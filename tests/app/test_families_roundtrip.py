@@ -25,7 +25,7 @@ from tissuecli.render.law import Branch, split_law
 from tissuecli.sim.finger import OperatorForce
 from tissuecli.sim.synth import CLOCK_HZ, ForcepsModel, Sensors, random_session
 
-from ..conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli_here
 
 #: A recovered parameter lies within this many posterior SDs of the truth. The posterior
 #: is Gaussian to a good approximation here, so 4 SD fails a correct fit with
@@ -134,7 +134,7 @@ def test_every_family_round_trips_and_renders(family, tmp_path):
 def test_play_check_on_the_command_line_names_the_assumptions(tmp_path):
     path = tmp_path / "sls.json"
     path.write_text(json.dumps(tissue_to_dict(FAMILIES["sls"][0])))
-    out = tissuecli("play", str(path), "--check")
+    out = tissuecli_here("play", str(path), "--check")
     assert out.returncode == 0, out.stderr
     assert "assumed: relaxation branches Km1" in out.stdout
     assert "instantaneous stiffness adds 150 N/m" in out.stdout
@@ -226,7 +226,7 @@ def test_a_fluid_without_a_spring_is_refused_with_the_reason(tmp_path):
     assert any("deeper than the 15 mm stroke" in r for r in res.reasons)
     path = tmp_path / "fluid.json"
     path.write_text(json.dumps(tissue_to_dict(tissue)))
-    assert_clean_error(tissuecli("play", str(path), "--check", "--port", "x"), "stroke")
+    assert_clean_error(tissuecli_here("play", str(path), "--check", "--port", "x"), "stroke")
 
 
 def test_a_viscoelastic_release_that_pulls_is_refused():
@@ -276,5 +276,5 @@ def test_a_recorded_standard_linear_solid_round_trips(forceps, tmp_path):
     path = tmp_path / "fit.json"
     write_params(path, outcome)
     _recovered(path, truth)
-    check_out = tissuecli("play", str(path), "--check")
+    check_out = tissuecli_here("play", str(path), "--check")
     assert check_out.returncode == 0, check_out.stderr

@@ -16,7 +16,7 @@ from tissuecli.core.errors import InputError
 from tissuecli.formats.sessions import write_session
 from tissuecli.sim.synth import ForcepsModel, synthesize
 
-from ..conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli_here
 
 MAGIC = {"png": b"\x89PNG\r\n\x1a\n", "pdf": b"%PDF-", "svg": b"<?xml"}
 
@@ -72,7 +72,7 @@ def test_the_plots_are_written_as_files_in_the_format_asked(exported) -> None:
 
 @pytest.mark.parametrize("fmt", ["png", "pdf"])
 def test_plot_format_alone_puts_the_plots_beside_the_report(grasp, tmp_path, fmt) -> None:
-    result = tissuecli("fit", str(grasp), "--report", str(tmp_path / "r.html"),
+    result = tissuecli_here("fit", str(grasp), "--report", str(tmp_path / "r.html"),
                        "--plot-format", fmt, "--forms", "paper")  # fmt: skip
     assert result.returncode == 0, result.stderr
     folder = tmp_path / "r_plots"
@@ -83,15 +83,15 @@ def test_plot_format_alone_puts_the_plots_beside_the_report(grasp, tmp_path, fmt
 
 def test_exports_never_overwrite_and_are_checked_before_the_fit(grasp, tmp_path) -> None:
     (tmp_path / "d.structures.csv").write_text("mine\n")
-    result = tissuecli("fit", str(grasp), "--draws", str(tmp_path / "d.csv"))
+    result = tissuecli_here("fit", str(grasp), "--draws", str(tmp_path / "d.csv"))
     assert_clean_error(result, "--draws", "d.structures.csv exists")
     assert (tmp_path / "d.structures.csv").read_text() == "mine\n"
     assert not (tmp_path / "d.csv").exists()
     (tmp_path / "p").mkdir()
     (tmp_path / "p" / "plot-loop.png").write_text("mine\n")
-    result = tissuecli("fit", str(grasp), "--plots", str(tmp_path / "p"))
+    result = tissuecli_here("fit", str(grasp), "--plots", str(tmp_path / "p"))
     assert_clean_error(result, "plot-loop.png exists")
-    result = tissuecli("fit", str(grasp), "--plot-format", "svg")
+    result = tissuecli_here("fit", str(grasp), "--plot-format", "svg")
     assert_clean_error(result, "--plot-format needs --plots DIR or --report FILE")
     with pytest.raises(InputError, match="--draws needs the Bayesian fit"):
         fit_file(grasp, draws=tmp_path / "x.csv", method="pinv", forms="x,xdot")

@@ -5,9 +5,6 @@ over it as over the built-in display, ending at 0 V and STOP."""
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Iterator
-from typing import Any
 
 import pytest
 
@@ -15,44 +12,27 @@ from tissuecli.app.play import HostLoop, open_display, play
 from tissuecli.core.errors import DeviceError, InputError
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
-from tissuecli.hw.device import DEVICES, Display, device_class, register
+from tissuecli.hw.device import device_class
 from tissuecli.hw.protocol import Encoder, Message, SetVoltage
 from tissuecli.render.profile import PAPER_DISPLAY
 
-RATE_HZ = 1000.0
-CLOCK_HZ = 1_000_000
+from .fakedisplay import CLOCK_HZ, RATE_HZ, InProcessDisplay
 
 
-class BenchDisplay(Display):
-    """A display simulated in the test's own process: no serial line, an Encoder frame
-    per millisecond of wall-clock time since START, the piston pressed 2 mm down and
-    released once a second. It keeps what the host sent."""
+class BenchDisplay(InProcessDisplay):
+    """An Encoder frame per millisecond of wall-clock time since START, the piston
+    pressed 2 mm down and released once a second. It keeps what the host sent."""
 
     kind = "bench-display"
     role = "a bench display lives in the test's own process"
-    opened: BenchDisplay | None = None
 
-    def connect(self, **options: Any) -> None:
-        self.info = {
-            "device": self.kind,
-            "rate_hz": RATE_HZ,
-            "clock_hz": CLOCK_HZ,
-            "profile": PAPER_DISPLAY.as_dict(),
-        }
-        self.commands: list[str] = []
+    def reset(self) -> None:
         self.volts: list[float] = []
-        self.started: float | None = None
-        self.n = 0
-        type(self).opened = self
-
-    def command(self, name: str) -> None:
-        self.commands.append(name)
-        self.started = time.monotonic() if name == "start" else None
 
     def poll(self) -> list[Message]:
         if self.started is None:
             return []
-        due = int((time.monotonic() - self.started) * RATE_HZ)
+        due = self.due()
         frames: list[Message] = []
         while self.n < due:
             x = 1e-3 * (1.0 - math.cos(2.0 * math.pi * self.n / RATE_HZ))
@@ -66,21 +46,10 @@ class BenchDisplay(Display):
         assert isinstance(message, SetVoltage)
         self.volts.append(message.volts)
 
-    def fileno(self) -> int | None:
-        return None  # nothing to wait on: the loop sleeps briefly between polls
-
-    def nonblocking(self) -> None:
-        pass
-
 
 @pytest.fixture
-def bench() -> Iterator[type[BenchDisplay]]:
-    register(BenchDisplay)
-    try:
-        yield BenchDisplay
-    finally:
-        DEVICES.pop(BenchDisplay.kind, None)
-        BenchDisplay.opened = None
+def bench(registered_device) -> type[BenchDisplay]:
+    return registered_device(BenchDisplay)
 
 
 def test_a_new_display_is_opened_by_its_kind_and_checked(bench) -> None:

@@ -7,7 +7,6 @@ answer to the newest."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -17,50 +16,34 @@ from tissuecli.app.play import play
 from tissuecli.core.flags import FLAG_STALE
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
-from tissuecli.hw.device import DEVICES, Display, register
 from tissuecli.hw.protocol import Encoder, Message, SetVoltage
-from tissuecli.render.profile import PAPER_DISPLAY
 
-RATE_HZ = 1000.0
-CLOCK_HZ = 1_000_000
+from .fakedisplay import CLOCK_HZ, RATE_HZ, InProcessDisplay
+
 TISSUE = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.0)
 
 
-class BunchedDisplay(Display):
-    """A display in the test's own process whose line holds one frame in every
-    ``every`` until the next is sent, so the two reach the host together (as a
-    pseudo-terminal's kernel worker delivers them on a busy machine). Its ticks follow
-    wall-clock time since START; each tick runs on the latest SetVoltage received before
-    it and, as the simulated display does, raises ``FLAG_STALE`` when that command does
-    not answer the frame before."""
+class BunchedDisplay(InProcessDisplay):
+    """A display whose line holds one frame in every ``every`` until the next is sent, so
+    the two reach the host together (as a pseudo-terminal's kernel worker delivers them
+    on a busy machine). Each tick runs on the latest SetVoltage received before it and,
+    as the simulated display does, raises ``FLAG_STALE`` when that command does not
+    answer the frame before."""
 
     kind = "bunched-display"
     role = "a bunched display lives in the test's own process"
+    extra_info = {"stale_flag": True}
     every = 0  # hold one frame in this many (0: none)
-    opened: BunchedDisplay | None = None
 
-    def connect(self, **options: Any) -> None:
-        self.info = {
-            "device": self.kind,
-            "rate_hz": RATE_HZ,
-            "clock_hz": CLOCK_HZ,
-            "stale_flag": True,
-            "profile": PAPER_DISPLAY.as_dict(),
-        }
-        self.started: float | None = None
+    def reset(self) -> None:
         self.received: list[tuple[float, int]] = []  # (when, seq answered)
-        self.n = 0
         self.held: list[Message] = []
         self.stale = 0
-        type(self).opened = self
-
-    def command(self, name: str) -> None:
-        self.started = time.monotonic() if name == "start" else None
 
     def poll(self) -> list[Message]:
         if self.started is None:
             return []
-        due = int((time.monotonic() - self.started) * RATE_HZ) + 1  # frame k at k periods
+        due = self.due()
         out: list[Message] = []
         while self.n < due:
             k, tick = self.n, self.started + self.n / RATE_HZ
@@ -80,21 +63,10 @@ class BunchedDisplay(Display):
         assert isinstance(message, SetVoltage)
         self.received.append((time.monotonic(), message.seq))
 
-    def fileno(self) -> int | None:
-        return None
-
-    def nonblocking(self) -> None:
-        pass
-
 
 @pytest.fixture
-def bunched() -> Iterator[type[BunchedDisplay]]:
-    register(BunchedDisplay)
-    try:
-        yield BunchedDisplay
-    finally:
-        DEVICES.pop(BunchedDisplay.kind, None)
-        BunchedDisplay.opened = None
+def bunched(registered_device) -> type[BunchedDisplay]:
+    return registered_device(BunchedDisplay)
 
 
 def _play(cls: type[BunchedDisplay], every: int) -> dict[str, Any]:

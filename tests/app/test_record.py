@@ -18,7 +18,10 @@ from tissuecli.sim.synth import CLOCK_HZ, ForcepsModel, Sensors
 from ..conftest import assert_clean_error, popen, tissuecli
 
 
-def _wait_for_rows(path: Path, rows: int, timeout: float = 10.0) -> None:
+def _wait_for_rows(path: Path, rows: int, timeout: float = 120.0) -> None:
+    """Until the recording in ``path`` holds ``rows`` samples. Not a timing test: the
+    bound is for a recorder that never gets there, and a loaded machine may take a
+    minute to start the command and its simulator."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:

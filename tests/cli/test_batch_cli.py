@@ -1,6 +1,8 @@
 """The batch commands as a user runs them: fit many sessions into a catalogue, list and
 export it, compare its tissues, classify a new grasp; exit codes and last lines that
-tell the truth."""
+tell the truth. The fits run in processes of their own, as typed (they start workers);
+the commands that read the catalogue run in this one, to spare an interpreter's start
+for each."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import pytest
 from tissuecli.app.study import write_study
 from tissuecli.sim.study import GROUPS, StudyDesign
 
-from ..conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli, tissuecli_here
 
 
 @pytest.fixture(scope="module")
@@ -53,31 +55,35 @@ def test_repeat_refits_nothing_and_failures_set_the_exit_code(
 
 def test_one_fit_options_refused_for_many(fitted: tuple[Path, Path], tmp_path: Path) -> None:
     study, _ = fitted
-    r = tissuecli("fit", str(study), "--out", str(tmp_path / "p.json"))
+    r = tissuecli_here("fit", str(study), "--out", str(tmp_path / "p.json"))
     assert_clean_error(r, "--plots write one fit")
 
 
 def test_catalogue_lists_and_exports(fitted: tuple[Path, Path], tmp_path: Path) -> None:
     _, db = fitted
-    r = tissuecli("catalogue", str(db), "--where", "tissue=tumour")
+    r = tissuecli_here("catalogue", str(db), "--where", "tissue=tumour")
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "6 fit(s)"
-    r = tissuecli("catalogue", str(db), "--json")
+    r = tissuecli_here("catalogue", str(db), "--json")
     rows = [json.loads(line) for line in r.stdout.splitlines()]
     assert len(rows) == 12 and {row["tissue"] for row in rows} == {"fat", "tumour"}
     out = tmp_path / "t.csv"
-    assert tissuecli("catalogue", str(db), "--export", "csv", "--out", str(out)).returncode == 0
+    assert (
+        tissuecli_here("catalogue", str(db), "--export", "csv", "--out", str(out)).returncode == 0
+    )
     assert len(out.read_text().splitlines()) == 13
     assert_clean_error(
-        tissuecli("catalogue", str(db), "--export", "csv", "--out", str(out)), "exists"
+        tissuecli_here("catalogue", str(db), "--export", "csv", "--out", str(out)), "exists"
     )
-    assert_clean_error(tissuecli("catalogue", str(tmp_path / "none.db")), "no catalogue")
+    assert_clean_error(tissuecli_here("catalogue", str(tmp_path / "none.db")), "no catalogue")
 
 
 def test_compare_reports_and_classify(fitted: tuple[Path, Path], tmp_path: Path) -> None:
     study, db = fitted
     report, js = tmp_path / "c.html", tmp_path / "c.json"
-    r = tissuecli("compare", "--catalogue", str(db), "--report", str(report), "--json", str(js))
+    r = tissuecli_here(
+        "compare", "--catalogue", str(db), "--report", str(report), "--json", str(js)
+    )
     assert r.returncode == 0, r.stderr
     c = json.loads(js.read_text())
     (pair,) = c["pairs"]
@@ -87,8 +93,10 @@ def test_compare_reports_and_classify(fitted: tuple[Path, Path], tmp_path: Path)
     html = report.read_text()
     assert "Forest plot" in html and "data:image/png;base64," in html
     assert f"tumour  fat        {pair['p_a_greater']:.3f}" in r.stdout
-    assert_clean_error(tissuecli("compare", "--catalogue", str(db), "--json", str(js)), "exists")
-    r = tissuecli("classify", str(study), "--session", "tumour-03-02", "--catalogue", str(db))
+    assert_clean_error(
+        tissuecli_here("compare", "--catalogue", str(db), "--json", str(js)), "exists"
+    )
+    r = tissuecli_here("classify", str(study), "--session", "tumour-03-02", "--catalogue", str(db))
     assert r.returncode == 0, r.stderr
     header, row = r.stdout.strip().splitlines()
     assert header.split()[1:3] == ["fat", "tumour"]
@@ -102,4 +110,4 @@ def test_compare_asks_which_settings(fitted: tuple[Path, Path], tmp_path: Path) 
     mixed.write_bytes(db.read_bytes())
     r = tissuecli("fit", str(study), "--catalogue", str(mixed), "--forms", "paper")
     assert r.returncode == 0, r.stderr
-    assert_clean_error(tissuecli("compare", "--catalogue", str(mixed)), "--settings")
+    assert_clean_error(tissuecli_here("compare", "--catalogue", str(mixed)), "--settings")

@@ -18,7 +18,7 @@ from tissuecli.core.timebase import regularise
 from tissuecli.core.units import STANDARD_GRAVITY, parse_quantity, parse_units
 from tissuecli.formats.recording import read_recording
 
-from ..conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli_here
 
 N = 400
 T = np.arange(N) * 1e-3
@@ -173,10 +173,10 @@ def test_coarse_and_jittery_stamps_are_put_back_on_their_clock() -> None:
 
 def test_import_cli_reports_what_it_did(tmp_path: Path) -> None:
     path = _table(tmp_path / "l.csv", "t_ms,force_g,closure_mm", np.c_[T * 1e3, F * 102, X * 1e3])
-    out = tissuecli("import", str(path), "--out", str(tmp_path / "g.h5"), "--session", "l")
+    out = tissuecli_here("import", str(path), "--out", str(tmp_path / "g.h5"), "--session", "l")
     assert out.returncode == 0, out.stderr
     assert "time <- 't_ms' in ms (from the header 't_ms')" in out.stdout
-    bad = tissuecli(
+    bad = tissuecli_here(
         "import", str(path), "--out", str(tmp_path / "g.h5"), "--session", "m", "--jaw-length", "x"
     )
     assert_clean_error(bad, "--jaw-length")
@@ -306,18 +306,19 @@ def test_fit_reads_a_recording_directly_as_import_would(tmp_path: Path) -> None:
         np.c_[s.time * 1e3, s.force / 9.80665e-3, s.position * 1e3],
         sep=";",
     )
-    direct = tissuecli("fit", str(path), "--forms", "x,xdot", "--out", str(tmp_path / "a.json"))
+    direct = tissuecli_here(
+        "fit", str(path), "--forms", "x,xdot", "--out", str(tmp_path / "a.json")
+    )
     assert direct.returncode == 0, direct.stderr
     assert "read as another logger's recording" in direct.stdout
     h5 = tmp_path / "lab.h5"
-    assert tissuecli("import", str(path), "--out", str(h5)).returncode == 0
-    stored = tissuecli("fit", str(h5), "--forms", "x,xdot", "--out", str(tmp_path / "b.json"))
+    assert tissuecli_here("import", str(path), "--out", str(h5)).returncode == 0
+    stored = tissuecli_here("fit", str(h5), "--forms", "x,xdot", "--out", str(tmp_path / "b.json"))
     assert stored.returncode == 0, stored.stderr
     a, b = (json.loads((tmp_path / f"{n}.json").read_text())["law"] for n in "ab")
     assert [t["mean"] for t in a["terms"]] == [t["mean"] for t in b["terms"]]
     # reading options belong to recordings: a session file says so
-    assert_clean_error(tissuecli("fit", str(h5), "--units", "mm"), "tissuecli session file")
-
+    assert_clean_error(tissuecli_here("fit", str(h5), "--units", "mm"), "tissuecli session file")
 
 
 def test_rows_after_a_preamble_and_far_into_the_head_are_read(tmp_path) -> None:

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.conftest import assert_clean_error, tissuecli
+from tests.conftest import assert_clean_error, tissuecli, tissuecli_here
 from tissuecli.cli import cli
 from tissuecli.core.errors import InputError
 from tissuecli.core.terms import TERMS, Law
@@ -355,14 +355,7 @@ def file_bytes(draw: st.DrawFn) -> bytes:
 COUNT = {"files": 0, "valid": 0, "refused": 0}
 
 
-@settings(
-    max_examples=400,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
-@given(file_bytes())
-def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+def _read_or_refuse(tmp_path_factory: pytest.TempPathFactory, content: bytes) -> None:
     path = _write(tmp_path_factory.mktemp("gen"), content)
     for what, reader in READERS.items():
         COUNT["files"] += 1
@@ -378,6 +371,30 @@ def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, conte
                 check(value)
             except InputError as exc:
                 _one_line(str(exc), path)
+
+
+# 150 fixed examples: about 20 of each of the seven kinds of file, each read by every
+# reader; the slow run draws 1000 new ones each time
+@settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(file_bytes())
+def test_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+    _read_or_refuse(tmp_path_factory, content)
+
+
+@pytest.mark.slow
+@settings(
+    max_examples=1000,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(file_bytes())
+def test_many_generated_files_are_read_or_refused_in_one_line(tmp_path_factory, content):
+    _read_or_refuse(tmp_path_factory, content)
 
 
 # --------------------------------------------------------------------------- commands
@@ -460,11 +477,13 @@ def test_reproduced_failures_are_one_line_from_the_real_commands(tmp_path, name,
         path.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)) * 4)
     else:
         path = _write(tmp_path, content)
-    for args in (
-        ["play", str(path), "--check"],
-        ["simulate", "forceps", "--params", str(path), "--duration", "0.2"],
+    # the first in a process of its own, as a user runs it; the second, which reads the
+    # file through the same reader, in this one (an interpreter's start saved)
+    for run, args in (
+        (tissuecli, ["play", str(path), "--check"]),
+        (tissuecli_here, ["simulate", "forceps", "--params", str(path), "--duration", "0.2"]),
     ):
-        result = tissuecli(*args)
+        result = run(*args)
         assert_clean_error(result, needle)
         assert max(len(line) for line in result.stderr.splitlines()) < len(str(path)) + 300
 

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _malformed import Spec, clean, specs, write_spec  # noqa: E402
 from test_storage import make_raw, make_session  # noqa: E402
 
-from ..conftest import assert_clean_error, tissuecli  # noqa: E402
+from ..conftest import assert_clean_error, tissuecli_here  # noqa: E402
 
 SETTINGS = settings(
     max_examples=200,
@@ -53,10 +53,13 @@ def test_sessions_fit_and_export_of_malformed_files_never_raise_a_traceback(spec
         path = Path(tmp) / "m.h5"
         write_spec(path, spec)
         listed = clean(lambda: list_sessions(path))
-        for name in (None, spec.name):
+        # the session found by itself, then by name: both read, export and fit; the
+        # default structure search (2 s of CPU a readable file) runs once, the first
+        # fit reads the file through the same path into one quick form
+        for name, quick in ((None, {"forms": "x,xdot"}), (spec.name, {})):
             clean(lambda name=name: read_session(path, name, raw=True))
             clean(lambda name=name: export_csv(path, name, Path(tmp) / "out.csv"))
-            clean(lambda name=name: fit_file(path, name))
+            clean(lambda name=name, quick=quick: fit_file(path, name, **quick))
         if listed == "ok":
             rows = {r["name"]: r for r in list_sessions(path)}
             # a damaged session is listed as such, never skipped
@@ -194,30 +197,30 @@ def test_read_group_refuses_text_columns(tmp_path: Path) -> None:
 
 def test_command_line_on_damaged_files(tmp_path: Path) -> None:
     text = _session_file(tmp_path, _replace("force", np.array([b"1.0"] * 300)))
-    listed = tissuecli("sessions", str(text))
+    listed = tissuecli_here("sessions", str(text))
     assert listed.returncode == 0, listed.stderr
     assert "damaged" in listed.stdout and "force holds text" in listed.stdout
-    rows = json.loads(tissuecli("sessions", str(text), "--json").stdout)
+    rows = json.loads(tissuecli_here("sessions", str(text), "--json").stdout)
     assert rows[0]["status"].startswith("damaged: dataset force holds text")
-    assert_clean_error(tissuecli("fit", str(text)), "is damaged", "force holds text")
+    assert_clean_error(tissuecli_here("fit", str(text)), "is damaged", "force holds text")
     out = tmp_path / "x.csv"
     assert_clean_error(
-        tissuecli("export", str(text), "--csv", str(out)), "is damaged", "force holds text"
+        tissuecli_here("export", str(text), "--csv", str(out)), "is damaged", "force holds text"
     )
     assert not out.exists()
 
     truncated = tmp_path / "cut.h5"
     truncated.write_bytes(text.read_bytes()[:3000])
     for args in (["sessions"], ["fit"], ["export", "--csv", str(out)]):
-        assert_clean_error(tissuecli(args[0], str(truncated), *args[1:]), "truncated")
+        assert_clean_error(tissuecli_here(args[0], str(truncated), *args[1:]), "truncated")
 
     (tmp_path / "m").mkdir()
     missing = _session_file(tmp_path / "m", lambda g: g.__delitem__("time"))
-    listed = tissuecli("sessions", str(missing))
+    listed = tissuecli_here("sessions", str(missing))
     assert listed.returncode == 0 and "time is missing" in listed.stdout, listed.stdout
 
     (tmp_path / "w").mkdir()
     odd = _session_file(tmp_path / "w", lambda g: g.attrs.__setitem__("frames_lost", "three"))
-    listed = tissuecli("sessions", str(odd))
+    listed = tissuecli_here("sessions", str(odd))
     (line,) = [ln for ln in listed.stdout.splitlines() if ln.startswith("s1 ")]
     assert "complete" in line and "(attribute frames_lost is text" in line, line

@@ -14,7 +14,7 @@ from tissuecli.core.errors import InputError
 from tissuecli.formats.recording import read_recording
 from tissuecli.formats.sheets import data_sheets, read_sheet
 
-from ..conftest import assert_clean_error, tissuecli
+from ..conftest import assert_clean_error, tissuecli_here
 
 N = 300
 T = np.arange(N) * 1e-3  # s
@@ -46,7 +46,7 @@ def _workbook(path: Path) -> Path:
 def test_each_sheet_with_data_is_a_session_named_after_it(tmp_path: Path) -> None:
     book = _workbook(tmp_path / "specimens.xlsx")
     assert data_sheets(book) == ["liver A", "kidney B"]
-    result = tissuecli("import", str(book), "--out", str(tmp_path / "s.h5"))
+    result = tissuecli_here("import", str(book), "--out", str(tmp_path / "s.h5"))
     assert result.returncode == 0, result.stderr
     assert "session 'liver A'" in result.stdout and "session 'kidney B'" in result.stdout
     assert "from the units row: 'gf'" in result.stdout
@@ -65,24 +65,26 @@ def test_a_sheet_is_chosen_by_name_for_fit_and_import(tmp_path: Path) -> None:
     np.testing.assert_allclose(session.force, 2 * F, rtol=1e-9)
     assert report.notes[0] == "sheet 'kidney B' of 4 ('liver A', 'kidney B', 'notes', 'empty')"
     assert "text column(s), not numbers: 'status'" in report.notes
-    result = tissuecli("import", str(book), "--out", str(tmp_path / "s.h5"), "--sheet", "liver A")
+    result = tissuecli_here(
+        "import", str(book), "--out", str(tmp_path / "s.h5"), "--sheet", "liver A"
+    )
     assert result.returncode == 0 and "session 'liver A'" in result.stdout, result.stderr
 
 
 def test_a_workbook_of_several_sheets_needs_one_named_to_be_fitted(tmp_path: Path) -> None:
     book = _workbook(tmp_path / "specimens.xlsx")
     assert_clean_error(
-        tissuecli("fit", str(book), "--forms", "x,xdot"),
+        tissuecli_here("fit", str(book), "--forms", "x,xdot"),
         "2 sheets with data ('liver A', 'kidney B')",
         "--sheet NAME",
     )
     assert_clean_error(
-        tissuecli("fit", str(book), "--sheet", "spleen"),
+        tissuecli_here("fit", str(book), "--sheet", "spleen"),
         "no sheet 'spleen'",
         "'liver A', 'kidney B', 'notes', 'empty'",
     )
     assert_clean_error(
-        tissuecli("import", str(book), "--out", str(tmp_path / "s.h5"), "--session", "x"),
+        tissuecli_here("import", str(book), "--out", str(tmp_path / "s.h5"), "--session", "x"),
         "2 sheets with data",
     )
 
@@ -124,10 +126,10 @@ def test_clock_cells_are_a_time_column_and_junk_rows_are_counted(tmp_path: Path)
 def test_a_file_that_is_not_a_workbook_is_refused_in_one_line(tmp_path: Path) -> None:
     path = tmp_path / "fake.xlsx"
     path.write_bytes(b"PK\x03\x04 not really a zip")
-    assert_clean_error(tissuecli("fit", str(path)), "as a spreadsheet")
+    assert_clean_error(tissuecli_here("fit", str(path)), "as a spreadsheet")
     csv = tmp_path / "a.csv"
     csv.write_text("time,force,position\n0,1,2\n1,2,3\n2,3,4\n")
-    assert_clean_error(tissuecli("fit", str(csv), "--sheet", "x"), "not a spreadsheet")
+    assert_clean_error(tissuecli_here("fit", str(csv), "--sheet", "x"), "not a spreadsheet")
 
 
 # -- header and units rows in any common encoding

@@ -5,7 +5,7 @@ and read by the same handshake as theirs."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -14,13 +14,11 @@ import pytest
 from tissuecli.core.errors import DeviceError
 from tissuecli.hw import device as hw_device
 from tissuecli.hw.device import (
-    DEVICES,
     Device,
     Display,
     Forceps,
     TextLogger,
     device_class,
-    register,
 )
 from tissuecli.hw.link import check_info, open_device
 from tissuecli.hw.protocol import Encoder, Sample
@@ -38,7 +36,7 @@ def test_the_built_in_devices_are_registered_with_their_frames() -> None:
 
 
 @pytest.fixture
-def thermometer() -> Iterator[type[Device]]:
+def thermometer(registered_device) -> type[Device]:
     """A new kind of device: one class, one registry entry (removed afterwards)."""
 
     class Thermometer(Device):
@@ -59,11 +57,7 @@ def thermometer() -> Iterator[type[Device]]:
         def limits(self) -> dict[str, Any]:
             return {"range_c": (self.info or {}).get("range_c")}
 
-    register(Thermometer)
-    try:
-        yield Thermometer
-    finally:
-        DEVICES.pop("thermometer", None)
+    return registered_device(Thermometer)
 
 
 def _info(**changes: Any) -> dict[str, Any]:

@@ -90,15 +90,29 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     for i, fp in zip(todo, light.many([law.bind(grid.nodes[i]) for i in todo]), strict=True):
         fit.shaped_passes[keys[i]] = fp
     ln_z = np.array([evaluate(node)[0] for node in grid.nodes])
+    untruncated = ln_z.copy()
     # the bounds matter only where the evidence does: the nodes near the top (more
     # join them if the bounds pull the top down)
     done = np.zeros(ln_z.size, bool)
+    # nodes whose truncation only its closed-form upper bound gives (posterior.FAR_NATS):
+    # the lattice runs on them only if that bound leaves them near a node known exactly
+    rough = np.zeros(ln_z.size, bool)
     while True:
         near = np.flatnonzero(~done & (ln_z > ln_z[done].max(initial=ln_z.max()) - 30.0))
         if not near.size:
-            break
+            top = ln_z[done & ~rough].max(initial=-np.inf)
+            near = np.flatnonzero(rough & (ln_z > top - 30.0)) if np.isfinite(top) else near
+            if not near.size:
+                break
+            for i in near:
+                exact = evaluate(grid.nodes[i])[1][5]
+                exact.refine()
+                ln_z[i] = untruncated[i] + truncation(grid.nodes[i])
+            rough[near] = False
+            continue
         for i in near:
             ln_z[i] += truncation(grid.nodes[i])
+            rough[i] = evaluate(grid.nodes[i])[1][5].bound_only
         done[near] = True
     log_post = ln_z + grid.log_weight
     tops = np.argsort(-log_post)[:3]
