@@ -19,17 +19,26 @@ Array = NDArray[np.float64]
 
 
 def identifiability(r: ModelResult) -> list[str]:
-    """Flags for coefficients the data do not pin down."""
+    """Flags for coefficients the data do not pin down.
+
+    A coefficient whose unit hangs on its term's shape (a contact stiffness in N/m^n)
+    is judged given the shape the law is bound at: across shapes its value changes
+    unit, and its spread there spans decades even where the force it gives is pinned.
+    The prior's scale, and the mean, are those at that shape too."""
     flags = []
     post = r.posterior
     assert post is not None and r.prior is not None
     scales = r.prior.scales
+    at = post.diagnostics.get("at_shape")
+    sd, ci = np.array(post.sd, float), np.array(post.ci95, float)
     for j, t in enumerate(r.model.terms):
-        lo, hi = post.ci95[j]
-        vague = post.sd[j] > 0.3 * scales[j]
-        if vague or (
-            t.passive and (lo <= 0.02 * max(hi, 1e-300) or post.sd[j] > 0.5 * abs(post.mean[j]))
-        ):
+        if at is not None and t.unit_by_shape:
+            sd[j], ci[j] = at["sd"][j], at["ci95"][j]
+    for j, t in enumerate(r.model.terms):
+        lo, hi = ci[j]
+        vague = sd[j] > 0.3 * scales[j]
+        loose = lo <= 0.02 * max(hi, 1e-300) or sd[j] > 0.5 * abs(post.mean[j])
+        if vague or (t.passive and loose):
             what = (
                 "too little acceleration content"
                 if t.role == "inertia"
@@ -38,9 +47,9 @@ def identifiability(r: ModelResult) -> list[str]:
             flags.append(
                 f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
             )
-        elif t.passive and post.sd[j] > 0.25 * abs(post.mean[j]):
+        elif t.passive and sd[j] > 0.25 * abs(post.mean[j]):
             flags.append(
-                f"{t.symbol} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                f"{t.symbol} poorly identified: SD is {100 * sd[j] / post.mean[j]:.0f} % "
                 "of its value"
             )
     return flags
