@@ -710,6 +710,7 @@ class ContactDamping(Contact):
         "contact*xdot", "Lc", "N s/m^(n+1)", "dⁿẋ", "damping", "xv",
     )  # fmt: skip
     order, display, requires, search = 70.0, "mixed", ("contact",), "replace"
+    nests = ()  # at n = 1 it is (x - x0) xdot, no registered term
 
     def regressor(self, x: Array, v: Array, a: Array) -> Array:
         return Contact.__call__(self, x) * np.asarray(v, dtype=float)
