@@ -114,3 +114,21 @@ def test_a_contact_force_below_the_noise_is_still_not_identified():
     shape or not."""
     est = BayesianFit("contact", grasps="none").fit(_contact_session(20.0, 0.5))
     assert any(f.startswith("Kc not identified") for f in est.best_.flags)
+
+
+def test_a_coefficient_whose_shape_fills_its_prior_is_not_identified():
+    """Kc judged at its exponent means nothing if the data leave the exponent where the
+    prior put it (the whole of [1, 2.5]); an exponent they pin leaves Kc to be judged."""
+    from tissuecli.identify.diagnostics import _loose_shapes
+    from tissuecli.identify.scoring import ModelResult
+
+    law = Law.of(["contact"])
+    ranges = {"n": (1.0, 2.5), "x0": (-0.5e-3, 2.5e-3)}
+
+    def result(n_ci: list[float]) -> ModelResult:
+        post = {"n": {"ci95": n_ci}, "x0": {"ci95": [0.0, 1e-3]}}
+        return ModelResult(model=law, shape_posterior=post, shape_ranges=ranges)
+
+    loose = _loose_shapes(result([1.0, 2.5]), law.terms[0])
+    assert loose.startswith("n 95 % interval [1, 2.5]") and "x0" not in loose
+    assert _loose_shapes(result([1.4, 2.1]), law.terms[0]) == ""

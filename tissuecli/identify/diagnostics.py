@@ -11,6 +11,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.terms import Term
 from .derivatives import Kinematics
 from .design import design
 from .scoring import NOT_EVALUATED, Context, ModelResult
@@ -47,12 +48,42 @@ def identifiability(r: ModelResult) -> list[str]:
             flags.append(
                 f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
             )
+        elif loose_shape := _loose_shapes(r, t):
+            flags.append(f"{t.symbol} not identified (its shape is not: {loose_shape})")
         elif t.passive and sd[j] > 0.25 * abs(post.mean[j]):
             flags.append(
                 f"{t.symbol} poorly identified: SD is {100 * sd[j] / post.mean[j]:.0f} % "
                 "of its value"
             )
     return flags
+
+
+#: a shape parameter whose 95 % interval covers this much of its prior's range (in the
+#: coordinate the prior is uniform in) is where the prior put it: not identified (a
+#: posterior equal to the prior covers 0.95 of it)
+SHAPE_FILLS = 0.9
+
+
+def _loose_shapes(r: ModelResult, t: Term) -> str:
+    """What the data leave of ``t``'s shape parameters where the prior put them (their
+    95 % intervals and prior ranges), or "" if each is pinned. A coefficient judged at
+    its shape means nothing if the shape itself is not identified."""
+    post, ranges = r.shape_posterior, r.shape_ranges
+    if not t.shapes or post is None or ranges is None:
+        return ""
+    out = []
+    for name in t.shapes:
+        if name not in post or name not in ranges:
+            continue
+        p = t.shape_parameter(name)
+        lo, hi = ranges[name]
+        a, b = post[name]["ci95"]
+        width = p.to_u(hi) - p.to_u(lo) if min(lo, a) > 0 or not p.log else 0.0
+        if width > 0 and p.to_u(b) - p.to_u(a) >= SHAPE_FILLS * width:
+            out.append(
+                f"{name} 95 % interval [{a:.3g}, {b:.3g}] of its prior's [{lo:.3g}, {hi:.3g}]"
+            )
+    return "; ".join(out)
 
 
 def unidentified(r: ModelResult) -> set[int]:
