@@ -31,6 +31,7 @@ from tissuecli.core.tissue import Tissue
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.derivatives import Gaussian
 from tissuecli.identify.prepare import prepare
+from tissuecli.sim.scenes import DETECTABLE, Scene, detectability
 from tissuecli.sim.synth import ForcepsModel, Operator, Sensors, synthesize
 
 
@@ -57,6 +58,38 @@ def noisy_contact_truth(
 ) -> tuple[Session, Tissue]:
     """:func:`noisy_contact`'s session and the tissue it was drawn with (its law and
     coefficients in SI units)."""
+    session, _, tissue, _ = _draw(
+        seed, rate_hz=rate_hz, noise_fraction=noise_fraction, duration_s=duration_s
+    )
+    return session, tissue
+
+
+def noisy_contact_scene(seed: int) -> Scene:
+    """:func:`noisy_contact`'s session as a :class:`~tissuecli.sim.scenes.Scene`: its
+    truth (true force, kinematics, noise SD) and the terms whose force stands below the
+    noise (:func:`~tissuecli.sim.scenes.detectability`), for the generalisation
+    benchmark's scoring."""
+    session, truth, tissue, noise = _draw(seed)
+    rate = float(session.meta["rate_hz"])
+    snr = detectability(tissue, truth["x"], truth["v"], truth["a"], rate, noise)
+    weak = frozenset(k for k, v in snr.items() if v < DETECTABLE)
+    settings = {"family": f"noisy contact {tissue.law.name}", "rate_hz": rate, "bits": 8,
+                "noise_frac": noise / max(float(np.ptp(truth["F"])), 1e-300),
+                "contact": "continuous", "duration_s": len(session) / rate,
+                "seed": seed, "detectability": snr}  # fmt: skip
+    return Scene(session, tissue, truth["F"], truth["x"], truth["v"], truth["a"], noise,
+                 settings, unexcited=weak)  # fmt: skip
+
+
+def _draw(
+    seed: int,
+    *,
+    rate_hz: float | None = None,
+    noise_fraction: float | None = None,
+    duration_s: float | None = None,
+) -> tuple[Session, dict[str, np.ndarray], Tissue, float]:
+    """The session, its truth (:func:`~tissuecli.sim.synth.synthesize`), the tissue and
+    the force noise's SD (N) of :func:`noisy_contact_truth`."""
     rng = np.random.default_rng(seed)
     rate = float(rng.uniform(250, 2000)) if rate_hz is None else rate_hz
     speed = str(rng.choice(["xdot", "xdot|xdot|"]))
@@ -87,7 +120,8 @@ def noisy_contact_truth(
         position_noise_m=10 ** rng.uniform(-6.5, -5),
     )
     model = ForcepsModel(tissue=tissue, rate_hz=rate, operator=operator, sensors=sensors, seed=seed)
-    return synthesize(model, duration)[0], tissue
+    session, truth = synthesize(model, duration)
+    return session, truth, tissue, sd
 
 
 def main() -> None:

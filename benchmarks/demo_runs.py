@@ -9,8 +9,9 @@ Each run is ``tissuecli demo --duration 2`` in a process of its own, with ``--bu
 processes running ``while 1: pass`` beside it for the whole benchmark. Prints one
 row per run (exit status, loop rate, p99 and longest period, watchdog frames, periods
 without a frame, periods the display ran on a late answer and the longest run of them,
-the simulated display's watchdog limit in periods, seconds, the faults) and the count of
-runs that exited 0, with the load average before and after.
+the simulated display's watchdog limit in periods, the scheduling the haptic loop and
+the simulated display obtained, seconds, the faults) and the count of runs that exited
+0, with the load average before and after. ``--busy 0`` runs the demo alone.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ PLAYED = re.compile(
 LATE = re.compile(r"(\d+) on a late answer \(longest run (\d+)\)")
 WATCHDOG = re.compile(r"watchdog frames (\d+)")
 LIMIT = re.compile(r"display watchdog (\d+) periods")
+SCHED = re.compile(r"scheduling: haptic loop SCHED_(\w+), simulated display (?:SCHED_)?(\S+)")
 
 
 def main() -> None:
@@ -43,7 +45,8 @@ def main() -> None:
     with busy(args.busy):
         print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
         print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} "
-              f"{'watchdog':>8} {'missed':>6} {'late':>5} {'run':>4} {'limit':>5} {'s':>5}  faults")
+              f"{'watchdog':>8} {'missed':>6} {'late':>5} {'run':>4} {'limit':>5} {'sched':>10} "
+              f"{'s':>5}  faults")
         for run in range(args.runs):
             t0 = time.monotonic()
             done = subprocess.run(
@@ -53,6 +56,8 @@ def main() -> None:
             played = PLAYED.search(done.stdout)
             watchdog = WATCHDOG.search(done.stdout)
             limit = LIMIT.search(done.stdout)
+            sched = SCHED.search(done.stdout)
+            both = "/".join(sched.groups()) if sched else "?"
             passed += done.returncode == 0
             if played is None:
                 last = (done.stderr.strip().splitlines() or ["?"])[-1]
@@ -69,6 +74,7 @@ def main() -> None:
                 f"{run:>3} {done.returncode:>4} {float(rate):8.1f} {float(p99):7.2f} "
                 f"{float(worst):7.2f} {watchdog.group(1) if watchdog else '?':>8} "
                 f"{missed:>6} {stale:>5} {longest:>4} {limit.group(1) if limit else '?':>5} "
+                f"{both:>10} "
                 f"{time.monotonic() - t0:5.0f}  {faults}",
                 flush=True,
             )

@@ -4,6 +4,8 @@ Usage::
 
     python benchmarks/generalisation.py --scenes 24            # a fresh seed, printed
     python benchmarks/generalisation.py --scenes 24 --seed 7   # repeat a run
+    python benchmarks/generalisation.py --families paper --contact 20   # the paper's forms,
+                                       # and 20 noisy sessions in contact throughout
 
 Each scene comes from :func:`tissuecli.sim.scenes.random_scene` (every family the package
 simulates, 250 Hz-10 kHz, 8-16 bits, force noise 0.5-10 % of its range, continuous
@@ -19,7 +21,10 @@ held out; the rest is fitted by
 For each it reports, overall and by family group:
 
 - right: the chosen law has the truth's structure (a term whose force stands below the
-  noise in that session, see ``scenes.DETECTABLE``, may be in or out);
+  noise in that session, see ``scenes.DETECTABLE``, may be in or out; a relaxation
+  branch counts by the part of its force the law's other terms cannot carry,
+  ``scenes.branch_detectability``, so a law may leave out a branch no recording of that
+  motion can tell from a spring or a damper);
 - cover: the fraction of 95 % intervals (coefficients and shape parameters of the
   laws chosen right) that hold the truth, with the range a binomial count of that many
   intervals at 0.95 falls in 95 % of the time;
@@ -30,6 +35,12 @@ For each it reports, overall and by family group:
   window that does best against the truth) of the measured held-out force; median and
   90th percentile;
 - the median wall and CPU time of a fit, and the refusals (a fit that raised).
+
+``--families paper`` draws the paper's four forms alone; ``--contact N`` adds N noisy
+paper-form sessions in contact throughout (``continuous_contact.noisy_contact_scene``:
+an ``x^3`` law, 8-bit ADC, 250-2000 Hz, force noise up to 10 % of the range), grouped
+as ``noisy contact``. The scenes where the default's structure is wrong and the
+reference's right are listed after the summary.
 
 Every scene prints a line as it goes; the summary follows. Timings are on whatever the
 machine gives; compare columns within one run.
@@ -187,6 +198,8 @@ class Row:
 
 def group(scene: Scene) -> str:
     family = scene.family
+    if family.startswith("noisy contact"):
+        return "noisy contact"
     return "paper" if family.startswith("paper") else family
 
 
@@ -298,11 +311,17 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
     ap.add_argument("--seed", type=int, default=None, help="repeat a run (default: fresh)")
     ap.add_argument("--max-samples", type=int, default=60_000,
                     help="longest session drawn (samples)")  # fmt: skip
-    ap.add_argument("--families", default="", help="comma-separated names of scenes.FAMILIES")
+    ap.add_argument("--families", default="",
+                    help="comma-separated names of scenes.FAMILIES ('paper': its four forms)")
+    ap.add_argument("--contact", type=int, default=0,
+                    help="also this many noisy paper-form sessions in contact throughout")
     ap.add_argument("--quiet", action="store_true", help="the summary alone")
     args = ap.parse_args(argv)
     seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(3), "little")
     families = [f.strip() for f in args.families.split(",") if f.strip()] or None
+    if families and "paper" in families:
+        families.remove("paper")
+        families += [f for f in FAMILIES if f.startswith("paper") and f not in families]
     if families:
         unknown = set(families) - set(FAMILIES)
         if unknown:
@@ -310,12 +329,20 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
     print(f"seed {seed} (repeat with --seed {seed}); load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)  # fmt: skip
     rows: list[Row] = []
-    for i in range(args.scenes):
-        scene = random_scene(seed + i, families=families, max_samples=args.max_samples)
+    draws = [(i, False) for i in range(args.scenes)]
+    draws += [(args.scenes + i, True) for i in range(args.contact)]
+    total = len(draws)
+    for i, contact in draws:
+        if contact:
+            from continuous_contact import noisy_contact_scene
+
+            scene = noisy_contact_scene(seed + i)
+        else:
+            scene = random_scene(seed + i, families=families, max_samples=args.max_samples)
         got = run_scene(scene, seed=seed + i)
         rows += got
         if not args.quiet:
-            print(f"[{i + 1}/{args.scenes}] {scene.describe()} n={len(scene.session)}; "
+            print(f"[{i + 1}/{total}] {scene.describe()} n={len(scene.session)}; "
                   f"truth {scene.tissue.law.name}", flush=True)  # fmt: skip
             for r in got:
                 if r.fit == "lstsq":
@@ -328,7 +355,27 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
                 print(f"    {r.fit:<8} {what} {r.wall_s:.2f} s{bad}", flush=True)
     print(f"\nload average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     table(rows)
+    lost = losses(rows)
+    if lost:
+        print("\ndefault wrong where the paper's forms are right:")
+        for scene, default, paper in lost:
+            print(f"  seed {scene.settings.get('seed')}: {scene.describe()}; truth "
+                  f"{scene.tissue.law.name}; default {default.law or 'REFUSED'} "
+                  f"P={default.probability:.3f}; paper {paper.law}")  # fmt: skip
     return rows
+
+
+def losses(rows: list[Row]) -> list[tuple[Scene, Row, Row]]:
+    """The scenes where the default's structure is wrong and the paper reference's right:
+    each scene with its two rows."""
+    out = []
+    for r in rows:
+        if r.fit != "default" or r.right:
+            continue
+        paper = next((p for p in rows if p.scene is r.scene and p.fit == "paper"), None)
+        if paper is not None and paper.right:
+            out.append((r.scene, r, paper))
+    return out
 
 
 if __name__ == "__main__":

@@ -63,11 +63,13 @@ def stored(n: int) -> None:
             [sys.executable, "-m", "tissuecli", "fit", path], capture_output=True, text=True
         )
         seconds = time.perf_counter() - t0
-        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        child = resource.getrusage(resource.RUSAGE_CHILDREN)
+        peak = child.ru_maxrss / 1024
         lines = (done.stdout + done.stderr).strip().splitlines()
         print(f"{n} samples written in {written:.1f} s ({os.path.getsize(path) / 1e9:.2f} GB)")
         print(
-            f"tissuecli fit: exit {done.returncode} in {seconds:.1f} s; child peak memory "
+            f"tissuecli fit: exit {done.returncode} in {seconds:.1f} s (CPU "
+            f"{child.ru_utime + child.ru_stime:.1f} s); child peak memory "
             f"{peak:.0f} MB; load average {', '.join(f'{v:.2f}' for v in os.getloadavg())}"
         )
         print("\n".join(lines[:12]))

@@ -26,6 +26,9 @@ def test_demo_runs_every_step_and_keeps_its_files(tmp_path):
         "7. played",
     ):
         assert step in r.stdout, r.stdout
+    # whether every loop of the play ran elevated is said, the simulated display's too
+    assert "scheduling: haptic loop SCHED_" in r.stdout, r.stdout
+    assert "simulated display SCHED_" in r.stdout, r.stdout
     assert formats.session_names(tmp_path / "grasp.h5") == ["demo-1"]
     doc = json.loads((tmp_path / "tissue.json").read_text())
     assert doc["law"]["name"] == "x+xdot+xddot"

@@ -65,3 +65,33 @@ def test_a_contact_law_nests_a_spring_and_an_offset():
     BayesianFit()._drop_unidentified([both, alone, spring], fit=None)  # type: ignore[arg-type]
     assert both.probability == 0.0 and spring.probability == 1.0
     assert both.flags[-1] == "not chosen: Kc not identified; its probability counts for x+offset"
+
+
+def _cv(names: list[str], ln_z: float, p: float, cv: float) -> ModelResult:
+    r = _result(names, ln_z, p)
+    r.cv_rms = cv
+    return r
+
+
+def test_a_law_that_predicts_no_better_than_a_smaller_one_within_decisive_evidence_loses():
+    # a grasp session of x^3+xdot+xddot whose damping the evidence split between
+    # xdot|xdot| and dry friction, 1.7 nats ahead, predicting held-out blocks no better
+    split = _cv(["x^3", "xdot|xdot|", "sign(xdot)", "xddot"], 1990.13, 0.760, 0.014451)
+    truth = _cv(["x^3", "xdot", "xddot"], 1988.40, 0.135, 0.014434)
+    friction = _cv(["x^3", "xdot", "sign(xdot)", "xddot"], 1988.14, 0.105, 0.014448)
+    BayesianFit()._parsimony([split, truth, friction], fit=None)  # type: ignore[arg-type]
+    assert split.probability == 0.0
+    assert abs(truth.probability - 0.895) < 1e-12 and friction.probability == 0.105
+    assert split.flags[-1].startswith("not chosen: x^3+xdot+xddot has fewer parameters")
+
+
+def test_a_law_that_predicts_better_or_is_decisively_ahead_is_kept():
+    better = _cv(["x", "maxwell", "xdot", "xddot"], 10.0, 0.9, 0.010)
+    plain = _cv(["x", "xdot", "xddot"], 8.0, 0.1, 0.011)
+    BayesianFit()._parsimony([better, plain], fit=None)  # type: ignore[arg-type]
+    assert better.probability == 0.9 and plain.probability == 0.1
+    # odds of 100:1 or more are a decision, whatever five blocks say
+    ahead = _cv(["x", "maxwell", "xdot", "xddot"], 20.0, 1.0, 0.012)
+    plain = _cv(["x", "xdot", "xddot"], 8.0, 0.0, 0.011)
+    BayesianFit()._parsimony([ahead, plain], fit=None)  # type: ignore[arg-type]
+    assert ahead.probability == 1.0

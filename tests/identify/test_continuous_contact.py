@@ -80,9 +80,10 @@ def test_free_jaws_held_still_between_grasps_are_free() -> None:
     """Paper-form grasp sessions whose jaws rest open between grasps: the stretches at the
     free-jaw level take in the first and last few noise SDs of the grasps beside them,
     and a damped tissue pulls the force below that level at each release; neither makes
-    the held jaws tissue. Of 40 such sessions 21 were read as one contact, now 9 (the
-    limit leaves room for 3 more; those left have a closure quantised coarser than its
-    noise, on which held jaws and a slow turn look alike)."""
+    the held jaws tissue; nor does a closure quantised coarser than its noise, where the
+    jaws resting again and again at their most open closure, at one force level, tell
+    free jaws from a slow turn. Of 40 such sessions 21 were read as one contact, then 9,
+    now none (the limit leaves room for 2: 1 of 100 other seeds is)."""
     from tissuecli.sim.scenes import FAMILIES as SCENE_FAMILIES
     from tissuecli.sim.scenes import random_scene
 
@@ -93,7 +94,7 @@ def test_free_jaws_held_still_between_grasps_are_free() -> None:
         ).all_contact
         for seed in range(40)
     )
-    assert whole <= 12, whole
+    assert whole <= 2, whole
 
 
 @settings(

@@ -365,3 +365,78 @@ def test_recent_columns_answer_only_their_own_session_within_their_bound() -> No
     gc.collect()  # a finished fit's columns go when the next fit keeps its first
     cache.put(("column", 0.0, "e"), other, x, np.zeros(10))  # type: ignore[arg-type]
     assert cache.nbytes == 80
+
+
+def test_orthant_upper_bound_holds_against_scipy_and_the_lattice() -> None:
+    """The half-space bound is above every mass SciPy's Genz integration gives (to its
+    accuracy), and, far in the tail, within a few nats of Laplace's tail estimate (both
+    are ``-d^2 / 2`` to leading order in the distance ``d`` to the orthant)."""
+    from tissuecli.identify.orthant import orthant_log_upper_bound, tail_log_probability
+
+    rng = np.random.default_rng(23)
+    for _ in range(40):
+        p = int(rng.integers(2, 6))
+        a = rng.standard_normal((p, p))
+        cov = a @ a.T + 0.05 * np.eye(p)
+        mean = rng.normal(0, 2, p) * np.sqrt(np.diag(cov))
+        ref = stats.multivariate_normal(mean=-mean, cov=cov, abseps=1e-12, releps=1e-9).cdf(
+            np.zeros(p)
+        )
+        assert math.exp(orthant_log_upper_bound(mean, cov)) >= ref - 1e-9
+    # far out: tight where the axis bound is not
+    corr = np.array([[1.0, 0.9], [0.9, 1.0]])
+    mean = np.array([-30.0, -30.0])
+    top = orthant_log_upper_bound(mean, corr)
+    axis = math.log(stats.norm.cdf(-30.0))
+    assert top < axis - 10.0
+    assert abs(top - tail_log_probability(mean, corr)) < 5.0
+
+
+def test_a_far_tail_is_not_evaluated_from_its_bound_without_the_lattice(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Where the upper bound is beyond FAR_NATS the lattice is never run and the law is
+    not evaluated, the bound in its reason; refine() runs the lattice, whose figure lies
+    below the bound."""
+    from tissuecli.identify import posterior as post_mod
+    from tissuecli.identify.posterior import FAR_NATS, ExactPosterior
+
+    stats_, prior = _cut_posterior(-60.0)
+    calls: list[int] = []
+    lattice = post_mod.orthant_log_probability
+
+    def counted(mean: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+        calls.append(1)
+        return lattice(mean, cov)
+
+    monkeypatch.setattr(post_mod, "orthant_log_probability", counted)
+    exact = ExactPosterior(stats_, prior)
+    top = exact.ln_orthant_mass()
+    assert top < -FAR_NATS and exact.bound_only and not calls
+    assert exact.untrusted().startswith(f"the positivity bounds keep at most e^{top:.0f} ")
+    assert exact.orthant_mass() == 0.0
+    # (the lattice regularises the correlation by 1e-12, so the same figure to 1e-11)
+    assert exact.refine() <= top + 1e-11 * abs(top) and calls and not exact.bound_only
+
+
+def test_rejection_reaches_below_the_chains_threshold_where_asked() -> None:
+    """A posterior the bound keeps 0.16 % of: too little for the default rejection (a
+    chain samples it), enough at REJECTION_ACCEPTANCE, and every draw inside the bound
+    with the acceptance the orthant mass predicts."""
+    from tissuecli.identify.posterior import (
+        MIN_ACCEPTANCE,
+        REJECTION_ACCEPTANCE,
+        ExactPosterior,
+    )
+
+    stats_, prior = _cut_posterior(-1.8)
+    exact = ExactPosterior(stats_, prior)
+    inside = exact.orthant_mass()
+    assert REJECTION_ACCEPTANCE < inside < MIN_ACCEPTANCE
+    assert exact.truncated(np.random.default_rng(1)) is None
+    post = exact.truncated(np.random.default_rng(1), min_acceptance=REJECTION_ACCEPTANCE)
+    assert post is not None and post.method == "exact-draws"
+    assert np.all(post.samples[:, :-1][:, exact.prior.bounded] >= 0)  # sigma last
+    # the mass is that at the modal noise level, the draws mix over it (its SD is 1.6 %
+    # of it at 2000 samples, which moves a mass 3 SDs out by about 5 %): within 20 %
+    assert post.diagnostics["acceptance"] == pytest.approx(inside, rel=0.2)

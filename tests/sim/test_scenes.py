@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
+from tissuecli.sim import scenes
 from tissuecli.sim.protocols import PROTOCOLS, Creep, Knots, Sweep, random_protocol
 from tissuecli.sim.scenes import FAMILIES, Scene, random_scene, true_force
 from tissuecli.sim.synth import ForcepsModel, Operator, Sensors
@@ -170,3 +171,33 @@ def test_the_design_tells_which_laws_are_the_truths():
     assert not sls.within_truth(Law.of(["x", "maxwell", "offset"]))
     sweep = random_protocol(0, "sine sweep", max_samples=2000)
     assert not sweep.right(Law.of(["x", "xdot"]))
+
+
+@pytest.mark.parametrize(
+    ("tau", "coef", "visible"), [(1e-4, 1e5, False), (0.2, 300.0, True), (1e3, 300.0, False)]
+)
+def test_a_branch_the_other_terms_carry_is_not_seen(tau, coef, visible):
+    # a 1 Hz squeeze: a branch far quicker than it is a damper (tau xdot), one far
+    # slower than the session a spring; the law's own xdot and x carry either
+    rate, t = 1000.0, np.arange(10_000) / 1000.0
+    x = 1e-3 * (1.0 - np.cos(2 * np.pi * t))  # from rest at the first sample
+    v = 2e-3 * np.pi * np.sin(2 * np.pi * t)
+    a = 4e-3 * np.pi**2 * np.cos(2 * np.pi * t)
+    law = Law.of(["x", "maxwell", "xdot"]).bind({"tau1": tau})
+    tissue = Tissue(law, 300.0, coef, 5.0)
+    noise = 0.01 * 300.0 * 2e-3  # 1 % of the spring's force range
+    raw = scenes.detectability(tissue, x, v, a, rate, noise)["maxwell"]
+    (seen,) = scenes.branch_detectability(tissue, x, v, a, rate, noise)
+    assert raw > 10 * scenes.DETECTABLE  # its own force stands far above the noise
+    assert (seen >= scenes.DETECTABLE) == visible
+
+
+def test_a_law_without_a_branch_no_design_can_see_is_right():
+    # two branches (tau 0.033 s and 0.46 s) on a 5.4 s squeeze: the slower one's force
+    # is the law's other columns' to within the noise
+    scene = scenes.random_scene(119, families=["one branch", "two branches"], max_samples=20_000)
+    assert scene.visible_branches == 1
+    assert scene.right(Law.of(["x", "maxwell", "xdot", "xddot"]))
+    assert scene.right(scene.tissue.law)
+    assert not scene.right(Law.of(["x", "xdot", "xddot"]))
+    assert not scene.right(Law.of(["x", "maxwell", "maxwell", "maxwell", "xdot", "xddot"]))

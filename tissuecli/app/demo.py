@@ -129,6 +129,11 @@ def run_demo(
             f"   display watchdog {limit} periods ({limit:g} ms), as the simulated display "
             "judged it against its port at start-up (the firmware's: 5)"
         )
+        sched = summary.get("realtime") or {}
+        say(
+            f"   scheduling: haptic loop {sched.get('scheduler', 'n/a')}, simulated display "
+            f"{sched.get('display_scheduler') or 'n/a'}"
+        )
         faults.extend(classify_faults(summary, 1000.0))
         if workdir is None:
             say("   (temporary files removed; pass --dir DIR to keep them)")

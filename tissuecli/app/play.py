@@ -615,10 +615,13 @@ class HostLoop:
         finally:
             restore()
         summary["watchdog_periods"] = self.watchdog_periods
+        info = getattr(self.link, "info", None)
         summary["realtime"] = {
             "loop": self.where,
             **self.elevation.as_dict(),
             "spin_ms": self.spin_s * 1e3,
+            # a simulated display says what its own loop obtained; hardware says nothing
+            "display_scheduler": info.get("scheduler") if isinstance(info, dict) else None,
         }
         if self.inbox is not None and self.inbox.gone:
             summary["stop_reason"] = "the process that started the loop ended"

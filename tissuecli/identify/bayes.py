@@ -34,6 +34,7 @@ from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
     blocked_cv_rms,
+    cv_scores,
     expected_residual_sd,
     identifiability,
     outlier_warnings,
@@ -306,6 +307,7 @@ class BayesianFit(Estimator):
             r.flags.extend(identifiability(r))
         if self.forms in (None, "all", "linear"):
             results = self._drop_unidentified(results, fit)
+            self._parsimony(results, fit)
         results.sort(key=lambda r: (-r.probability, -r.ln_evidence))
         best = results[0]
         warnings.extend(predictive_guard(results, fit))
@@ -429,6 +431,49 @@ class BayesianFit(Estimator):
                 )
             best.probability = 0.0
         return results
+
+    def _parsimony(self, results: list[ModelResult], fit: Context) -> None:
+        """A law must predict as well as it explains: while the most probable law leads a
+        law with fewer parameters (coefficients and shape parameters) by less than
+        ``decisive`` nats and predicts held-out blocks (:func:`blocked_cv_rms`) no
+        better than it, its probability passes to the best such law by evidence.
+
+        Within ``decisive`` nats the evidence alone is no decision (odds below 100:1),
+        and a term that buys them by following a misfit (grasps read as one contact, a
+        sensor's drift) or by splitting one term's work between two (``xdot`` as
+        ``xdot|xdot|`` plus dry friction) predicts the blocks it did not see no better:
+        A term the session needs predicts better, and is kept (docs/benchmarks.md,
+        "Randomised paper-form sessions")
+        """
+        cv_scores(results, fit)
+
+        def size(r: ModelResult) -> int:
+            law = r.family or r.model
+            return len(law.terms) + len(law.shape_names)
+
+        for _ in range(len(results)):
+            best = max(results, key=lambda r: (r.probability, r.ln_evidence))
+            if best.status == NOT_EVALUATED or not math.isfinite(best.cv_rms):
+                return
+            rivals = [
+                r for r in results
+                if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
+                and size(r) < size(best) and math.isfinite(r.cv_rms)
+                and r.cv_rms <= best.cv_rms
+                and best.ln_evidence - r.ln_evidence < self.decisive
+            ]  # fmt: skip
+            if not rivals:
+                return
+            rival = max(rivals, key=lambda r: r.ln_evidence)
+            rival.probability += best.probability
+            best.probability = 0.0
+            best.flags.append(
+                f"not chosen: {rival.name} has fewer parameters, is within "
+                f"{best.ln_evidence - rival.ln_evidence:.2g} nats of its evidence and "
+                f"predicts held-out blocks as well (blocked cross-validation RMS "
+                f"{rival.cv_rms:.3g} N against {best.cv_rms:.3g} N); its probability counts "
+                f"for {rival.name}"
+            )
 
     def _residual_weight(
         self, results: list[ModelResult], fit: Context, measured: float

@@ -28,6 +28,11 @@ pulling and no sign against them. A dip that ends with the jaws still
 opening fast is the other case: a tissue pulled on jaws opening faster than it
 recovers until it let go, at the end of a grasp; such dips are in contact (a force
 far from the baseline either way is tissue's) and say nothing against free jaws.
+Where the force alone finds no free level (a damped tissue pulling below it at every
+release on a closure quantised coarser than its noise, a soft law resting at its force),
+the closure tells: free jaws rest at the session's most open closure, held there with
+one force level, in :data:`MIN_REST_STRETCHES` stretches or more; a squeeze in contact
+throughout only passes its most open closure at a turn.
 The regressions run on the smoothed force taken every smoothing width, whose noise is
 then nearly independent.
 """
@@ -68,6 +73,10 @@ TURN_FRACTION = 0.3
 STILL_SD = 8.0
 #: most bins of the histogram that finds the level the force rests at most
 MAX_BINS = 4096
+#: jaws resting at their most open closure this many times, at one force level, are free
+#: jaws between grasps (a squeeze in contact throughout passes its smallest closure once
+#: in a while, at a turn)
+MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
 
@@ -145,6 +154,12 @@ def find_contact(session: Session) -> Contact:
     resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
     still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
     baseline, free = _baseline(smooth, closure, noise, dt, width, still)
+    if free < MIN_FREE_FRACTION:
+        # the force alone found no free level: jaws resting open between grasps, told by
+        # the closure (a damped tissue pulls the force below the free level on release,
+        # and a soft law rests at the free level's force at small closure)
+        q = _step(session.position) if not resolved else 0.0
+        baseline, free = _open_rest(smooth, closure, noise, dt, width, max(still, q))
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -228,6 +243,50 @@ def _baseline(
     rest, free_rest = _baseline_at(mode - 0.5 * ENTER_SD * noise, smooth, closure, noise,
                                    dt, width, still, only_still=True)  # fmt: skip
     return (rest, free_rest) if free_rest > 0 else (level, free)
+
+
+def _open_rest(
+    smooth: Array, closure: Array, noise: float, dt: float, width: int, tol: float
+) -> tuple[float, float]:
+    """The free-jaw level from jaws resting at their most open closure between grasps,
+    and the fraction of the session they rest there (0 when they do not).
+
+    Free jaws rest open, at the session's smallest closure, in stretches of one force
+    level, again and again; a squeeze in contact throughout passes its smallest closure
+    at a turn. So: stretches of at least :data:`MIN_GRASP_S` whose smoothed closure stays
+    within ``tol`` (m; its noise or quantisation step) of the smallest, held there
+    through their middle half with the force flat, at least :data:`MIN_REST_STRETCHES`
+    of them at one level (within :data:`ENTER_SD` noise SDs), covering
+    :data:`MIN_FREE_FRACTION` of the session.
+    """
+    if not tol > 0 or smooth.size < 2:
+        return float("nan"), 0.0
+    step = max(width, 1)
+    low = float(np.percentile(closure, 1))
+    at_open = closure <= low + 2 * tol
+    levels, rest = [], np.zeros_like(at_open)
+    for start, stop in _runs(at_open):
+        quarter = (stop - start) // 4
+        middle = slice(start + quarter, stop - quarter)
+        if (stop - start) * dt < MIN_GRASP_S or np.ptp(closure[middle]) > tol:
+            continue
+        if not _flat(smooth[middle][::step], noise, step):
+            continue
+        levels.append(float(np.median(smooth[middle])))
+        rest[start:stop] = True
+    if len(levels) < MIN_REST_STRETCHES:
+        return float("nan"), 0.0
+    level = float(np.median(levels))
+    if np.max(np.abs(np.array(levels) - level)) > ENTER_SD * noise:
+        return float("nan"), 0.0  # the force rests at different levels: tissue's
+    return level, float(np.mean(rest))
+
+
+def _step(x: Array) -> float:
+    """The smallest nonzero step between successive samples (a quantised signal's step)."""
+    d = np.abs(np.diff(x))
+    d = d[d > 0]
+    return float(np.min(d)) if d.size else 0.0
 
 
 def _baseline_at(

@@ -134,15 +134,20 @@ def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
     return math.sqrt(ss / m)
 
 
+def cv_scores(results: list[ModelResult], fit: Context) -> None:
+    """Set ``cv_rms`` (:func:`blocked_cv_rms`) of every evaluated law that has none yet."""
+    for r in results:
+        if r.status == NOT_EVALUATED or math.isfinite(r.cv_rms):
+            continue
+        A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        r.cv_rms = blocked_cv_rms(A, fit.y)
+
+
 def predictive_guard(results: list[ModelResult], fit: Context) -> list[str]:
     """Score each evaluated law by blocked cross-validation (``cv_rms``) and say when a
     law predicts the held-out blocks clearly better than the chosen one: evidence and
     prediction then disagree, and the choice rests on the priors."""
-    for r in results:
-        if r.status == NOT_EVALUATED:
-            continue
-        A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        r.cv_rms = blocked_cv_rms(A, fit.y)
+    cv_scores(results, fit)
     best = results[0]
     scored = [r for r in results if math.isfinite(r.cv_rms)]
     if not scored or not math.isfinite(best.cv_rms):

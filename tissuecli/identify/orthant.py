@@ -141,6 +141,61 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
         points *= 4
 
 
+def orthant_log_upper_bound(mean: Array, cov: Array) -> float:
+    """An upper bound on ``ln P(X >= 0)`` for ``X ~ N(mean, cov)``, in closed form.
+
+    The orthant lies inside every half-space ``g . x >= 0`` with ``g >= 0``, whose mass
+    is ``Phi(g . mean / sqrt(g^T cov g))``. Two such ``g`` are tried: each axis (the
+    bound that keeps least) and the normal of the orthant's face nearest to ``mean`` in
+    the metric of ``cov`` (the active set of :func:`tail_log_probability`), whose
+    half-space's mass is ``Phi(-d)`` for the Mahalanobis distance ``d`` to the orthant,
+    within a few nats of the mass itself far in the tail. Any ``g >= 0`` gives a bound,
+    so a rough active set costs tightness, never validity. NaN where a variance is
+    zero or not finite.
+    """
+    mean = np.asarray(mean, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = mean / np.sqrt(np.diag(cov))
+    if h.size == 0 or not (np.all(np.isfinite(h)) and np.all(np.isfinite(cov))):
+        return math.nan
+    best = float(log_normal_cdf(np.array([np.min(h)]))[0])
+    try:
+        a = np.flatnonzero(_held(mean, cov))
+        if a.size > 1:
+            g = np.zeros(mean.size)
+            g[a] = np.maximum(-np.linalg.solve(cov[np.ix_(a, a)], mean[a]), 0.0)
+            spread = float(g @ cov @ g)
+            if spread > 0.0 and math.isfinite(spread):
+                z = float(g @ mean) / math.sqrt(spread)
+                best = min(best, float(log_normal_cdf(np.array([z]))[0]))
+    except np.linalg.LinAlgError:
+        pass  # the axis bound stands
+    return best
+
+
+def _held(mean: Array, cov: Array) -> NDArray[np.bool_]:
+    """The bounds held at zero at the point of the orthant nearest to ``mean`` in the
+    metric of ``cov`` (an active set: each held bound's slope points into the orthant,
+    each free coordinate, given the held ones at zero, has its mean inside)."""
+    p = mean.size
+    active = mean < 0
+    for _ in range(p + 1):  # active set: bounds held at zero, the rest conditioned
+        a, f = np.flatnonzero(active), np.flatnonzero(~active)
+        if a.size == 0:
+            return active
+        saa = cov[np.ix_(a, a)]
+        g = -np.linalg.solve(saa, mean[a])  # slope of -ln density into the orthant
+        cond = mean[f] - cov[np.ix_(f, a)] @ np.linalg.solve(saa, mean[a])
+        drop = a[g <= 0]
+        add = f[cond < 0]
+        if drop.size == 0 and add.size == 0:
+            break
+        active[drop] = False
+        active[add] = True
+    return active
+
+
 #: the other bounds may change a one-bound answer by at most this fraction of it
 ONE_BOUND_TOL = 1e-12
 
@@ -250,22 +305,10 @@ def tail_log_probability(mean: Array, cov: Array) -> float:
     """
     mean = np.asarray(mean, dtype=float)
     cov = np.asarray(cov, dtype=float)
-    p = mean.size
-    active = mean < 0
-    for _ in range(p + 1):  # active set: bounds held at zero, the rest conditioned
-        a, f = np.flatnonzero(active), np.flatnonzero(~active)
-        if a.size == 0:
-            return 0.0
-        saa = cov[np.ix_(a, a)]
-        g = -np.linalg.solve(saa, mean[a])  # slope of -ln density into the orthant
-        cond = mean[f] - cov[np.ix_(f, a)] @ np.linalg.solve(saa, mean[a])
-        drop = a[g <= 0]
-        add = f[cond < 0]
-        if drop.size == 0 and add.size == 0:
-            break
-        active[drop] = False
-        active[add] = True
+    active = _held(mean, cov)
     a, f = np.flatnonzero(active), np.flatnonzero(~active)
+    if a.size == 0:
+        return 0.0
     saa = cov[np.ix_(a, a)]
     g = np.maximum(-np.linalg.solve(saa, mean[a]), 1e-300)
     sign, logdet = np.linalg.slogdet(saa)

@@ -48,7 +48,7 @@ from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
 from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
-from .design import design, position_noise_sd
+from .design import design, held_closure, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare
 from .spectrum import convolve_valid
 
@@ -185,7 +185,7 @@ def predict_band(
         grid, usable = _grid(session)
         free = _free_jaws(grid)
         if smoother is not None:
-            A = _raw_design(tissue, grid, usable, smoother)
+            A = _raw_design(tissue, grid, usable, smoother, free)
         else:
             chooses = _on_grid_mask(session, grid, tune) & ~free
             A = _tuned_design(tissue, grid, usable, free, chooses)
@@ -242,10 +242,15 @@ def _grid(session: Session) -> tuple[Session, NDArray[np.bool_]]:
 
 
 def _raw_design(
-    tissue: Tissue, grid: Session, usable: NDArray[np.bool_], smoother: Differentiator
+    tissue: Tissue,
+    grid: Session,
+    usable: NDArray[np.bool_],
+    smoother: Differentiator,
+    free: NDArray[np.bool_] | None = None,
 ) -> Array:
     """The law's regressors at the best estimate of each grid sample's kinematics,
-    shape (n, p); NaN rows where the smoother's window holds a hole."""
+    shape (n, p); NaN rows where the smoother's window holds a hole. Terms with memory
+    are driven by the closure held across the ``free`` samples."""
     t, x = grid.time, grid.position
     n = x.size
     dt = float(np.median(np.diff(t)))
@@ -263,7 +268,9 @@ def _raw_design(
         mid = convolve_valid(x, k)
         est.append(np.concatenate([np.full(h, np.nan), mid, np.full(h, np.nan)]))
     xs, vs, acc = _ends(est, x, dt, w, smoother)
-    A = np.column_stack([term.series(dt, xs, vs, acc) for term in tissue.law.terms])
+    held = held_closure(xs, free) if free is not None else xs
+    A = np.column_stack([term.series(dt, held if term.memory else xs, vs, acc)
+                         for term in tissue.law.terms])  # fmt: skip
     bad = np.convolve((~usable).astype(float), np.ones(w), mode="same") > 0.5
     A[bad] = np.nan
     return A
@@ -358,7 +365,7 @@ def _tuned_design(
         last = int(np.flatnonzero(ref)[-1]) + 1
         part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
         chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
-    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x)
+    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x, free=free)
 
 
 def _choose(
@@ -397,7 +404,7 @@ def _choose(
         for j, term in enumerate(terms):
             key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
             if key not in forces:
-                col = _columns((term,), sub, use, smoothers, sigma_x, cache)[:, 0]
+                col = _columns((term,), sub, use, smoothers, sigma_x, cache, off)[:, 0]
                 col[off] *= kept_free[j]
                 forces[key] = tissue.coef[j] * col
             total += forces[key]
@@ -427,10 +434,12 @@ def _columns(
     smoothers: list[Smoother],
     sigma_x: float,
     cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
+    free: NDArray[np.bool_] | None = None,
 ) -> Array:
     """The regressors of ``terms`` on the kinematics of ``smoothers`` (x, xdot, xddot),
     shape (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
-    sample not ``usable``."""
+    sample not ``usable``. Terms with memory are driven by the closure held across the
+    ``free`` samples (:func:`~tissuecli.identify.design.held_closure`)."""
     x = grid.position
     dt = float(np.median(np.diff(grid.time)))
     cache = {} if cache is None else cache
@@ -442,10 +451,12 @@ def _columns(
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
     var_v = (sigma_x * gain_v) ** 2
+    held = held_closure(xs, free) if free is not None and any(t.memory for t in terms) else xs
     cols = [
-        term.expected(vs, var_v) if term.variable == "v" else term.series(dt, xs, vs, acc)
+        term.expected(vs, var_v) if term.variable == "v"
+        else term.series(dt, held if term.memory else xs, vs, acc)
         for term in terms
-    ]
+    ]  # fmt: skip
     A = np.column_stack(cols)
     A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
     return A

@@ -15,6 +15,7 @@ from ..core.session import Session
 from ..core.timebase import sample_clock
 from .contact import Contact, find_contact
 from .derivatives import Differentiator, Kinematics
+from .design import held_closure
 from .spectrum import convolve_valid
 
 MIN_SAMPLES = 200
@@ -233,6 +234,9 @@ def prepare(
             "out for lost or clipped samples in their window"
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
+    if by_grasp:
+        # a relaxation branch is strained only in contact: held across free jaw motion
+        kin = replace(kin, drive=held_closure(session.position, ~contact.mask))
     return Prepared(session, kin, warnings, contact, measured, trusted)
 
 

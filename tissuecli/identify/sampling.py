@@ -17,6 +17,7 @@ from ..core.errors import FitError
 from .posterior import (
     CHECK_NATS,
     LN_2PI,
+    REJECTION_ACCEPTANCE,
     ExactPosterior,
     Posterior,
     Prior,
@@ -450,6 +451,20 @@ def sample_posteriors(
             )
             res.reason = f"{res.reason}; {text}" if res.family is not None else text
             continue
+        if sampler == "auto" and res.stats is not None and res.prior is not None:
+            # exact draws where the bound keeps enough for rejection to beat a chain
+            drawn = ExactPosterior(res.stats, res.prior).truncated(
+                rng, min_acceptance=REJECTION_ACCEPTANCE
+            )
+            if drawn is not None:
+                drawn.diagnostics["exact"] = True
+                res.posterior = drawn
+                how = (
+                    f"exact posterior with the positivity bound, which cuts {100 * cut:.4g} % "
+                    "of the closed form: independent draws by rejection"
+                )
+                res.reason = f"{res.reason}; {how}" if res.family is not None else how
+                continue
         progress = progress_for(res.name) if progress_for is not None else None
         res.posterior = run_emcee(res.stats, res.prior, rng, progress=progress)  # type: ignore[arg-type]
         res.status = "emcee"

@@ -39,6 +39,9 @@ MAX_GRID_SHAPES = 2
 #: draws of the shape's chain whose conditional posteriors make the coefficients' one
 SHAPE_MIXTURE = 8
 
+#: bytes of shaped columns a batch of grid nodes holds at once (:meth:`ShapedPass.many`)
+BATCH_BYTES = 8 << 20
+
 
 def exact_shaped(law: Law, fit: Context) -> ModelResult:
     """A law with shape parameters: its exact evidence at every node of the shape's
@@ -81,16 +84,35 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         exact = evaluate(node)[1][5]
         return exact.ln_evidence() - exact.ln_z_untruncated
 
+    # the grid's first passes in batches; the climbs' nodes come one at a time
+    keys = [(law.name, tuple(node[n] for n in grid.names)) for node in grid.nodes]
+    todo = [i for i, key in enumerate(keys) if key not in fit.shaped_passes]
+    for i, fp in zip(todo, light.many([law.bind(grid.nodes[i]) for i in todo]), strict=True):
+        fit.shaped_passes[keys[i]] = fp
     ln_z = np.array([evaluate(node)[0] for node in grid.nodes])
+    untruncated = ln_z.copy()
     # the bounds matter only where the evidence does: the nodes near the top (more
     # join them if the bounds pull the top down)
     done = np.zeros(ln_z.size, bool)
+    # nodes whose truncation only its closed-form upper bound gives (posterior.FAR_NATS):
+    # the lattice runs on them only if that bound leaves them near a node known exactly
+    rough = np.zeros(ln_z.size, bool)
     while True:
         near = np.flatnonzero(~done & (ln_z > ln_z[done].max(initial=ln_z.max()) - 30.0))
         if not near.size:
-            break
+            top = ln_z[done & ~rough].max(initial=-np.inf)
+            near = np.flatnonzero(rough & (ln_z > top - 30.0)) if np.isfinite(top) else near
+            if not near.size:
+                break
+            for i in near:
+                exact = evaluate(grid.nodes[i])[1][5]
+                exact.refine()
+                ln_z[i] = untruncated[i] + truncation(grid.nodes[i])
+            rough[near] = False
+            continue
         for i in near:
             ln_z[i] += truncation(grid.nodes[i])
+            rough[i] = evaluate(grid.nodes[i])[1][5].bound_only
         done[near] = True
     log_post = ln_z + grid.log_weight
     tops = np.argsort(-log_post)[:3]
@@ -317,6 +339,79 @@ class ShapedPass:
             DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
             correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
+
+    def many(self, bounds: list[Law]) -> list[FirstPass]:
+        """:meth:`__call__` at many shapes (``bounds``: the law bound at each), the same
+        numbers: the nodes' columns stacked so that their products, eigenvalues and
+        solves are one call each (the same LAPACK and BLAS routine per node), in
+        batches of about :data:`BATCH_BYTES` of columns."""
+        m = self.fit.y.size
+        per = max(1, BATCH_BYTES // max(8 * m * len(self.moving), 1))
+        out: list[FirstPass] = []
+        for start in range(0, len(bounds), per):
+            out += self._batch(bounds[start : start + per])
+        return out
+
+    def _batch(self, bounds: list[Law]) -> list[FirstPass]:
+        fit, fixed, moving = self.fit, self.fixed, self.moving
+        kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
+        n, p = len(bounds), len(fixed) + len(moving)
+        S = np.empty((n, fit.y.size, len(moving)))
+        for i, bound in enumerate(bounds):
+            for c, j in enumerate(moving):
+                S[i, :, c] = term_column(bound.terms[j], kin, x, sx, raw_speed=self.speed)
+        St = S.transpose(0, 2, 1)
+        gram = self._assemble_many(self.G_ff, St @ self.F, St @ S)
+        b = np.empty((n, p))
+        b[:, fixed] = self.b_f
+        b[:, moving] = St @ fit.y
+        d = np.sqrt(np.clip(np.diagonal(gram, axis1=1, axis2=2), 1e-300, None))
+        scaled = gram / (d[:, :, None] * d[:, None, :])
+        lam_s = np.linalg.eigvalsh(scaled)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cond_s = np.where(lam_s[:, 0] > 0, np.sqrt(lam_s[:, -1] / lam_s[:, 0]), np.inf)
+        good = np.flatnonzero(cond_s < 1e5)  # the rest: too ill-conditioned for this
+        beta = np.zeros((n, p))
+        if good.size:
+            beta[good] = np.linalg.solve(scaled[good], (b[good] / d[good])[..., None])[..., 0]
+            beta[good] /= d[good]
+        r = (fit.y - (self.F @ beta[:, fixed, None])[..., 0]
+             - (S @ beta[:, moving, None])[..., 0])  # fmt: skip
+        rss = (r[:, None, :] @ r[:, :, None])[:, 0, 0]
+        lam = np.linalg.eigvalsh(gram)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cond = np.where(lam[:, 0] > 0, np.sqrt(lam[:, -1] / lam[:, 0]), np.inf)
+        corrections: Array | None = None
+        if sx > 0:
+            D = S  # the columns are done with: their slopes take their place
+            K = np.empty((n, p, kin.kernels[0].size))
+            K[:, fixed] = self.K_f
+            for i, bound in enumerate(bounds):
+                for c, j in enumerate(moving):
+                    K[i, j], D[i, :, c] = noise_path(bound.terms[j], kin, x, sx)
+            Dt = D.transpose(0, 2, 1)
+            DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
+            corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
+        out = []
+        for i, bound in enumerate(bounds):
+            if cond_s[i] >= 1e5:
+                out.append(first_pass(bound, kin, x, fit.y, sx, fit.columns, fit.paths))
+                continue
+            out.append(FirstPass(gram[i], b[i], self.yy, beta[i], float(rss[i]), float(cond[i]),
+                                 float(cond_s[i]),
+                                 None if corrections is None else corrections[i]))  # fmt: skip
+        return out
+
+    def _assemble_many(self, ff: Array, mf: Array, mm: Array) -> Array:
+        """:meth:`_assemble` of a stack of nodes: ``mf`` (n, k, f), ``mm`` (n, k, k)."""
+        p = len(self.fixed) + len(self.moving)
+        out = np.empty((mf.shape[0], p, p))
+        ff_at, mf_at, fm_at, mm_at = self._blocks
+        out[:, ff_at[0], ff_at[1]] = ff
+        out[:, mf_at[0], mf_at[1]] = mf
+        out[:, fm_at[0], fm_at[1]] = mf.transpose(0, 2, 1)
+        out[:, mm_at[0], mm_at[1]] = mm
+        return out
 
     def _assemble(self, ff: Array, mf: Array, mm: Array) -> Array:
         """A (p, p) matrix of products from its blocks: fixed with fixed, moving with

@@ -67,6 +67,12 @@ SIM_WATCHDOG_MAX_S = 0.05
 #: this machine (docs/benchmarks.md, "Where a loop's time goes").
 PROBES = 100
 ROUND_TRIP_MARGIN = 4.0
+#: The least the simulated display's judged limit may be, s: a start-up sample of quick
+#: round trips (0.1-0.3 ms on a quiet port) said 6 periods, and beside two busy processes
+#: the same port then held single frames for 2-20 ms (docs/benchmarks.md, "Where the
+#: late answers come from"), so the watchdog cut a host that kept time. A hold that long
+#: is the port's, not the host's silence; 20 ms stays under the 50 ms bound.
+SIM_WATCHDOG_FLOOR_S = 0.02
 #: How far behind its schedule the display's loop may fall and still run every tick it
 #: owes, s: woken late, it runs the ticks it missed back to back (physics, Encoder frame
 #: and all) so a late wake-up costs jitter, not rate; further behind, its schedule jumps
@@ -101,6 +107,10 @@ def watchdog_limit(
     :func:`~tissuecli.hw.realtime.cpu_to_spare`) that bound itself. And the one line
     that says how it was set.
 
+    Never under :data:`SIM_WATCHDOG_FLOOR_S` (nor the firmware's periods), and a sample
+    of fewer than :data:`PROBES` round trips (a start-up starved of CPU, its time budget
+    spent) is not enough to judge by: the bound is taken.
+
     A host that answers every frame at once is then cut only when it, or the line,
     stalls for longer than the port showed it could be trusted with. On a saturated
     machine a start-up sample does not see the port's tail: its kernel worker waits
@@ -117,25 +127,34 @@ def watchdog_limit(
         f"{len(ordered)} round trips through the port at start-up ({median * 1e3:.2f} ms "
         f"median, {worst * 1e3:.2f} ms longest)"
     )
-    if saturated:
+    if saturated or len(ordered) < PROBES:
+        why = "no CPU to spare" if saturated else f"fewer than {PROBES} timed"
         return cap, (
-            f"watchdog {cap} periods ({cap * period_s * 1e3:g} ms), its bound: no CPU to "
-            f"spare, so {timed} cannot show the port's tail"
+            f"watchdog {cap} periods ({cap * period_s * 1e3:g} ms), its bound: {why}, so "
+            f"{timed} cannot show the port's tail"
         )
-    periods = min(cap, WATCHDOG_PERIODS + math.ceil(ROUND_TRIP_MARGIN * worst / period_s))
+    floor = min(cap, max(WATCHDOG_PERIODS, math.ceil(SIM_WATCHDOG_FLOOR_S / period_s - 1e-9)))
+    judged = WATCHDOG_PERIODS + math.ceil(ROUND_TRIP_MARGIN * worst / period_s)
+    periods = min(cap, max(floor, judged))
     return periods, (
         f"watchdog {periods} periods ({periods * period_s * 1e3:g} ms): the firmware's "
-        f"{WATCHDOG_PERIODS} plus {ROUND_TRIP_MARGIN:g} x the longest of {timed}, at most "
-        f"{SIM_WATCHDOG_MAX_S * 1e3:g} ms"
+        f"{WATCHDOG_PERIODS} plus {ROUND_TRIP_MARGIN:g} x the longest of {timed}, at least "
+        f"{SIM_WATCHDOG_FLOOR_S * 1e3:g} ms and at most {SIM_WATCHDOG_MAX_S * 1e3:g} ms"
     )
 
 
 def display_info(
-    profile: DisplayProfile, rate_hz: float, watchdog_periods: int = WATCHDOG_PERIODS
+    profile: DisplayProfile,
+    rate_hz: float,
+    watchdog_periods: int = WATCHDOG_PERIODS,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """What a display answers to IDENTIFY: identity, loop rate, encoder scale, watchdog
-    and profile."""
+    and profile; a simulated one also the ``scheduler`` its loop obtained (a host then
+    reports whether every loop of the play ran elevated)."""
+    extra = {"scheduler": scheduler} if scheduler else {}
     return {
+        **extra,
         "protocol": PROTOCOL_VERSION,
         "device": "display",
         "model": "tissuecli simulated solenoid display",
@@ -163,6 +182,7 @@ def simulate_display(
     reports: DisplayProfile | None = None,
     watchdog_periods: int = WATCHDOG_PERIODS,
     spin_s: float = 0.0,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Run the simulated display's firmware until ``stop`` is set (or ``duration_s``).
 
@@ -213,6 +233,8 @@ def simulate_display(
     spin_s : float
         Sleep until this long before each tick, then spin, s
         (:func:`~tissuecli.hw.realtime.spin_for`: the host loop's rule).
+    scheduler : str, optional
+        The scheduling its loop obtained, stated in its IDENTIFY answer.
 
     Returns
     -------
@@ -240,6 +262,7 @@ def simulate_display(
         load_kg,
         reports or profile,
         watchdog_periods,
+        scheduler,
     )
     for t in (0.0, 1.0, 2.0):
         fw.operator(t)  # first calls build the presses' random generator: not inside a tick
@@ -294,6 +317,7 @@ class _Firmware:
         load_kg: float = 0.0,
         reports: DisplayProfile | None = None,
         watchdog_periods: int = WATCHDOG_PERIODS,
+        scheduler: str | None = None,
     ) -> None:
         self.watchdog_periods = watchdog_periods
         self.profile, self.port, self.operator, self.say = profile, port, operator, say
@@ -302,7 +326,9 @@ class _Firmware:
         self.loaded = load_kg > 0
         self.period = 1.0 / rate_hz
         self.decoder = FrameDecoder()
-        self.info = encode(Info(display_info(reports or profile, rate_hz, watchdog_periods)))
+        self.info = encode(
+            Info(display_info(reports or profile, rate_hz, watchdog_periods, scheduler))
+        )
         self.x = self.v = self.volts = 0.0
         self.at_limit = self.streaming = self.armed = self.tripped = False
         self.answered = False  # a SetVoltage came since the last tick
@@ -491,6 +517,7 @@ def run_simulated_display(
                 reports=reports.validate() if reports is not None else None,
                 watchdog_periods=watchdog_periods,
                 spin_s=spin_for(elevation),
+                scheduler=elevation.scheduler,
             )
     finally:
         port.close()

@@ -100,6 +100,11 @@ class Scene:
         Terms whose columns this design cannot tell apart (count as one).
     unexcited : frozenset
         Terms the design does not excite: present or absent, a choice is right.
+    visible_branches : int, optional
+        How many of the truth's relaxation branches stand above the noise beside its
+        other terms (:func:`branch_detectability`): a law with between that many and
+        the truth's count is right. None: all of them, or none if ``"maxwell"`` is
+        unexcited.
     """
 
     session: Session
@@ -113,6 +118,7 @@ class Scene:
     units: tuple[float, float] = (1.0, 1.0)
     indistinct: tuple[frozenset[str], ...] = ()
     unexcited: frozenset[str] = frozenset()
+    visible_branches: int | None = None
 
     @property
     def family(self) -> str:
@@ -150,7 +156,11 @@ class Scene:
     def right(self, law: Law) -> bool:
         """Whether ``law`` has the truth's structure, as far as this design can tell."""
         truth = [t.name for t in self.tissue.law.terms]
-        if _branches(law) != _branches(self.tissue.law) and "maxwell" not in self.unexcited:
+        n, top = _branches(law), _branches(self.tissue.law)
+        if self.visible_branches is not None:
+            if not self.visible_branches <= n <= top:
+                return False
+        elif n != top and "maxwell" not in self.unexcited:
             return False
         return self.classes([t.name for t in law.terms]) == self.classes(truth)
 
@@ -334,6 +344,44 @@ def detectability(tissue: Tissue, x: Array, v: Array, a: Array, rate_hz: float,
     return out
 
 
+def branch_detectability(tissue: Tissue, x: Array, v: Array, a: Array, rate_hz: float,
+                         noise_n: float, gate: bool = True) -> list[float]:  # fmt: skip
+    """How far above the noise each relaxation branch's force stands where the law's
+    other terms cannot stand in for it, strongest first (as :func:`detectability`).
+
+    A branch whose time constant is far below the motion's time scales is a damper
+    (``tau v``) and one far above the session's length a spring (``x``): the law's
+    own damping and stiffness then carry its force, and no recording of that motion
+    can tell the law with the branch from the law without it. So each branch's force
+    is taken less its least-squares part on the columns of the law's terms without
+    memory and of the branches counted before it (the strongest first)."""
+    n = x.size
+    independent = min(n, 50.0 * n / rate_hz)
+    dt = 1.0 / rate_hz
+    xs = np.maximum(x, 0.0) if gate else x
+    touching = x > 0 if gate else np.ones(n, bool)
+    base, forces = [], []
+    for term, c in zip(tissue.law.terms, tissue.coef, strict=True):
+        if term.memory:
+            col = term.series(dt, xs, v, a)
+            forces.append(c * (np.where(touching, col, 0.0) if gate else col))
+        else:
+            col = term.regressor(x, v, a)
+            base.append(np.where(touching, col, 0.0) if gate and term.name != "offset" else col)
+    out: list[float] = []
+    remaining = list(forces)
+    while remaining:
+        B = np.column_stack(base) if base else np.zeros((n, 0))
+        scores = []
+        for f in remaining:
+            r = f - B @ np.linalg.lstsq(B, f, rcond=None)[0] if B.shape[1] else f
+            scores.append(float(np.sqrt(np.mean(r**2))) / max(noise_n, 1e-300))
+        k = int(np.argmax(scores))
+        out.append(scores[k] * math.sqrt(independent))
+        base.append(remaining.pop(k))
+    return out
+
+
 def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
@@ -428,8 +476,15 @@ def random_scene(
         settings={**draw, "seed": seed},
     )
     snr = detectability(tissue, scene.x, scene.v, scene.a, rate, scene.noise_n)
+    branches = branch_detectability(tissue, scene.x, scene.v, scene.a, rate, scene.noise_n)
+    visible = None
+    if branches:
+        snr["maxwell"] = branches[0]
+        visible = sum(b >= DETECTABLE for b in branches)
     weak = frozenset(k for k, s in snr.items() if s < DETECTABLE)
-    return replace(scene, unexcited=weak, settings={**scene.settings, "detectability": snr})
+    return replace(scene, unexcited=weak, visible_branches=visible,
+                   settings={**scene.settings, "detectability": snr,
+                             "branch_detectability": branches})  # fmt: skip
 
 
 def _coefficients(

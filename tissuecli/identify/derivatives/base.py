@@ -64,6 +64,9 @@ class Kinematics:
     force_raw: Array
     half: tuple[Array, Array, Array, float] | None = None
     rows: NDArray[np.intp] | None = None  # outputs kept after the edge trim; None: all
+    #: the untrimmed closure (m) that drives terms with memory where it is not the raw
+    #: closure: held across free jaw motion (:func:`~tissuecli.identify.design.held_closure`)
+    drive: Array | None = None
 
     @property
     def window(self) -> int:
