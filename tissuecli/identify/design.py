@@ -109,7 +109,7 @@ def raw_speed(kin: Kinematics, x_full: Array) -> tuple[float, Array]:
     """The sample interval (s) and the central-difference speed on the raw grid (m/s)
     that terms of the closure's history and of closure and speed together are formed
     from."""
-    dt = float(np.median(np.diff(kin.time)))
+    dt = kin.dt
     return dt, np.gradient(x_full, dt)
 
 

@@ -13,7 +13,7 @@ clipped): a filter cannot see across a hole.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from ...core.errors import FitError
 from ...core.terms import Term
-from ..spectrum import convolve_valid, valid_spectrum
+from ..spectrum import convolve_valid, convolve_valid_every, valid_spectrum
 
 Array = NDArray[np.float64]
 
@@ -67,17 +67,58 @@ class Kinematics:
     #: the untrimmed closure (m) that drives terms with memory where it is not the raw
     #: closure: held across free jaw motion (:func:`~tissuecli.identify.design.held_closure`)
     drive: Array | None = None
+    #: every ``stride``-th filtered output is kept (:meth:`every`); 1: all of them
+    stride: int = 1
+    #: the raw grid's sample interval (s), where the kept outputs no longer show it
+    step_s: float | None = None
 
     @property
     def window(self) -> int:
         return int(self.kernels[0].size)
+
+    @property
+    def dt(self) -> float:
+        """The raw grid's sample interval (s)."""
+        if self.step_s is not None:
+            return self.step_s
+        return float(np.median(np.diff(self.time))) if self.time.size > 1 else 1.0
 
     def _rows(self, u: Array) -> Array:
         return u if self.rows is None else u[self.rows]
 
     def smooth(self, u: Array) -> Array:
         """Filter an untrimmed series of the same session like x (for position columns)."""
+        if self.stride > 1:  # only the kept outputs are formed
+            assert self.rows is not None
+            return convolve_valid_every(u, self.kernels[0], self.stride)[self.rows // self.stride]
         return self._rows(convolve_valid(u, self.kernels[0]))
+
+    def every(self, stride: int) -> Kinematics:
+        """These kinematics at the filtered outputs whose index (counted from the first
+        output of the whole record) is a multiple of ``stride``: the same values, exact
+        outputs of the same kernels, at a ``stride`` times coarser grid. Columns formed
+        on it (:meth:`smooth`) cost about ``1/stride`` of the full ones."""
+        if stride <= 1:
+            return self
+        outputs = self.x_raw.size if self.rows is None else int(self.rows[-1]) + 1
+        rows = np.arange(outputs) if self.rows is None else self.rows
+        stride *= self.stride
+        kept = np.flatnonzero(rows % stride == 0)
+        h = self.window // 2
+        return replace(
+            self,
+            time=self.time[kept],
+            x_raw=self.x_raw[kept],
+            x=self.x[kept],
+            v=self.v[kept],
+            a=self.a[kept],
+            force=self.force[kept],
+            force_raw=self.force_raw[kept],
+            keep=rows[kept] + h,  # type: ignore[arg-type]
+            rows=rows[kept],
+            stride=stride,
+            step_s=self.dt,
+        )
 
     def stiffness_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """The column ``g * r(x)`` of a position term from the untrimmed raw position.
