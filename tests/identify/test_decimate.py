@@ -28,7 +28,9 @@ from tissuecli.sim.synth import ForcepsModel, random_session, synthesize
     step=st.integers(1, 70),
     seed=st.integers(0, 2**31),
 )
-def test_every_stride_th_output_is_the_full_convolution_s(n: int, m: int, step: int, seed: int) -> None:
+def test_every_stride_th_output_of_the_full_convolution(
+    n: int, m: int, step: int, seed: int
+) -> None:
     if m > n:
         with pytest.raises(ValueError):
             convolve_valid_every(np.ones(n), np.ones(m), step)

@@ -30,6 +30,7 @@ from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
 from ..core.terms import Law, term
 from .blas import one_blas_thread
+from .decimate import fit_stride
 from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
@@ -44,7 +45,6 @@ from .diagnostics import (
 from .estimator import Estimator
 from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, examine
-from .decimate import fit_stride
 from .noise import data_weight, filter_tau, residual_tau
 from .priors import law_prior, prior_conflict, scales_from, session_scales
 from .sampling import DECISIVE, sample_posteriors, sample_shape_posteriors
