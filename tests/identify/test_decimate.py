@@ -83,6 +83,23 @@ def test_columns_on_the_coarse_grid_are_the_full_columns_kept_rows() -> None:
     np.testing.assert_allclose(kept, full[rows], rtol=1e-9, atol=1e-12 * np.abs(full).max())
     np.testing.assert_array_equal(coarse.time, kin.time[rows])
     assert coarse.dt == pytest.approx(kin.dt)
+    # with samples left out (a hole, as lost frames or a grasp's edges make): the kept
+    # rows are those of the full grid's multiples of the stride that remain
+    valid = np.ones(len(s), bool)
+    valid[20_000:20_500] = False
+    holed = Gaussian()(s.time, s.position, s.force, valid)
+    assert holed.rows is not None
+    coarse = holed.every(40)
+    assert coarse.rows is not None
+    assert np.all(coarse.rows % 40 == 0)
+    kept = np.isin(holed.rows, coarse.rows)
+    np.testing.assert_allclose(
+        design(law, coarse, s.position, 1e-6),
+        design(law, holed, s.position, 1e-6)[kept],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(full).max(),
+    )
+    np.testing.assert_array_equal(coarse.keep, np.asarray(holed.keep)[kept])
 
 
 def _both(session, monkeypatch, above: int):  # type: ignore[no-untyped-def]
