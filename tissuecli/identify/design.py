@@ -197,7 +197,7 @@ def noise_path(
 
 def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
     if term.variable == "x":
-        return kin.kernels[0], kin.smooth(term.derivative(x_full))
+        return kin.kernels[0], kin.smooth(kin.pointwise(term.derivative, x_full))
     if term.variable == "v":
         return kin.kernels[1], kin.damping_slope(term, x_full, sigma_x**2)
     if term.variable == "a":

@@ -12,7 +12,10 @@ clipped): a filter cannot see across a hole.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import ClassVar
 
@@ -127,10 +130,24 @@ class Kinematics:
         ``r'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
         taken off, so the column matches ``g * F`` to second order.
         """
-        u = term(x_full)
-        if noise_var > 0:
-            u = u - 0.5 * term.curvature(x_full) * noise_var
-        return self.smooth(u)
+        def r(x: Array) -> Array:
+            u = term(x)
+            return u - 0.5 * term.curvature(x) * noise_var if noise_var > 0 else u
+
+        return self.smooth(self.pointwise(r, x_full))
+
+    def pointwise(self, fn: Callable[[Array], Array], x_full: Array) -> Array:
+        """``fn(x_full)`` for a function of each sample's value alone (a term of the
+        closure, its slope or curvature). On the coarse grid of a long session
+        (:meth:`every`), whose closure an ADC has put on few levels, ``fn`` runs on the
+        levels and is read back at each sample: the same numbers, for the cost of
+        indexing where it was that of a power of every sample."""
+        if self.stride > 1:
+            found = _levels(x_full)
+            if found is not None:
+                levels, index = found
+                return fn(levels)[index]
+        return fn(x_full)
 
     def damping_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """The column ``~ g * r(v)`` of a speed term from the untrimmed position.
@@ -186,6 +203,27 @@ class Kinematics:
         col = convolve_valid(u, self.half[0])
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
+
+
+#: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
+SAMPLES_PER_LEVEL = 8
+
+_levels_lock = threading.Lock()
+_levels_of: list[tuple[weakref.ref[Array], tuple[Array, NDArray[np.intp]] | None]] = []
+
+
+def _levels(x: Array) -> tuple[Array, NDArray[np.intp]] | None:
+    """The distinct values of ``x`` and each sample's index among them, if there are at
+    most one per :data:`SAMPLES_PER_LEVEL` samples; kept for the last closure asked
+    about (a fit asks about one, hundreds of times)."""
+    with _levels_lock:
+        if _levels_of and _levels_of[0][0]() is x:
+            return _levels_of[0][1]
+    levels, index = np.unique(x, return_inverse=True)
+    found = (levels, index.ravel()) if levels.size * SAMPLES_PER_LEVEL <= x.size else None
+    with _levels_lock:
+        _levels_of[:] = [(weakref.ref(x), found)]
+    return found
 
 
 class Differentiator(ABC):
