@@ -103,8 +103,7 @@ class Kinematics:
         on it (:meth:`smooth`) cost about ``1/stride`` of the full ones."""
         if stride <= 1:
             return self
-        outputs = self.x_raw.size if self.rows is None else int(self.rows[-1]) + 1
-        rows = np.arange(outputs) if self.rows is None else self.rows
+        rows = np.arange(self.x_raw.size) if self.rows is None else self.rows
         stride *= self.stride
         kept = np.flatnonzero(rows % stride == 0)
         h = self.window // 2
