@@ -129,6 +129,7 @@ class Kinematics:
         ``r'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
         taken off, so the column matches ``g * F`` to second order.
         """
+
         def r(x: Array) -> Array:
             u = term(x)
             return u - 0.5 * term.curvature(x) * noise_var if noise_var > 0 else u
