@@ -79,6 +79,13 @@ MAX_BINS = 4096
 MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
+#: a free stretch lasts at least this many smoothing widths and this many samples (its
+#: middle half then holds two nearly independent smoothed values, enough to tell a level
+#: from a slope); no more than :data:`MIN_GRASP_S`
+MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 4, 10
+#: a grasp's edges reach out to where the smoothed force comes back within this many of
+#: its own noise SDs (measured on the free stretches) of the free-jaw level
+EDGE_SD = 4.0
 
 
 @dataclass(frozen=True)
@@ -192,6 +199,14 @@ def find_contact(session: Session) -> Contact:
     return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
 
 
+def _min_free(dt: float, width: int) -> int:
+    """Fewest samples in a free stretch: :data:`MIN_FREE_WIDTHS` smoothing widths and
+    :data:`MIN_FREE_SAMPLES`, no more than :data:`MIN_GRASP_S` (a session sampled fast
+    and cut short has free stretches of a few tenths of a second or less)."""
+    fixed = int(np.ceil(MIN_GRASP_S / dt - 1e-9))
+    return max(min(fixed, max(MIN_FREE_WIDTHS * width, MIN_FREE_SAMPLES)), 2)
+
+
 def _noise_sd(f: Array) -> float:
     """Force noise SD from successive differences (robust to the signal's slow changes)."""
     d = np.diff(f)
@@ -253,7 +268,7 @@ def _open_rest(
 
     Free jaws rest open, at the session's smallest closure, in stretches of one force
     level, again and again; a squeeze in contact throughout passes its smallest closure
-    at a turn. So: stretches of at least :data:`MIN_GRASP_S` whose smoothed closure stays
+    at a turn. So: stretches of at least :func:`_min_free` samples whose smoothed closure stays
     within ``tol`` (m; its noise or quantisation step) of the smallest, held there
     through their middle half with the force flat, at least :data:`MIN_REST_STRETCHES`
     of them at one level (within :data:`ENTER_SD` noise SDs), covering
@@ -268,9 +283,9 @@ def _open_rest(
     for start, stop in _runs(at_open):
         quarter = (stop - start) // 4
         middle = slice(start + quarter, stop - quarter)
-        if (stop - start) * dt < MIN_GRASP_S or np.ptp(closure[middle]) > tol:
+        if stop - start < _min_free(dt, width) or np.ptp(closure[middle]) > tol:
             continue
-        if not _flat(smooth[middle][::step], noise, step):
+        if not _flat(smooth[middle], noise, step):
             continue
         levels.append(float(np.median(smooth[middle])))
         rest[start:stop] = True
@@ -309,12 +324,12 @@ def _baseline_at(
     long_free = np.zeros_like(near)
     held = np.zeros_like(near)  # free stretches whose jaws are held still
     for start, stop in _runs(near):
-        if (stop - start) * dt < MIN_GRASP_S:
+        if stop - start < _min_free(dt, width):
             continue
         cut = slice(start, stop, step)
         quarter = (stop - start) // 4
         middle = slice(start + quarter, stop - quarter)
-        if np.ptp(closure[middle]) <= still and _flat(smooth[middle][::step], noise, step):
+        if np.ptp(closure[middle]) <= still and _flat(smooth[middle], noise, step):
             held[start:stop] = True  # free, whatever the grasps beside it add at its ends
         elif only_still or _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
@@ -343,13 +358,27 @@ def _baseline_at(
 
 
 def _flat(y: Array, noise: float, width: int) -> bool:
-    """Whether the smoothed force ``y`` (taken every ``width`` samples, so its noise of SD
-    ``noise / sqrt(width)`` is nearly independent) keeps one level: the means of its
-    halves within :data:`FOLLOW_T` standard errors. A hold relaxing is not flat."""
-    h = y.size // 2
+    """Whether the smoothed force ``y`` (a moving mean ``width`` samples wide of a force
+    whose noise SD is ``noise``) keeps one level: the means of its halves within
+    :data:`FOLLOW_T` standard errors. A hold relaxing is not flat.
+
+    Taken every ``width`` samples, the smoothed noise (SD ``noise / sqrt(width)``) is
+    nearly independent; a stretch shorter than that gives at four points, and
+    the mean of ``L`` of its samples has an SD of at most ``noise / sqrt(max(L, width))``.
+    """
+    if y[::width].size >= 4:
+        y = y[::width]
+        h = y.size // 2
+        se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
+    else:
+        if y.size < 4:
+            return False
+        h_raw = y.size // 2
+        se = noise * np.sqrt(1.0 / max(h_raw, width) + 1.0 / max(y.size - h_raw, width))
+        y = y[:: y.size // 4]
+        h = y.size // 2
     if h < 2:
         return False
-    se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
     return bool(abs(float(np.mean(y[h:]) - np.mean(y[:h]))) <= FOLLOW_T * se)
 
 
