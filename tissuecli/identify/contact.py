@@ -79,13 +79,14 @@ MAX_BINS = 4096
 MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
-#: a free stretch lasts at least this many smoothing widths and this many samples (its
-#: middle half then holds two nearly independent smoothed values, enough to tell a level
-#: from a slope); no more than :data:`MIN_GRASP_S`
-MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 4, 10
-#: a grasp's edges reach out to where the smoothed force comes back within this many of
-#: its own noise SDs (measured on the free stretches) of the free-jaw level
-EDGE_SD = 4.0
+#: a free stretch lasts at least this many smoothing widths (the smoothed closure and
+#: force of its middle half then reach past the grasps beside it) and this many samples
+#: (each half of its middle then holds eight: a few at a slow rate and a quantised force
+#: rest flat by chance); no more than :data:`MIN_GRASP_S`
+MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 3, 32
+#: a force whose noise SD is at least this many quantisation steps is dithered: its
+#: moving mean averages the noise down
+DITHER_STEPS = 2.0
 
 
 @dataclass(frozen=True)
@@ -181,7 +182,16 @@ def find_contact(session: Session) -> Contact:
     # pulls on jaws opening faster than it recovers reads below)
     above = smooth - baseline
     mask = _hysteresis(np.abs(above), ENTER_SD * noise, LEAVE_SD * noise)
+    # the thresholds in the smoothed force's own noise, measured where the jaws are free,
+    # where the noise dithers the force's quantisation (a moving mean of a force quantised
+    # coarser than that is a staircase whose error does not average out)
+    dithered = noise >= DITHER_STEPS * _step(f)
+    level_sd = _free_sd(above, mask, noise, width) if dithered else noise
+    if level_sd < noise:
+        mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
+    if dithered:
+        mask = _sharpen(mask, f - baseline, width)
     grasps = []
     for start, stop in _runs(mask):
         if (stop - start) * dt < MIN_GRASP_S:
@@ -197,6 +207,61 @@ def find_contact(session: Session) -> Contact:
             )
         )
     return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
+
+
+def _free_sd(above: Array, mask: NDArray[np.bool_], noise: float, width: int) -> float:
+    """SD of the smoothed force ``above`` the free-jaw level where the jaws are free (N):
+    within :data:`LEAVE_SD` noise SDs of the level and a smoothing width away from
+    ``mask``, robustly: from the median distance below the level (a half-normal's).
+
+    White noise gives ``noise / sqrt(width)``; drift, hum or a sensor's slow noise more.
+    Bounded by those two: a moving mean cannot make the noise larger, and fewer than
+    two widths of free samples below the level are not enough to measure it (then
+    ``noise``).
+    """
+    if width <= 1:
+        return noise
+    away = ~mask & (np.abs(above) <= LEAVE_SD * noise)  # a grasp too weak for ``mask``
+    for start, stop in _runs(mask):
+        away[max(start - width, 0) : stop + width] = False
+    # the half below the level: free noise is symmetric about it, while a grasp too weak
+    # for ``mask`` (or a soft law at small closure) pushes the force up
+    below = above[away & (above < 0)]
+    if below.size < 2 * width:
+        return noise
+    sd = float(np.median(-below)) / 0.6745  # median of a half-normal
+    return float(np.clip(sd, noise / np.sqrt(width), noise))
+
+
+def _sharpen(mask: NDArray[np.bool_], above: Array, width: int) -> NDArray[np.bool_]:
+    """Each grasp's edges where the raw force ``above`` the free-jaw level steps most.
+
+    The moving mean spreads a grasp's first rise (and last fall) over its width, so a
+    threshold on it places the edges up to half a width outside; within half a width of
+    each, the edge goes where the mean of the half width after it departs most from the
+    mean of the half width before it (a step's least-squares place).
+    """
+    h = width // 2
+    if h < 2:
+        return mask
+    out = mask.copy()
+    csum = np.concatenate([[0.0], np.cumsum(above)])
+    runs = _runs(mask)
+    for k, (start, stop) in enumerate(runs):
+        lo = runs[k - 1][1] if k else 0
+        hi = runs[k + 1][0] if k + 1 < len(runs) else mask.size
+        for edge, rising in ((start, True), (stop, False)):
+            cand = np.arange(max(edge - h, lo + h), min(edge + h, hi - h) + 1)
+            if cand.size < 2:
+                continue
+            before = (csum[cand] - csum[cand - h]) / h
+            after = (csum[cand + h] - csum[cand]) / h
+            best = int(cand[int(np.argmax(np.abs(after - before)))])
+            if rising:
+                out[min(best, edge) : max(best, edge)] = best < edge
+            else:
+                out[min(best, edge) : max(best, edge)] = best > edge
+    return out
 
 
 def _min_free(dt: float, width: int) -> int:
@@ -283,7 +348,8 @@ def _open_rest(
     for start, stop in _runs(at_open):
         quarter = (stop - start) // 4
         middle = slice(start + quarter, stop - quarter)
-        if stop - start < _min_free(dt, width) or np.ptp(closure[middle]) > tol:
+        # a quantised closure's moving mean spans one step exactly: within tol, not past it
+        if stop - start < _min_free(dt, width) or np.ptp(closure[middle]) > tol * (1 + 1e-9):
             continue
         if not _flat(smooth[middle], noise, step):
             continue
