@@ -390,7 +390,9 @@ def _baseline_at(
     long_free = np.zeros_like(near)
     held = np.zeros_like(near)  # free stretches whose jaws are held still
     for start, stop in _runs(near):
-        if stop - start < _min_free(dt, width):
+        # a soft law near zero force at a squeeze's turn rests as long as free jaws do in
+        # a fast session cut short: here, by the force alone, a free stretch is long
+        if (stop - start) * dt < MIN_GRASP_S:
             continue
         cut = slice(start, stop, step)
         quarter = (stop - start) // 4
