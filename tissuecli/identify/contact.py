@@ -5,8 +5,11 @@ sensor reads its own offset (the baseline) plus noise. The baseline is the level
 of the lowest long, flat stretch of the smoothed force during which the force does not
 follow the jaw closure (near the tightest closure of a grasp the force also rests low,
 but rises and falls with the closure); a sample is in contact when
-the smoothed force stands above the baseline by more than 6 noise SDs (entering) and
-until it falls below 3 (leaving). Stretches shorter than :data:`MIN_GRASP_S` are not
+the smoothed force stands away from the baseline by more than 6 noise SDs (entering)
+and until it comes within 3 (leaving): SDs of the smoothed force's own noise, measured
+on the free stretches, where the raw noise dithers the force's quantisation (else of the
+raw force's noise). Each edge then goes where the raw force steps most within half a
+smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
 
