@@ -82,11 +82,11 @@ MAX_BINS = 4096
 MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
-#: a free stretch lasts at least this many smoothing widths (the smoothed closure and
-#: force of its middle half then reach past the grasps beside it) and this many samples
+#: jaws resting open last at least this many smoothing widths (the smoothed closure and
+#: force of their middle half then reach no further than the rest) and this many samples
 #: (each half of its middle then holds eight: a few at a slow rate and a quantised force
 #: rest flat by chance); no more than :data:`MIN_GRASP_S`
-MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 3, 32
+MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 2, 32
 #: a force whose noise SD is at least this many quantisation steps is dithered: its
 #: moving mean averages the noise down
 DITHER_STEPS = 2.0
