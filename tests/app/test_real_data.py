@@ -96,8 +96,9 @@ def test_a_cutting_punch_is_not_a_tissue_law(fitted, name: str) -> None:
     # The fitted R^2 is not bounded below by 0: it is scored against the force's mean,
     # which a law without an offset does not have. F = K x is the meniscus's choice once
     # relaxation branches are held across free jaws: no branch then fits the cuts, the
-    # residuals of the best law left leave 13 effective samples, and no richer law earns its place (dry
-    # friction and an offset are 0.8 nats behind). At its least-squares K it is at R^2
+    # residuals of the best law left leave 13 effective samples, and no richer law earns
+    # its place (dry friction and an offset are 0.8 nats behind). At its least-squares K
+    # it is at R^2
     # -0.55 (K = 0 is at -6.1) and predicts the held-out cuts better than the old law
     # (RMS 1.34 N against 1.68 N). Coefficients that did not belong to the bound law's
     # shape put the fitted R^2 at -1.5: keep above -1.
