@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tissuecli.core.session import Session
-from tissuecli.identify.contact import _flat, _min_free, find_contact
+from tissuecli.identify.contact import _flat, _min_free, _noise_sd, find_contact
 from tissuecli.sim.scenes import random_scene
 
 
@@ -102,3 +102,18 @@ def test_a_coarsely_quantised_force_keeps_the_raw_thresholds() -> None:
         session = Session(t, force, position)
         found = find_contact(session)
         assert (not found.all_contact and found.mask[grasp > 0].mean() > 0.9) == read
+
+
+@pytest.mark.parametrize("rate_hz", [250.0, 1000.0, 10000.0])
+def test_the_force_noise_is_not_read_from_the_signal_slope(rate_hz: float) -> None:
+    """White noise on a squeeze sampled slowly: the estimate is the noise's SD (the MAD
+    of n >= 1250 second differences has a relative SE near 1.1 / sqrt(n) < 4 %, so 10 %
+    is over 2.5 SE), not the slope's steps (up to 0.15 N a sample at 250 Hz); a
+    quantised noiseless force gives its quantisation's order, not the slope's."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 5.0, 1.0 / rate_hz)
+    signal = 2.0 * (1.0 - np.cos(2.0 * np.pi * 1.5 * t))  # N, up to 4 N at 1.5 Hz
+    sd = _noise_sd(signal + rng.normal(0.0, 0.01, t.size))
+    assert 0.9 * 0.01 < sd < 1.1 * 0.01
+    step = 4.0 / 255
+    assert step / np.sqrt(12) <= _noise_sd(np.round(signal / step) * step) <= 0.75 * step
