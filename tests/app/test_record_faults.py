@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from tissuecli import formats
@@ -113,8 +113,23 @@ def absurd_streams(draw: st.DrawFn) -> tuple[list[int], list[int], list[bytes], 
     return seqs, clocks, line, len(line) - len(frames)
 
 
+#: a clean stream of 15 frames, the last of them 14 ms in (found on a loaded machine)
+SHORT_CLEAN_SEQS = list(range(7505, 7520))
+SHORT_CLEAN_CLOCKS = [2277, 3297, 4317, 5330, 6333, 7331, 8320, 9316, 10332, 11351,
+                      12334, 13343, 14359, 15348, 16360]  # fmt: skip
+
+
 @few(12)
 @given(absurd_streams(), st.one_of(st.none(), st.floats(0.01, 0.2)))
+@example(
+    stream=(
+        SHORT_CLEAN_SEQS,
+        SHORT_CLEAN_CLOCKS,
+        sample_frames(SHORT_CLEAN_SEQS, SHORT_CLEAN_CLOCKS),
+        0,
+    ),
+    duration=0.1858746993519576,
+)
 def test_absurd_frames_give_a_clean_error_or_a_consistent_session(tmp_path, stream, duration):
     seqs, clocks, line, garbage = stream
     result, error, out = record_from(tmp_path, good_info(), line, duration_s=duration)

@@ -383,10 +383,14 @@ def test_record_live_serves_changing_numbers_and_stays_lossless(forceps, tmp_pat
     try:
         url = _url_of(proc)
         assert "tissuecli live view" in _get(url).decode()
+        # documents with traces (two samples at least), until 1.5 s of them: on a
+        # loaded machine the first documents may still have none
         docs = []
+        deadline = time.monotonic() + 60
         while len(docs) < 2 or docs[-1]["samples_seen"] < 1500:
+            assert time.monotonic() < deadline, f"the view served {docs[-1:]} in 60 s"
             doc = _state(url)
-            if doc["samples_seen"]:
+            if doc["traces"]["time_s"]:
                 docs.append(doc)
             time.sleep(0.1)
         for doc in docs:

@@ -102,12 +102,13 @@ class Stream:
         self.seqs = SequenceTracker()
         self.reason = "duration reached"
         self.t_start = self.last_frame = self.next_status = self.last_poll = math.nan
+        self.listened = math.nan
         self.longest_silence_s = self.host_stall_s = 0.0
         self.frames_seen = 0
 
     def __enter__(self) -> Stream:
         self.link.command("start")
-        self.t_start = self.last_frame = self.last_poll = time.monotonic()
+        self.t_start = self.last_frame = self.last_poll = self.listened = time.monotonic()
         self.next_status = self.t_start + self.status_interval_s
         return self
 
@@ -129,6 +130,8 @@ class Stream:
             # from when it could have been heard again, not held against it
             self.last_frame += stall
         self.host_stall_s = max(self.host_stall_s, stall)
+        # all the device sent before this moment is read by this poll
+        self.listened = before
         frames = [m for m in self.link.poll() if isinstance(m, self.frame_type)]
         now = self.last_poll = time.monotonic()
         if frames:
@@ -142,8 +145,13 @@ class Stream:
         return frames
 
     def check_idle(self, now: float) -> None:
-        """Raise :class:`DeviceLost` if no frame arrived for ``idle_timeout_s``."""
-        if now - self.last_frame > self.idle_timeout_s:
+        """Raise :class:`DeviceLost` if no frame arrived for ``idle_timeout_s``.
+
+        The silence is counted up to the start of the last poll, not to ``now``: only
+        that poll proves the device sent nothing, and this host may have been
+        descheduled for a while since it began (before the first frame too).
+        """
+        if min(now, self.listened) - self.last_frame > self.idle_timeout_s:
             timeout = self.idle_timeout_s
             stalled = (
                 f" (this host itself was descheduled for up to {_span(self.host_stall_s)})"

@@ -5,8 +5,11 @@ sensor reads its own offset (the baseline) plus noise. The baseline is the level
 of the lowest long, flat stretch of the smoothed force during which the force does not
 follow the jaw closure (near the tightest closure of a grasp the force also rests low,
 but rises and falls with the closure); a sample is in contact when
-the smoothed force stands above the baseline by more than 6 noise SDs (entering) and
-until it falls below 3 (leaving). Stretches shorter than :data:`MIN_GRASP_S` are not
+the smoothed force stands away from the baseline by more than 6 noise SDs (entering)
+and until it comes within 3 (leaving): SDs of the smoothed force's own noise, measured
+on the free stretches, where the raw noise dithers the force's quantisation (else of the
+raw force's noise). Each edge then goes where the raw force steps most within half a
+smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
 
@@ -79,6 +82,14 @@ MAX_BINS = 4096
 MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
+#: jaws resting open last at least this many smoothing widths (the smoothed closure and
+#: force of their middle half then reach no further than the rest) and this many samples
+#: (each half of its middle then holds eight: a few at a slow rate and a quantised force
+#: rest flat by chance); no more than :data:`MIN_GRASP_S`
+MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 2, 32
+#: a force whose noise SD is at least this many quantisation steps is dithered: its
+#: moving mean averages the noise down
+DITHER_STEPS = 2.0
 
 
 @dataclass(frozen=True)
@@ -174,7 +185,16 @@ def find_contact(session: Session) -> Contact:
     # pulls on jaws opening faster than it recovers reads below)
     above = smooth - baseline
     mask = _hysteresis(np.abs(above), ENTER_SD * noise, LEAVE_SD * noise)
+    # the thresholds in the smoothed force's own noise, measured where the jaws are free,
+    # where the noise dithers the force's quantisation (a moving mean of a force quantised
+    # coarser than that is a staircase whose error does not average out)
+    dithered = noise >= DITHER_STEPS * _step(f)
+    level_sd = _free_sd(above, mask, noise, width) if dithered else noise
+    if level_sd < noise:
+        mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
+    if dithered:
+        mask = _sharpen(mask, f - baseline, width)
     grasps = []
     for start, stop in _runs(mask):
         if (stop - start) * dt < MIN_GRASP_S:
@@ -192,16 +212,84 @@ def find_contact(session: Session) -> Contact:
     return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
 
 
+def _free_sd(above: Array, mask: NDArray[np.bool_], noise: float, width: int) -> float:
+    """SD of the smoothed force ``above`` the free-jaw level where the jaws are free (N):
+    within :data:`LEAVE_SD` noise SDs of the level and a smoothing width away from
+    ``mask``, robustly: from the median distance below the level (a half-normal's).
+
+    White noise gives ``noise / sqrt(width)``; drift, hum or a sensor's slow noise more.
+    Bounded by those two: a moving mean cannot make the noise larger, and fewer than
+    two widths of free samples below the level are not enough to measure it (then
+    ``noise``).
+    """
+    if width <= 1:
+        return noise
+    away = ~mask & (np.abs(above) <= LEAVE_SD * noise)  # a grasp too weak for ``mask``
+    for start, stop in _runs(mask):
+        away[max(start - width, 0) : stop + width] = False
+    # the half below the level: free noise is symmetric about it, while a grasp too weak
+    # for ``mask`` (or a soft law at small closure) pushes the force up
+    below = above[away & (above < 0)]
+    if below.size < 2 * width:
+        return noise
+    sd = float(np.median(-below)) / 0.6745  # median of a half-normal
+    return float(np.clip(sd, noise / np.sqrt(width), noise))
+
+
+def _sharpen(mask: NDArray[np.bool_], above: Array, width: int) -> NDArray[np.bool_]:
+    """Each grasp's edges where the raw force ``above`` the free-jaw level steps most.
+
+    The moving mean spreads a grasp's first rise (and last fall) over its width, so a
+    threshold on it places the edges up to half a width outside; within half a width of
+    each, the edge goes where the mean of the half width after it departs most from the
+    mean of the half width before it (a step's least-squares place).
+    """
+    h = width // 2
+    if h < 2:
+        return mask
+    out = mask.copy()
+    csum = np.concatenate([[0.0], np.cumsum(above)])
+    runs = _runs(mask)
+    for k, (start, stop) in enumerate(runs):
+        lo = runs[k - 1][1] if k else 0
+        hi = runs[k + 1][0] if k + 1 < len(runs) else mask.size
+        for edge, rising in ((start, True), (stop, False)):
+            cand = np.arange(max(edge - h, lo + h), min(edge + h, hi - h) + 1)
+            if cand.size < 2:
+                continue
+            before = (csum[cand] - csum[cand - h]) / h
+            after = (csum[cand + h] - csum[cand]) / h
+            best = int(cand[int(np.argmax(np.abs(after - before)))])
+            if rising:
+                out[min(best, edge) : max(best, edge)] = best < edge
+            else:
+                out[min(best, edge) : max(best, edge)] = best > edge
+    return out
+
+
+def _min_free(dt: float, width: int) -> int:
+    """Fewest samples in a free stretch: :data:`MIN_FREE_WIDTHS` smoothing widths and
+    :data:`MIN_FREE_SAMPLES`, no more than :data:`MIN_GRASP_S` (a session sampled fast
+    and cut short has free stretches of a few tenths of a second or less)."""
+    fixed = int(np.ceil(MIN_GRASP_S / dt - 1e-9))
+    return max(min(fixed, max(MIN_FREE_WIDTHS * width, MIN_FREE_SAMPLES)), 2)
+
+
 def _noise_sd(f: Array) -> float:
     """Force noise SD from successive differences (robust to the signal's slow changes)."""
-    d = np.diff(f)
+    d = np.diff(f, 2)
     if d.size == 0:
         return 0.0
-    sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2)
-    if sd > 0:
+    # second differences: a slope (a squeeze sampled slowly) does not pass for noise
+    sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(6)
+    steps = np.abs(np.diff(f))
+    steps = steps[steps > 0]
+    if steps.size == 0:
         return sd
-    nonzero = np.abs(d[d != 0])  # a quantised, mostly constant signal: one step
-    return float(np.min(nonzero)) / 2 if nonzero.size else 0.0
+    # a quantised signal whose noise does not dither its steps: half a step, as a
+    # mostly constant one gives
+    q = float(np.min(steps))
+    return sd if sd >= q / np.sqrt(12) else q / 2
 
 
 def _moving_mean(f: Array, width: int) -> Array:
@@ -253,7 +341,7 @@ def _open_rest(
 
     Free jaws rest open, at the session's smallest closure, in stretches of one force
     level, again and again; a squeeze in contact throughout passes its smallest closure
-    at a turn. So: stretches of at least :data:`MIN_GRASP_S` whose smoothed closure stays
+    at a turn. So: stretches of at least :func:`_min_free` samples whose smoothed closure stays
     within ``tol`` (m; its noise or quantisation step) of the smallest, held there
     through their middle half with the force flat, at least :data:`MIN_REST_STRETCHES`
     of them at one level (within :data:`ENTER_SD` noise SDs), covering
@@ -268,9 +356,10 @@ def _open_rest(
     for start, stop in _runs(at_open):
         quarter = (stop - start) // 4
         middle = slice(start + quarter, stop - quarter)
-        if (stop - start) * dt < MIN_GRASP_S or np.ptp(closure[middle]) > tol:
+        # a quantised closure's moving mean spans one step exactly: within tol, not past it
+        if stop - start < _min_free(dt, width) or np.ptp(closure[middle]) > tol * (1 + 1e-9):
             continue
-        if not _flat(smooth[middle][::step], noise, step):
+        if not _flat(smooth[middle], noise, step):
             continue
         levels.append(float(np.median(smooth[middle])))
         rest[start:stop] = True
@@ -309,12 +398,14 @@ def _baseline_at(
     long_free = np.zeros_like(near)
     held = np.zeros_like(near)  # free stretches whose jaws are held still
     for start, stop in _runs(near):
+        # a soft law near zero force at a squeeze's turn rests as long as free jaws do in
+        # a fast session cut short: here, by the force alone, a free stretch is long
         if (stop - start) * dt < MIN_GRASP_S:
             continue
         cut = slice(start, stop, step)
         quarter = (stop - start) // 4
         middle = slice(start + quarter, stop - quarter)
-        if np.ptp(closure[middle]) <= still and _flat(smooth[middle][::step], noise, step):
+        if np.ptp(closure[middle]) <= still and _flat(smooth[middle], noise, step):
             held[start:stop] = True  # free, whatever the grasps beside it add at its ends
         elif only_still or _follows(_follow(closure[cut], speed[cut], smooth[cut]), overall):
             continue  # the force follows the closure or its speed: a grasp at its loosest
@@ -343,13 +434,27 @@ def _baseline_at(
 
 
 def _flat(y: Array, noise: float, width: int) -> bool:
-    """Whether the smoothed force ``y`` (taken every ``width`` samples, so its noise of SD
-    ``noise / sqrt(width)`` is nearly independent) keeps one level: the means of its
-    halves within :data:`FOLLOW_T` standard errors. A hold relaxing is not flat."""
-    h = y.size // 2
+    """Whether the smoothed force ``y`` (a moving mean ``width`` samples wide of a force
+    whose noise SD is ``noise``) keeps one level: the means of its halves within
+    :data:`FOLLOW_T` standard errors. A hold relaxing is not flat.
+
+    Taken every ``width`` samples, the smoothed noise (SD ``noise / sqrt(width)``) is
+    nearly independent; a stretch shorter than that gives at four points, and
+    the mean of ``L`` of its samples has an SD of at most ``noise / sqrt(max(L, width))``.
+    """
+    if y[::width].size >= 4:
+        y = y[::width]
+        h = y.size // 2
+        se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
+    else:
+        if y.size < 4:
+            return False
+        h_raw = y.size // 2
+        se = noise * np.sqrt(1.0 / max(h_raw, width) + 1.0 / max(y.size - h_raw, width))
+        y = y[:: y.size // 4]
+        h = y.size // 2
     if h < 2:
         return False
-    se = noise / np.sqrt(width) * np.sqrt(1.0 / h + 1.0 / (y.size - h))
     return bool(abs(float(np.mean(y[h:]) - np.mean(y[:h]))) <= FOLLOW_T * se)
 
 
