@@ -410,14 +410,9 @@ def test_sighup_ends_live_with_the_session_complete(tmp_path) -> None:
     assert row["complete"] and row["stop_reason"].startswith("interrupted by signal SIGHUP")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_an_interrupted_fit_removes_its_outputs_and_exits_128_plus_n(tmp_path, sig) -> None:
-    from tissuecli.formats.sessions import write_session
-    from tissuecli.sim.synth import ForcepsModel, synthesize
-
-    session, _ = synthesize(ForcepsModel(seed=3), 20.0)
-    h5 = tmp_path / "g.h5"
-    write_session(h5, session)
+def _fit_signalled(tmp_path: Path, h5: Path, sig: int) -> tuple[int, str, bool, Path, Path]:
+    """``tissuecli fit`` of ``h5`` signalled with ``sig`` once under way: its exit status,
+    its stderr, whether it was still running when signalled, and its two outputs."""
     out, report = tmp_path / "p.json", tmp_path / "r.html"
     proc = popen("fit", str(h5), "--out", str(out), "--report", str(report))
     # a signal before the command's handlers are in place would kill the interpreter
@@ -425,11 +420,44 @@ def test_an_interrupted_fit_removes_its_outputs_and_exits_128_plus_n(tmp_path, s
     # machine takes to start Python), then give the fit a moment to get under way
     _wait_for_handler(proc, signal.SIGTERM)
     time.sleep(0.5)
-    if proc.poll() is not None:
-        pytest.skip("the fit ended before the signal: the machine is faster than assumed")
-    proc.send_signal(sig)
-    _, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 128 + sig, stderr
+    running = proc.poll() is None
+    if running:
+        proc.send_signal(sig)
+    _, stderr = proc.communicate(timeout=120)
+    return proc.returncode, stderr, running, out, report
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_fit_removes_its_outputs_and_exits_128_plus_n(tmp_path, sig) -> None:
+    from tissuecli.formats.sessions import write_session
+    from tissuecli.sim.synth import ForcepsModel, synthesize
+
+    # 60 s of samples: a fit of several seconds even on an idle machine (most of a second
+    # per 10 s of samples), so the signal lands while it runs
+    session, _ = synthesize(ForcepsModel(seed=3), 60.0)
+    h5 = tmp_path / "g.h5"
+    write_session(h5, session)
+    ran = []
+    for _ in range(3):
+        t0 = time.monotonic()
+        code, stderr, running, out, report = _fit_signalled(tmp_path, h5, sig)
+        ran.append(time.monotonic() - t0)
+        if code != 0:
+            break
+        # ended with 0: only a fit that finished, outputs written, before the signal came
+        # may say so (a fit that the signal reached and that still exits 0 is wrong)
+        assert out.exists() and report.exists() and "aborted" not in stderr, (running, stderr)
+        for made in (out, report):
+            made.unlink()
+    else:
+        pytest.skip(
+            "the fit ended before its signal took effect three times (started and ended in "
+            f"{', '.join(f'{t:.1f}' for t in ran)} s): the machine is faster than assumed"
+        )
+    # the command exits 128 + n; started as `python -m` (not the console script), CPython
+    # may then end the process by SIGINT itself when a KeyboardInterrupt passed through a
+    # nested evaluation on its way out: a shell reads that as the same 130
+    assert code == 128 + sig or (sig == signal.SIGINT and code == -sig), stderr
     assert "Traceback" not in stderr
     assert _last(stderr).startswith("aborted: interrupted by SIG")
     assert not out.exists() and not report.exists()

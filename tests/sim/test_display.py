@@ -3,9 +3,11 @@ was set, its bounds, and the firmware's limit kept when asked for."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -151,34 +153,76 @@ def test_a_watchdog_fault_names_the_limit_the_display_stated() -> None:
     assert "stopped answering for 5 periods (5 ms)" in text
 
 
-def _stalled_once(monkeypatch: pytest.MonkeyPatch, stall_s: float, at_tick: int = 50) -> None:
+def _stalled_once(
+    monkeypatch: pytest.MonkeyPatch, stall_s: float, at_tick: int = 50
+) -> list[float]:
     """The display's process descheduled for ``stall_s`` once, inside its ``at_tick``-th
-    integration step."""
-    step, calls = display_module.piston_step, [0]
+    integration step; returns the gaps between steps that the machine added (s), the
+    deliberate stall taken out, filled in as the display runs."""
+    step, calls, last, gaps = display_module.piston_step, [0], [0.0], [0.0]
 
     def stalling(*args, **kwargs):  # type: ignore[no-untyped-def]
         calls[0] += 1
+        now = time.monotonic()
+        if calls[0] > 1:
+            gaps.append(now - last[0])
         if calls[0] == at_tick:
             time.sleep(stall_s)
+        last[0] = time.monotonic()  # the deliberate stall is not the machine's
         return step(*args, **kwargs)
 
     monkeypatch.setattr(display_module, "piston_step", stalling)
+    return gaps
 
 
 def test_a_display_woken_late_runs_the_ticks_it_owes_and_keeps_its_rate(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    _stalled_once(monkeypatch, 0.008)
+    gaps = _stalled_once(monkeypatch, 0.008)
     # any stall the machine adds is caught up too (an ordinary thread here)
     monkeypatch.setattr(display_module, "CATCH_UP_S", 1.0)
+    port = VirtualPort()
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    try:
+        counters = simulate_display(PAPER_DISPLAY, port, duration_s=0.2)
+    finally:
+        port.close()
+    cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
+    if counters["missed_deadlines"] and max(gaps) > display_module.CATCH_UP_S:
+        # deadlines are skipped only beyond the catch-up: the machine itself held this
+        # process off its loop for longer than that between two steps
+        pytest.skip(
+            f"the machine held the display off its loop for {max(gaps):.2f} s between two "
+            f"steps (catch-up {display_module.CATCH_UP_S:g} s): {counters['missed_deadlines']} "
+            f"deadlines skipped; {cpu:.2f} s CPU in {wall:.2f} s, load {os.getloadavg()[0]:.1f}"
+        )
+    # all 200 ticks run (none skipped), at least 6 of the 8 periods the stall took owed
+    assert counters["missed_deadlines"] == 0, (counters, max(gaps), cpu, wall)
+    assert counters["late_ticks"] >= 6
+
+
+def test_a_slow_start_is_no_deadline_missed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The collector's pass on entering the loop (a second in a large process on a loaded
+    machine) comes before the schedule starts: no tick is skipped for it."""
+    gaps = _stalled_once(monkeypatch, 0.0)
+    entered = display_module.realtime
+
+    @contextlib.contextmanager
+    def slow_entry() -> Iterator[None]:
+        with entered():
+            time.sleep(0.5)  # a collector's pass in a large heap
+            yield
+
+    monkeypatch.setattr(display_module, "realtime", slow_entry)
     port = VirtualPort()
     try:
         counters = simulate_display(PAPER_DISPLAY, port, duration_s=0.2)
     finally:
         port.close()
-    # all 200 ticks run (none skipped), at least 6 of the 8 periods the stall took owed
-    assert counters["missed_deadlines"] == 0
-    assert counters["late_ticks"] >= 6
+    if max(gaps) > 0.2:
+        pytest.skip(f"the machine held the display off its loop for {max(gaps):.2f} s")
+    # a schedule started before the pause would skip its 500 periods at the first tick
+    assert counters["missed_deadlines"] < 200, counters
 
 
 def test_a_display_stalled_beyond_its_catch_up_skips_and_counts_the_ticks(
