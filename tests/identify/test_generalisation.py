@@ -112,7 +112,7 @@ MODERATE = {"rate_hz": 200.0, "force_unit": 1.0, "length_unit": 1.0, "noise_frac
 
 
 def _holds(outcome: prot.Outcome) -> list[str]:
-    """The bounds of a Must-hold protocol that ``outcome`` breaks (time apart)."""
+    """The bounds (time apart) that ``outcome``, of a starred protocol, breaks."""
     broken = []
     if outcome.refused:
         return [f"refused: {outcome.refused}"]
