@@ -91,12 +91,20 @@ def tissuecli_here(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.CompletedProcess(list(args), result.exit_code, result.stdout, stderr)
 
 
-def popen(*args: str) -> subprocess.Popen[str]:
+def popen(*args: str, default_sigint: bool = False) -> subprocess.Popen[str]:
+    """``python -m tissuecli ARGS`` with pipes; ``default_sigint``: the child starts with
+    SIGINT at its default, not ignored as a shell's background job inherits it (Python
+    then leaves it ignored, as every program started under ``nohup`` or ``&`` does)."""
+
+    def sigint_default() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
     return subprocess.Popen(
         [sys.executable, "-m", "tissuecli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=sigint_default if default_sigint else None,
     )
 
 

@@ -414,7 +414,9 @@ def _fit_signalled(tmp_path: Path, h5: Path, sig: int) -> tuple[int, str, bool, 
     """``tissuecli fit`` of ``h5`` signalled with ``sig`` once under way: its exit status,
     its stderr, whether it was still running when signalled, and its two outputs."""
     out, report = tmp_path / "p.json", tmp_path / "r.html"
-    proc = popen("fit", str(h5), "--out", str(out), "--report", str(report))
+    # SIGINT at its default in the child even when this run is a background job (which
+    # inherits it ignored, and a Ctrl-C then never reaches it)
+    proc = popen("fit", str(h5), "--out", str(out), "--report", str(report), default_sigint=True)
     # a signal before the command's handlers are in place would kill the interpreter
     # mid-import, which no command can answer: wait for them (however long a loaded
     # machine takes to start Python), then give the fit a moment to get under way
