@@ -98,15 +98,21 @@ def test_orthant_probability_meets_its_tolerance_on_exact_cases() -> None:
     )
 
 
+def _random_gaussian(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A Gaussian of 2-5 dimensions, its mean 0-2 SDs from the orthant's faces: (mean,
+    cov)."""
+    p = int(rng.integers(2, 6))
+    a = rng.standard_normal((p, p))
+    cov = a @ a.T + 0.05 * np.eye(p)
+    return rng.normal(0, 2, p) * np.sqrt(np.diag(cov)), cov
+
+
 def test_orthant_probability_agrees_with_genz_in_scipy() -> None:
     rng = np.random.default_rng(11)
     for _ in range(30):
-        p = int(rng.integers(2, 6))
-        a = rng.standard_normal((p, p))
-        cov = a @ a.T + 0.05 * np.eye(p)
-        mean = rng.normal(0, 2, p) * np.sqrt(np.diag(cov))
+        mean, cov = _random_gaussian(rng)
         ref = stats.multivariate_normal(mean=-mean, cov=cov, abseps=1e-9, releps=1e-9).cdf(
-            np.zeros(p)
+            np.zeros(mean.size)
         )
         assert abs(orthant_probability(mean, cov) - ref) < 3e-5
 
@@ -375,12 +381,9 @@ def test_orthant_upper_bound_holds_against_scipy_and_the_lattice() -> None:
 
     rng = np.random.default_rng(23)
     for _ in range(40):
-        p = int(rng.integers(2, 6))
-        a = rng.standard_normal((p, p))
-        cov = a @ a.T + 0.05 * np.eye(p)
-        mean = rng.normal(0, 2, p) * np.sqrt(np.diag(cov))
+        mean, cov = _random_gaussian(rng)
         ref = stats.multivariate_normal(mean=-mean, cov=cov, abseps=1e-12, releps=1e-9).cdf(
-            np.zeros(p)
+            np.zeros(mean.size)
         )
         assert math.exp(orthant_log_upper_bound(mean, cov)) >= ref - 1e-9
     # far out: tight where the axis bound is not
