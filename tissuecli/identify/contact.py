@@ -276,20 +276,16 @@ def _min_free(dt: float, width: int) -> int:
 
 
 def _noise_sd(f: Array) -> float:
-    """Force noise SD from successive differences (robust to the signal's slow changes)."""
+    """Force noise SD from second differences (robust to the signal's slow changes)."""
     d = np.diff(f, 2)
     if d.size == 0:
         return 0.0
     # second differences: a slope (a squeeze sampled slowly) does not pass for noise
     sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(6)
-    steps = np.abs(np.diff(f))
-    steps = steps[steps > 0]
-    if steps.size == 0:
-        return sd
     # a quantised signal whose noise does not dither its steps: half a step, as a
     # mostly constant one gives
-    q = float(np.min(steps))
-    return sd if sd >= q / np.sqrt(12) else q / 2
+    q = _step(f)
+    return sd if sd >= q / np.sqrt(12) or q == 0 else q / 2
 
 
 def _moving_mean(f: Array, width: int) -> Array:
