@@ -460,7 +460,7 @@ class _Firmware:
 
         The velocities are the encoder's differences over one period, as a firmware
         would have them."""
-        if self.model is None or age > MODEL_HORIZON_PERIODS or self.streamed <= age + 1:
+        if self.model is None or age > MODEL_HORIZON_PERIODS or self.streamed < age + 1:
             return False
         h, period = self.history, self.period
         meant = seq - age  # the tick the answer was meant for
