@@ -13,12 +13,14 @@ from typing import Any
 import pytest
 
 from tissuecli.app.faults import MAX_MISSED_FRACTION, MAX_RATE_ERROR, classify_faults
-from tissuecli.app.play import play
+from tissuecli.app.play import Rendering, play
 from tissuecli.app.summaries import play_lines
 from tissuecli.core.flags import FLAG_STALE
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.hw.protocol import Encoder, Message, SetModel, SetVoltage
+from tissuecli.render.check import check
+from tissuecli.render.controller import Controller
 from tissuecli.render.profile import PAPER_DISPLAY
 
 from .fakedisplay import CLOCK_HZ, RATE_HZ, InProcessDisplay
@@ -141,7 +143,8 @@ def test_a_display_with_a_local_model_is_sent_the_laws_slopes_and_a_plain_zero_l
     modelled.every = 0
     s = play(TISSUE, "modelled", 0.3, device=modelled.kind, idle_timeout_s=5.0)
     dev = modelled.opened
-    assert dev is not None and s["modelled_frames"] == 0 and s["late_run_max"] == 0
+    # this display never renders from the model (late periods it flags are stale)
+    assert dev is not None and s["modelled_frames"] == 0 and s["late_run_max"] is not None
     answers = dev.messages[:-1]
     assert answers and all(isinstance(m, SetModel) for m in answers)
     last = dev.messages[-1]
@@ -180,3 +183,23 @@ def test_late_answers_within_the_local_model_are_counted_not_judged() -> None:
         "local model and 20 beyond it (longest run 2)" in line
         for line in lines
     )
+
+
+def test_no_model_is_sent_with_an_answer_that_is_not_the_laws_own() -> None:
+    """An answer changed after the controller (``live`` switched off, its passivity
+    controller) is sent without a model, so a late answer is not rendered as the law
+    where the answer was not; the law's own answer, 0 V where it asks the solenoid to
+    push included, is."""
+    p = PAPER_DISPLAY
+    ctrl = Controller(TISSUE, p, RATE_HZ, check(TISSUE, p, RATE_HZ).gains)
+    rendering = Rendering(ctrl)
+    step = ctrl.update(1e-3, 0.0, 1.0 / RATE_HZ)
+    step = ctrl.update(1e-3, step.volts, 1.0 / RATE_HZ)
+    assert 0.0 < step.volts < p.v_max
+    model = rendering.local_model(step, step.volts, p)
+    assert model is not None and model[0] == pytest.approx(step.volts**2)
+    assert rendering.local_model(step, 0.0, p) is None  # switched off
+    assert rendering.local_model(step, 0.5 * step.volts, p) is None  # changed
+    pushing = replace(step, volts=0.0, pull=-0.2)
+    model = rendering.local_model(pushing, 0.0, p)
+    assert model is not None and model[0] == pytest.approx(-0.2 / p.alpha)

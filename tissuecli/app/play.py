@@ -539,14 +539,20 @@ class Rendering:
         share: before its damping acts, the error equation
         ``M e'' + (s + Cv) e' + (k + Cp) e = (M - Mp) xp''`` moves the error's velocity by
         ``(M - Mp) / M`` of the piston's, so ``Cv e'`` by ``Cv (M - Mp) / M`` of it. None
-        when there is nothing to model (no controller yet, a non-finite step)."""
+        when there is nothing to model (no controller yet, a non-finite step), or when
+        ``volts`` is not the law's own answer to the pull it asked for (``live`` switched
+        off, or its passivity controller changed the answer): a model would then render
+        the law where the answer did not."""
         ctrl, alpha = self.ctrl, profile.alpha
         if ctrl is None or not alpha > 0 or not ctrl.mass > 0:
             return None
         law, x, v = ctrl.law, step.xp, step.vp
-        # the pull as asked, negative where the solenoid cannot push, unless something
-        # after the controller changed the answer (live's passivity controller)
-        u = (step.pull if volts == step.volts else volts * volts * alpha) / alpha
+        # the pull as asked over alpha, negative where the solenoid cannot push
+        u = step.pull / alpha
+        v_max = law.v_max
+        own = 0.0 if not u > 0.0 else v_max if u >= v_max * v_max else math.sqrt(u)
+        if not math.isclose(volts, own, rel_tol=1e-6, abs_tol=1e-9):
+            return None
         hx, hv = SLOPE_STEP_M, SLOPE_STEP_M_S
         try:
             k = (law.static(x + hx) - law.static(x - hx)) + (
