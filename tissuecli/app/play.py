@@ -270,7 +270,9 @@ def play(
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz`` (frames run
         through the loop per second), ``answer_rate_hz``, ``unanswered_frames``,
         ``stale_frames`` and ``stale_run_max`` (periods the display ran on a late answer,
-        as it reports them; see :meth:`.loopstats.PlayFigures.rates`),
+        as it reports them, beyond its local model if it has one), ``modelled_frames``
+        and ``late_run_max`` (periods it rendered from the local model of a late answer,
+        and the longest run of late answers; see :meth:`.loopstats.PlayFigures.rates`),
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``watchdog_periods``
         (the display's stated watchdog limit), ``commands_sent``,
