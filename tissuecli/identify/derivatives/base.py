@@ -96,6 +96,50 @@ class Kinematics:
             return convolve_valid_every(u, self.kernels[0], self.stride)[self.rows // self.stride]
         return self._rows(convolve_valid(u, self.kernels[0]))
 
+    def smooth_recursion(self, a: float, b: float, x_full: Array) -> Array:
+        """:meth:`smooth` of the first-order recursion ``r_k = a r_{k-1} + b (x_k -
+        x_{k-1})`` from rest over the untrimmed closure ``x_full`` (m), shape (m,):
+        a relaxation branch's column (:meth:`~tissuecli.core.terms.Term.recursion`).
+
+        Both are linear filters from rest, so they commute: the closure's increments
+        are filtered once (:func:`increment_blocks`, kept for the closure last asked
+        about) and the recursion runs on them. On the coarse grid (:meth:`every`) only
+        the kept outputs are formed, ``stride`` filtered increments at a time: each
+        kept output is ``a^stride`` times the one before plus ``b`` times the sum of
+        the increments since, weighted ``a^j`` by their age j. The cost is one pass of
+        a matrix-vector product over the record instead of the recursion's and the
+        filter's passes.
+        """
+        from scipy.signal import lfilter  # only for long sessions
+
+        s = self.stride
+        blocks, head = increment_blocks(x_full, self.kernels[0], s)
+        age = a ** np.arange(s - 1, -1, -1, dtype=float)  # a^(s-1-j)
+        y = lfilter([b], [1.0, -(a**s)], blocks @ age)[head:]
+        return y if self.rows is None else y[self.rows // s]
+
+    def smooth_pointwise(
+        self, fn: Callable[[Array], Array], x_full: Array, speed: Array | None = None
+    ) -> Array:
+        """:meth:`smooth` of ``fn(x_full)`` (:meth:`pointwise`), or of ``fn(x_full) *
+        speed`` for a term of closure and speed, ``speed`` being the raw closure's
+        central-difference speed ``np.gradient(x_full, self.dt)`` (m/s).
+
+        On the coarse grid (:meth:`every`) of a closure on few ADC levels, the
+        filtered indicator of each level (times the speed) is formed once
+        (:func:`level_basis`), and each function's column is their sum weighted by its
+        values at the levels: a product of a (rows, levels) matrix where each column
+        was a filter pass over the record. The same sums in another order.
+        """
+        basis = level_basis(self, x_full, speed is not None) if self.stride > 1 else None
+        if basis is not None:
+            levels, B = basis
+            values = fn(levels)
+            if np.all(np.isfinite(values)):
+                return B @ values
+        u = self.pointwise(fn, x_full)
+        return self.smooth(u if speed is None else u * speed)
+
     def every(self, stride: int) -> Kinematics:
         """These kinematics at the filtered outputs whose index (counted from the first
         output of the whole record) is a multiple of ``stride``: the same values, exact
@@ -134,6 +178,8 @@ class Kinematics:
             u = term(x)
             return u - 0.5 * term.curvature(x) * noise_var if noise_var > 0 else u
 
+        if term.shapes:  # many shapes on one closure: filtered once per level
+            return self.smooth_pointwise(r, x_full)
         return self.smooth(self.pointwise(r, x_full))
 
     def pointwise(self, fn: Callable[[Array], Array], x_full: Array) -> Array:
@@ -203,6 +249,102 @@ class Kinematics:
         col = convolve_valid(u, self.half[0])
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
+
+
+_increments_lock = threading.Lock()
+_increments_of: list[tuple[weakref.ref[Array], weakref.ref[Array], int, Array, int]] = []
+
+
+def increment_blocks(x: Array, kernel: Array, stride: int) -> tuple[Array, int]:
+    """The closure's increments ``x_k - x_{k-1}`` (0 at the first sample) through the
+    causal filter ``kernel`` from rest, ``w = np.convolve(dx, kernel)[:n]``, with zeros
+    in front and cut into rows of ``stride``, shape (r, stride), so that the filtered
+    output i * stride of ``np.convolve(., kernel, "valid")`` sits at the end of row
+    ``head + i``; and ``head``. Kept for the last closure, kernel and stride asked
+    about (a fit asks about one, for each shape of its relaxation branches)."""
+    with _increments_lock:
+        if _increments_of:
+            xr, kr, s, blocks, head = _increments_of[0]
+            if xr() is x and kr() is kernel and s == stride:
+                return blocks, head
+    m = kernel.size
+    count = (x.size - m) // stride + 1  # filtered outputs on the stride's grid
+    dx = np.diff(x, prepend=x[:1])
+    w = convolve_valid(np.concatenate([np.zeros(m - 1), dx]), kernel)
+    pad = (-m) % stride  # the recursion at rest before the record
+    blocks = np.concatenate([np.zeros(pad), w[: m + stride * (count - 1)]]).reshape(-1, stride)
+    head = (pad + m) // stride - 1
+    with _increments_lock:
+        _increments_of[:] = [(weakref.ref(x), weakref.ref(kernel), stride, blocks, head)]
+    return blocks, head
+
+
+#: most distinct closure levels per kernel tap for :func:`level_basis` (each column
+#: then costs at most this fraction of a filter pass)
+LEVELS_PER_TAP = 0.25
+
+#: largest level basis kept (bytes)
+BASIS_BYTES = 64 << 20
+
+_basis_lock = threading.Lock()
+_BasisKey = tuple[weakref.ref[object], weakref.ref[Array], bool]
+_basis_of: list[tuple[_BasisKey, tuple[Array, Array] | None]] = []
+
+
+def level_basis(kin: Kinematics, x: Array, speed: bool = False) -> tuple[Array, Array] | None:
+    """The closure's levels (:func:`_levels`), shape (L,), and the coarse grid's
+    (:meth:`Kinematics.every`) filtered indicators of each, ``B[:, l] =
+    kin.smooth((x == levels[l]) * u)`` with ``u`` 1, or with ``speed`` the closure's
+    central-difference speed ``np.gradient(x, kin.dt)`` (m/s), shape (m, L); None if
+    the closure has too many levels (:data:`LEVELS_PER_TAP`, :data:`BASIS_BYTES`).
+    Kept for the last two kinematics, closure and ``speed`` asked about.
+
+    Output i sums ``kernel[::-1][j] u[i * stride + j]``. Cut into rows of ``stride``
+    samples, a row of the record holds few levels: each (row, level) pair's samples
+    are summed against each block of ``stride`` taps at once (one matrix product),
+    and each sum is added to the output that block of taps reaches."""
+    key = (weakref.ref(kin), weakref.ref(x), speed)
+    with _basis_lock:
+        for k, found in _basis_of:
+            if k[0]() is kin and k[1]() is x and k[2] == speed:
+                return found
+    found = _level_basis(kin, x, speed)
+    with _basis_lock:
+        _basis_of[:] = [(key, found), *_basis_of[:1]]
+    return found
+
+
+def _level_basis(kin: Kinematics, x: Array, speed: bool) -> tuple[Array, Array] | None:
+    found = _levels(x)
+    k0 = kin.kernels[0]
+    s, m = kin.stride, k0.size
+    if found is None or s <= 1 or x.size < m:
+        return None
+    levels, index = found
+    count = (x.size - m) // s + 1  # filtered outputs on the stride's grid
+    L = levels.size
+    if L > LEVELS_PER_TAP * m or 8 * L * count > BASIS_BYTES:
+        return None
+    q = -(-m // s)  # the kernel's blocks of taps
+    taps = np.zeros(q * s)
+    taps[:m] = k0[::-1]
+    rows = count - 1 + q  # output i reads rows i ... i + q - 1 (taps beyond m are 0)
+    used = min(x.size, rows * s)
+    level = np.zeros(rows * s, dtype=np.intp)
+    level[:used] = index[:used]
+    pairs, pair_of = np.unique(np.repeat(np.arange(rows) * L, s) + level, return_inverse=True)
+    if 8 * pairs.size * max(s, q) > BASIS_BYTES:
+        return None
+    # each pair's samples by their place in the row: 1 (or the speed) where it is there
+    Z = np.zeros((pairs.size, s))
+    u = np.ones(used) if not speed else np.gradient(x, kin.dt)[:used]
+    Z[pair_of[:used], np.arange(used) % s] = u
+    P = Z @ taps.reshape(q, s).T  # (pairs, q): each pair against each block of taps
+    out = (pairs // L)[:, None] - np.arange(q)  # the output a pair's block c reaches
+    ok = (out >= 0) & (out < count)
+    bins = out * L + (pairs % L)[:, None]
+    B = np.bincount(bins[ok], weights=P[ok], minlength=count * L).reshape(count, L)
+    return levels, B if kin.rows is None else B[kin.rows // s]
 
 
 #: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
