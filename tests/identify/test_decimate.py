@@ -15,7 +15,7 @@ from tissuecli.core.terms import Law, Maxwell
 from tissuecli.identify import BayesianFit, decimate
 from tissuecli.identify.decimate import fit_stride
 from tissuecli.identify.derivatives import Gaussian
-from tissuecli.identify.derivatives.base import level_basis
+from tissuecli.identify.derivatives.base import first_order, level_basis
 from tissuecli.identify.design import design, noise_path
 from tissuecli.identify.noise import filter_tau
 from tissuecli.identify.spectrum import convolve_valid, convolve_valid_every
@@ -102,6 +102,22 @@ def test_columns_on_the_coarse_grid_are_the_full_columns_kept_rows() -> None:
         atol=1e-12 * np.abs(full).max(),
     )
     np.testing.assert_array_equal(coarse.keep, np.asarray(holed.keep)[kept])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    a=st.one_of(st.sampled_from([0.0, 1e-300, 1.0]), st.floats(0.0, 1.0)),
+    seed=st.integers(0, 2**31),
+)
+def test_the_doubled_recursion_is_the_recursion(n: int, a: float, seed: int) -> None:
+    u = np.random.default_rng(seed).standard_normal(n)
+    ref, y = np.zeros(n), 0.0
+    for k in range(n):
+        y = a * y + u[k]
+        ref[k] = y
+    # pairwise sums: rounding of at most log2(n) additions of partial sums
+    np.testing.assert_allclose(first_order(u, a), ref, rtol=0, atol=1e-13 * max(n, 1))
 
 
 @pytest.mark.parametrize("stride", [1, 7, 40])
