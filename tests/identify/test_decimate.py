@@ -143,7 +143,7 @@ def test_a_relaxation_column_from_the_filtered_increments(stride: int, tau: floa
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
-def test_contact_columns_from_the_levels_filtered_indicators() -> None:
+def test_contact_and_speed_columns_on_the_coarse_grid() -> None:
     # on the coarse grid, a closure on few ADC levels: each level's filtered indicator
     # (times the speed) once, each shape's columns their sum weighted by its values
     s, kin = _kinematics(10000.0, 6.0)
@@ -164,6 +164,24 @@ def test_contact_columns_from_the_levels_filtered_indicators() -> None:
     slope = noise_path(contact, kin, s.position, 1e-6)[1]
     np.testing.assert_allclose(
         noise_path(contact, coarse, s.position, 1e-6)[1],
+        slope[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(slope).max(),
+    )
+    # speed terms: the half window's speeds formed once, their mean filtered at the
+    # kept rows alone
+    speed = Law.of(["x", "xdot", "xdot|xdot|", "sign(xdot)", "xddot"])
+    by_speed = design(speed, kin, s.position, 1e-6)
+    np.testing.assert_allclose(
+        design(speed, coarse, s.position, 1e-6),
+        by_speed[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(by_speed).max(),
+    )
+    friction = speed.terms[3]
+    slope = noise_path(friction, kin, s.position, 1e-6)[1]
+    np.testing.assert_allclose(
+        noise_path(friction, coarse, s.position, 1e-6)[1],
         slope[rows],
         rtol=1e-9,
         atol=1e-12 * np.abs(slope).max(),

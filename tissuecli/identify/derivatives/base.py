@@ -249,15 +249,31 @@ class Kinematics:
         (m^2/s^2) and its noise's variance (m^2/s^2), on the raw grid's valid outputs."""
         assert self.half is not None
         _, gh1, gh2, s2 = self.half
+        n_v = noise_var * float(gh1 @ gh1)
+        with _half_lock:  # a long session's speed terms share them (see every())
+            if _half_of and _half_of[0][0]() is x_full and _half_of[0][1]() is gh1:
+                return (*_half_of[0][2], n_v)
         a = convolve_valid(x_full, gh2)
-        return convolve_valid(x_full, gh1), s2 * a * a, noise_var * float(gh1 @ gh1)
+        v, spread = convolve_valid(x_full, gh1), s2 * a * a
+        if self.stride > 1:
+            with _half_lock:
+                _half_of[:] = [(weakref.ref(x_full), weakref.ref(gh1), (v, spread))]
+        return v, spread, n_v
 
     def _half_smooth(self, u: Array, x_full: Array) -> Array:
         """``g_h * u`` for ``u`` on the half window's outputs, on the fitted samples."""
         assert self.half is not None
+        trim = (u.size - self.half[0].size + 1 - (x_full.size - self.window + 1)) // 2
+        if self.stride > 1:  # only the kept outputs, from the full filter's first
+            assert self.rows is not None
+            kept = convolve_valid_every(u[trim:], self.half[0], self.stride)
+            return kept[self.rows // self.stride]
         col = convolve_valid(u, self.half[0])
-        trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
-        return self._rows(col[trim : col.size - trim])
+        return self._rows(col[trim : col.size - trim])  # to the full filter's outputs
+
+
+_half_lock = threading.Lock()
+_half_of: list[tuple[weakref.ref[Array], weakref.ref[Array], tuple[Array, Array]]] = []
 
 
 def first_order(u: Array, a: float) -> Array:
