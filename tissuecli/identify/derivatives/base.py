@@ -335,10 +335,10 @@ BASIS_BYTES = 64 << 20
 BASIS_COST = 0.25
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LevelBasis:
     """The filtered indicators of a closure's levels on a coarse grid
-    (:func:`level_basis`): ``levels`` (L,), m, and the (rows, L) matrix B, held
+    (:func:`level_basis`): ``levels`` (L,) in m, and the (rows, L) matrix B, held
     dense or, where each output's window holds few of the levels, as its nonzero
     entries ``(row, col, data)``."""
 
