@@ -42,16 +42,11 @@ Array = NDArray[np.float64]
 HARMONICS = 4096
 #: points of the tabulated periodic part of the autocovariance over one step
 PHASES = 8192
-#: speeds (steps a sample) the covariances are tabulated at, between the sparse and
-#: the dense crossings; at rest and beyond the last they are taken as at the ends
-SPEED_NODES = 64
-#: relative spread of the speed over a filter's window: the covariances at each node
-#: are averaged over speeds within this factor, so that a speed that is a simple
-#: fraction of a step a sample (a crossing on every other sample, say) does not stand
-#: for a whole window
-SPEED_SPREAD = 1.25
-#: sub-speeds of that average
-SPREAD_POINTS = 15
+#: speeds (steps a sample) the covariances are tabulated at, from one crossing in 500
+#: windows to several a sample: fine enough (a 1 % step) that a session's own spread of
+#: speeds averages the resonances where a multiple of the speed is a whole step a sample
+#: (crossings that repeat every sample or every other sample), instead of an assumed one
+SPEED_NODES = 1500
 #: analog noise at or above this share of the step dithers it: the white model is exact
 #: (the sawtooth's first harmonic keeps exp(-4 pi^2 0.75^2) = 2e-10 of its energy)
 DITHERED = 0.75
@@ -155,19 +150,14 @@ class Staircase:
         X = np.array([[np.correlate(kb, ka, mode="full") for kb in kernels] for ka in kernels])
         g = _periodic(sigma / q)
         white = sigma**2 + q**2 / 12.0  # R(0)
-        # sparse crossings (a fifth of one per window) up to dense ones (several a sample)
-        speeds = np.concatenate([[0.0], np.geomspace(0.2 / w, 4.0, SPEED_NODES)])
-        spread = np.geomspace(1.0 / SPEED_SPREAD, SPEED_SPREAD, SPREAD_POINTS)
-        table = np.empty((speeds.size, len(kernels), len(kernels)))
-        for i, c in enumerate(speeds):
-            cs = c * spread if c > 0 else np.zeros(1)
-            f = np.mod(np.outer(cs, lags), 1.0) * PHASES
-            j = np.floor(f).astype(int)
-            frac = f - j
-            vals = g[j % PHASES] * (1 - frac) + g[(j + 1) % PHASES] * frac
-            R = q**2 * vals.mean(axis=0)
-            R[w - 1] = white
-            table[i] = X @ R
+        # one crossing in 500 windows up to several a sample
+        speeds = np.concatenate([[0.0], np.geomspace(0.002 / w, 4.0, SPEED_NODES)])
+        f = np.mod(np.outer(speeds, lags), 1.0) * PHASES
+        j = np.floor(f).astype(int)
+        frac = f - j
+        R = q**2 * (g[j % PHASES] * (1 - frac) + g[(j + 1) % PHASES] * frac)  # (s, 2w-1)
+        R[:, w - 1] = white
+        table = np.einsum("sl,abl->sab", R, X)
         return cls(speeds, 0.5 * (table + np.swapaxes(table, 1, 2)))
 
     def at(self, speed: Array) -> Array:
