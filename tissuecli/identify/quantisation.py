@@ -30,6 +30,7 @@ at each sample's own speed instead of ``sigma_x^2 (k_a . k_b)``.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,11 +43,12 @@ Array = NDArray[np.float64]
 HARMONICS = 4096
 #: points of the tabulated periodic part of the autocovariance over one step
 PHASES = 8192
-#: speeds (steps a sample) the covariances are tabulated at, from one crossing in 500
-#: windows to several a sample: fine enough (a 1 % step) that a session's own spread of
-#: speeds averages the resonances where a multiple of the speed is a whole step a sample
-#: (crossings that repeat every sample or every other sample), instead of an assumed one
-SPEED_NODES = 1500
+#: speeds (steps a sample) the covariances are tabulated at: from one crossing in 500
+#: windows to a twentieth of a step a sample in steps of 4 %, then up to several steps a
+#: sample in steps of 1 %, fine enough that a session's own spread of speeds averages
+#: the resonances where a multiple of the speed is a whole step a sample (crossings that
+#: repeat every sample or every other sample), instead of an assumed spread
+SLOW_STEP, FAST_STEP, FAST_FROM, FASTEST = 1.04, 1.01, 0.05, 4.0
 #: analog noise at or above this share of the step dithers it: the white model is exact
 #: (the sawtooth's first harmonic keeps exp(-4 pi^2 0.75^2) = 2e-10 of its energy)
 DITHERED = 0.75
@@ -87,6 +89,8 @@ def analog_sd(measured: float, step: float) -> float:
 
     if white(measured) <= 0:  # rounding's white part negligible at this noise
         return measured
+    if white(0.0) >= 0:  # the rounding's own white part makes up the reading
+        return 0.0
     return float(brentq(white, 0.0, measured, xtol=1e-6 * step))
 
 
@@ -142,23 +146,16 @@ class Staircase:
 
     @classmethod
     def of(cls, kernels: list[Array], noise: PositionNoise) -> Staircase:
-        """Tabulate for ``kernels`` (each shape (w,), the same w) and ``noise``."""
-        q, sigma = noise.step, noise.analog
-        w = kernels[0].size
-        # cross-correlations X_ab(l), l = -(w-1) .. w-1
-        lags = np.arange(-(w - 1), w)
-        X = np.array([[np.correlate(kb, ka, mode="full") for kb in kernels] for ka in kernels])
-        g = _periodic(sigma / q)
-        white = sigma**2 + q**2 / 12.0  # R(0)
-        # one crossing in 500 windows up to several a sample
-        speeds = np.concatenate([[0.0], np.geomspace(0.002 / w, 4.0, SPEED_NODES)])
-        f = np.mod(np.outer(speeds, lags), 1.0) * PHASES
-        j = np.floor(f).astype(int)
-        frac = f - j
-        R = q**2 * (g[j % PHASES] * (1 - frac) + g[(j + 1) % PHASES] * frac)  # (s, 2w-1)
-        R[:, w - 1] = white
-        table = np.einsum("sl,abl->sab", R, X)
-        return cls(speeds, 0.5 * (table + np.swapaxes(table, 1, 2)))
+        """Tabulate for ``kernels`` (each shape (w,), the same w) and ``noise``: each
+        pair's covariance ``sum_l R(l) X_ab(l)``, ``X_ab`` the pair's cross-correlation
+        (kept by pair: the laws of a fit ask for different sets of the same kernels)."""
+        r = len(kernels)
+        speeds, _ = _autocovariances(kernels[0].size, noise)
+        table = np.empty((speeds.size, r, r))
+        for a in range(r):
+            for b in range(a, r):
+                table[:, a, b] = table[:, b, a] = _pair(kernels[a], kernels[b], noise)
+        return cls(speeds, table)
 
     def at(self, speed: Array) -> Array:
         """Covariances at each sample's speed (steps a sample), shape (m, r, r): linear
@@ -231,7 +228,7 @@ def staircase_cross(
     C = np.zeros((len(kernels_a), len(kernels_b)))
     if not distinct:
         return C
-    cov = _tabulated(distinct, noise).at(np.abs(speed) * dt / noise.step)  # (m, r, r)
+    cov = _covariances(distinct, noise, speed, dt)  # (m, r, r)
     for u in range(len(distinct)):
         ia = np.flatnonzero(ta == u)
         if not ia.size:
@@ -298,3 +295,65 @@ def staircase_analog_sd(d4: Array, speed: Array, step: float) -> float:
     if excess(top) <= 0:
         return top
     return float(brentq(excess, 0.0, top, xtol=1e-3 * step))
+
+
+_COVARIANCES: dict[tuple[object, ...], tuple[weakref.ref[Array], Array]] = {}
+
+
+def _covariances(kernels: list[Array], noise: PositionNoise, speed: Array, dt: float) -> Array:
+    """The covariances at each sample's speed, shape (m, r, r), kept while ``speed``
+    lives: every law of a fit, and every shape of a law, asks for the same."""
+    key = (id(speed), tuple(hash(k.tobytes()) for k in kernels), noise.analog, noise.step, dt)
+    found = _COVARIANCES.get(key)
+    if found is not None and found[0]() is speed:
+        return found[1]
+    cov = _tabulated(kernels, noise).at(np.abs(speed) * dt / noise.step)
+    for old in [k for k, v in _COVARIANCES.items() if v[0]() is None]:
+        del _COVARIANCES[old]
+    while len(_COVARIANCES) >= 8:
+        _COVARIANCES.pop(next(iter(_COVARIANCES)))
+    _COVARIANCES[key] = (weakref.ref(speed), cov)
+    return cov
+
+
+_AUTOCOVARIANCES: dict[tuple[object, ...], tuple[Array, Array]] = {}
+_PAIRS: dict[tuple[object, ...], Array] = {}
+
+
+def _autocovariances(w: int, noise: PositionNoise) -> tuple[Array, Array]:
+    """The speed nodes, shape (s,), and the rounding's autocovariance at lags
+    ``-(w-1) .. w-1`` at each, shape (s, 2w-1), m^2."""
+    key = (w, noise.analog, noise.step)
+    found = _AUTOCOVARIANCES.get(key)
+    if found is not None:
+        return found
+    q, sigma = noise.step, noise.analog
+    lags = np.arange(-(w - 1), w)
+    g = _periodic(sigma / q)
+    slow = min(0.002 / w, FAST_FROM / SLOW_STEP)
+    speeds = np.concatenate([
+        [0.0],
+        np.exp(np.arange(np.log(slow), np.log(FAST_FROM), np.log(SLOW_STEP))),
+        np.exp(np.arange(np.log(FAST_FROM), np.log(FASTEST) + 1e-9, np.log(FAST_STEP))),
+    ])  # fmt: skip
+    f = np.mod(np.outer(speeds, lags), 1.0) * PHASES
+    j = np.floor(f).astype(int)
+    frac = f - j
+    R = q**2 * (g[j % PHASES] * (1 - frac) + g[(j + 1) % PHASES] * frac)
+    R[:, w - 1] = sigma**2 + q**2 / 12.0  # R(0): analog and rounding variance
+    _AUTOCOVARIANCES.clear()  # one fit's at a time: they are large
+    _AUTOCOVARIANCES[key] = (speeds, R)
+    return speeds, R
+
+
+def _pair(ka: Array, kb: Array, noise: PositionNoise) -> Array:
+    """One pair's covariance at each speed node, shape (s,)."""
+    key = (hash(ka.tobytes()), hash(kb.tobytes()), noise.analog, noise.step)
+    found = _PAIRS.get(key)
+    if found is None:
+        _, R = _autocovariances(ka.size, noise)
+        found = R @ np.correlate(kb, ka, mode="full")  # X_ab(l) at lags -(w-1) .. w-1
+        while len(_PAIRS) >= 32:
+            _PAIRS.pop(next(iter(_PAIRS)))
+        _PAIRS[key] = found
+    return found
