@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq
+from scipy.signal import correlate
 
 Array = NDArray[np.float64]
 
@@ -160,11 +161,27 @@ class Staircase:
     def at(self, speed: Array) -> Array:
         """Covariances at each sample's speed (steps a sample), shape (m, r, r): linear
         between nodes (a mixture of two covariances is one), the last beyond them."""
-        c = np.clip(np.abs(speed), 0.0, self.speeds[-1])
-        j = np.clip(np.searchsorted(self.speeds, c, side="right") - 1, 0, self.speeds.size - 2)
-        lo, hi = self.speeds[j], self.speeds[j + 1]
-        t = ((c - lo) / (hi - lo))[:, None, None]
+        j, t = _between(self.speeds, speed)
+        t = t[:, None, None]
         return self.table[j] * (1 - t) + self.table[j + 1] * t
+
+    def mean_at(self, speed: Array) -> Array:
+        """The mean of :meth:`at` over the samples, shape (r, r)."""
+        return np.tensordot(node_weights(self.speeds, speed), self.table, axes=1)
+
+
+def _between(nodes: Array, speed: Array) -> tuple[NDArray[np.intp], Array]:
+    """Each speed's node below and its share of the way to the next."""
+    c = np.clip(np.abs(speed), 0.0, nodes[-1])
+    j = np.clip(np.searchsorted(nodes, c, side="right") - 1, 0, nodes.size - 2)
+    return j, (c - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+def node_weights(nodes: Array, speed: Array) -> Array:
+    """How much of the samples' mean falls on each node, shape (s,), summing to 1."""
+    j, t = _between(nodes, speed)
+    w = np.bincount(j, 1 - t, nodes.size) + np.bincount(j + 1, t, nodes.size)
+    return w / max(speed.size, 1)
 
 
 def staircase_correction(
@@ -283,11 +300,12 @@ def staircase_analog_sd(d4: Array, speed: Array, step: float) -> float:
     if step <= 0 or np.count_nonzero(ok) < 16:
         return 0.0
     measured = float(np.mean(d4[ok] ** 2))
-    c = np.abs(speed[ok])
+    nodes, _ = _autocovariances(FOURTH.size, PositionNoise(0.0, step))
+    weights = node_weights(nodes, speed[ok])  # the same nodes at every analog SD
 
     def excess(sd: float) -> float:
         table = Staircase.of([FOURTH], PositionNoise(sd, step))
-        return float(np.mean(table.at(c)[:, 0, 0])) - measured
+        return float(weights @ table.table[:, 0, 0]) - measured
 
     top = float(np.sqrt(measured / float(FOURTH @ FOURTH)))  # all of it analog noise
     if excess(0.0) >= 0:
@@ -352,7 +370,7 @@ def _pair(ka: Array, kb: Array, noise: PositionNoise) -> Array:
     found = _PAIRS.get(key)
     if found is None:
         _, R = _autocovariances(ka.size, noise)
-        found = R @ np.correlate(kb, ka, mode="full")  # X_ab(l) at lags -(w-1) .. w-1
+        found = R @ correlate(kb, ka, mode="full")  # X_ab(l) at lags -(w-1) .. w-1
         while len(_PAIRS) >= 32:
             _PAIRS.pop(next(iter(_PAIRS)))
         _PAIRS[key] = found
