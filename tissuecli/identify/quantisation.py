@@ -359,7 +359,8 @@ def _autocovariances(w: int, noise: PositionNoise) -> tuple[Array, Array]:
     frac = f - j
     R = q**2 * (g[j % PHASES] * (1 - frac) + g[(j + 1) % PHASES] * frac)
     R[:, w - 1] = sigma**2 + q**2 / 12.0  # R(0): analog and rounding variance
-    _AUTOCOVARIANCES.clear()  # one fit's at a time: they are large
+    while len(_AUTOCOVARIANCES) >= 3:  # a fit's few filter widths: they are large
+        _AUTOCOVARIANCES.pop(next(iter(_AUTOCOVARIANCES)))
     _AUTOCOVARIANCES[key] = (speeds, R)
     return speeds, R
 
