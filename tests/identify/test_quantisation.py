@@ -52,7 +52,7 @@ def test_covariances_match_the_rounding_of_a_moving_closure(c: float, sigma: flo
     of a whole step, or half a step, a sample repeats the error). 200,000 samples hold
     600 crossings at the slowest speed: with each crossing's energy spread by about
     its own size (its phase between samples), the mean is within 2 SEs, 6 %, of its
-    expectation (the white model of the step's variance is off by up to 7 times)."""
+    expectation (the white model of the step's variance is off by up to 8 times)."""
     rng = np.random.default_rng(7)
     kx, ka = _kernels()
     e = _rounded_ramp(c, sigma, 200_000, rng)
