@@ -35,8 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import brentq
-from scipy.signal import correlate
 
 Array = NDArray[np.float64]
 
@@ -84,6 +82,7 @@ def analog_sd(measured: float, step: float) -> float:
         return max(measured, 0.0)
     if measured <= 0:
         return 0.0
+    from scipy.optimize import brentq  # only a quantised closure needs it
 
     def white(sd: float) -> float:
         return sd**2 + step**2 / 12.0 * (1.0 - dither_share(sd / step)) - measured**2
@@ -307,6 +306,8 @@ def staircase_analog_sd(d4: Array, speed: Array, step: float) -> float:
         table = Staircase.of([FOURTH], PositionNoise(sd, step))
         return float(weights @ table.table[:, 0, 0]) - measured
 
+    from scipy.optimize import brentq  # only a quantised closure needs it
+
     top = float(np.sqrt(measured / float(FOURTH @ FOURTH)))  # all of it analog noise
     if excess(0.0) >= 0:
         return 0.0
@@ -370,6 +371,8 @@ def _pair(ka: Array, kb: Array, noise: PositionNoise) -> Array:
     key = (hash(ka.tobytes()), hash(kb.tobytes()), noise.analog, noise.step)
     found = _PAIRS.get(key)
     if found is None:
+        from scipy.signal import correlate  # only a quantised closure needs it
+
         _, R = _autocovariances(ka.size, noise)
         found = R @ correlate(kb, ka, mode="full")  # X_ab(l) at lags -(w-1) .. w-1
         while len(_PAIRS) >= 32:
