@@ -83,3 +83,52 @@ def test_a_law_of_shaped_terms_alone_is_fitted():
     assert d.summary == "" and not d.unexcited
     est = BayesianFit("contact", grasps="none").fit(s)
     assert est.best_.name == "contact"
+
+
+def _contact_session(kc: float, noise: float, seed: int = 1) -> Session:
+    """Hunt-Crossley contact ``kc x^1.5`` (N/m^1.5) at 500 Hz for 4 s, the jaw closing
+    0.5-4.5 mm at 0.5 Hz, with white force noise of SD ``noise`` (N)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 4.0, 1 / 500.0)
+    x = 0.002 * (1 - np.cos(np.pi * t)) + 0.0005
+    return Session(t, kc * x**1.5 + noise * rng.standard_normal(t.size), x)
+
+
+def test_a_contact_stiffness_pinned_at_its_exponent_is_identified():
+    """2.4 N of contact force under 2 N of noise: the exponent is loose (n about
+    1.4-2.1), so Kc, in N/m^n, spans more than a decade across exponents, but given
+    the exponent it is pinned to a few per cent: it is identified, judged there."""
+    est = BayesianFit("contact", grasps="none").fit(_contact_session(8000.0, 2.0))
+    r = est.best_
+    post = r.posterior
+    assert post is not None
+    lo, hi = post.ci95[0]
+    assert hi / lo > 10 and post.sd[0] > 0.5 * post.mean[0]  # the marginal: loose
+    at = post.diagnostics["at_shape"]
+    assert at["sd"][0] < 0.1 * post.mean[0]  # given the shape: pinned
+    assert not any(f.startswith("Kc ") for f in r.flags), r.flags
+
+
+def test_a_contact_force_below_the_noise_is_still_not_identified():
+    """6 mN of contact force under 0.5 N of noise: Kc is not identified, given its
+    shape or not."""
+    est = BayesianFit("contact", grasps="none").fit(_contact_session(20.0, 0.5))
+    assert any(f.startswith("Kc not identified") for f in est.best_.flags)
+
+
+def test_a_coefficient_whose_shape_fills_its_prior_is_not_identified():
+    """Kc judged at its exponent means nothing if the data leave the exponent where the
+    prior put it (the whole of [1, 2.5]); an exponent they pin leaves Kc to be judged."""
+    from tissuecli.identify.diagnostics import _loose_shapes
+    from tissuecli.identify.scoring import ModelResult
+
+    law = Law.of(["contact"])
+    ranges = {"n": (1.0, 2.5), "x0": (-0.5e-3, 2.5e-3)}
+
+    def result(n_ci: list[float]) -> ModelResult:
+        post = {"n": {"ci95": n_ci}, "x0": {"ci95": [0.0, 1e-3]}}
+        return ModelResult(model=law, shape_posterior=post, shape_ranges=ranges)
+
+    loose = _loose_shapes(result([1.0, 2.5]), law.terms[0])
+    assert loose.startswith("n 95 % interval [1, 2.5]") and "x0" not in loose
+    assert _loose_shapes(result([1.4, 2.1]), law.terms[0]) == ""

@@ -216,8 +216,10 @@ def test_a_grown_term_is_added_no_more_times_than_a_law_may_hold_it(one_branch, 
 def test_smaller_laws_keep_a_stiffness_and_what_a_term_requires():
     names = ["contact", "maxwell", "contact*xdot", "xddot", "offset"]
     fewer = {"+".join(f) for f in GreedySearch().smaller(names)}
-    # contact goes with contact damping; without it no stiffness remains
+    # contact goes with contact damping, and gives way to what it equals at n = 1, a
+    # spring (the offset is there already)
     assert fewer == {
+        "maxwell+xddot+offset+x",
         "contact+contact*xdot+xddot+offset",
         "contact+maxwell+xddot+offset",
         "contact+maxwell+contact*xdot+offset",
@@ -225,6 +227,13 @@ def test_smaller_laws_keep_a_stiffness_and_what_a_term_requires():
     }
     assert GreedySearch().smaller(["x", "maxwell", "maxwell"]) == [["x", "maxwell"]]
     assert GreedySearch().smaller(["x", "maxwell", "xdot"]) == [["x", "xdot"], ["x", "maxwell"]]
+
+
+def test_a_contact_law_gives_way_to_the_laws_it_nests():
+    # contact at n = 1 is Kc (x - x0): a spring and an offset, or a spring alone
+    assert GreedySearch().smaller(["contact"]) == [["x", "offset"], ["x"]]
+    fewer = {Law.of(f).name for f in GreedySearch().smaller(["contact", "contact*xdot", "xddot"])}
+    assert fewer == {"x+xddot+offset", "x+xddot", "contact+xddot", "contact+contact*xdot"}
 
 
 def test_smaller_laws_of_a_linear_law_lose_only_what_pruning_takes_out():

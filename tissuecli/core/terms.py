@@ -20,6 +20,7 @@ The paper's four laws are ``x`` or ``x^3`` with ``xdot`` or ``xdot|xdot|``, plus
 from __future__ import annotations
 
 import math
+import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -259,6 +260,13 @@ class Term(ABC):
     def bound(self) -> bool:
         """Whether every shape parameter has a value."""
         return all(n in self.shape for n in self.shapes)
+
+    @property
+    def unit_by_shape(self) -> bool:
+        """Whether the coefficient's unit holds one of its shape parameters (a contact
+        stiffness in N/m^n): its value has a meaning only at a shape, so what the data
+        say of it is judged there, not across shapes."""
+        return any(re.search(rf"\b{re.escape(n)}\b", self.unit) for n in self.shapes)
 
     def bind(self, values: dict[str, float]) -> Term:
         """This term with its shape parameters set from ``values`` (by name); itself if it
@@ -702,6 +710,7 @@ class ContactDamping(Contact):
         "contact*xdot", "Lc", "N s/m^(n+1)", "dⁿẋ", "damping", "xv",
     )  # fmt: skip
     order, display, requires, search = 70.0, "mixed", ("contact",), "replace"
+    nests = ()  # at n = 1 it is (x - x0) xdot, no registered term
 
     def regressor(self, x: Array, v: Array, a: Array) -> Array:
         return Contact.__call__(self, x) * np.asarray(v, dtype=float)

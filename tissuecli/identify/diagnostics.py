@@ -11,6 +11,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.terms import Term
 from .derivatives import Kinematics
 from .design import design
 from .scoring import NOT_EVALUATED, Context, ModelResult
@@ -19,17 +20,26 @@ Array = NDArray[np.float64]
 
 
 def identifiability(r: ModelResult) -> list[str]:
-    """Flags for coefficients the data do not pin down."""
+    """Flags for coefficients the data do not pin down.
+
+    A coefficient whose unit hangs on its term's shape (a contact stiffness in N/m^n)
+    is judged given the shape the law is bound at: across shapes its value changes
+    unit, and its spread there spans decades even where the force it gives is pinned.
+    The prior's scale, and the mean, are those at that shape too."""
     flags = []
     post = r.posterior
     assert post is not None and r.prior is not None
     scales = r.prior.scales
+    at = post.diagnostics.get("at_shape")
+    sd, ci = np.array(post.sd, float), np.array(post.ci95, float)
     for j, t in enumerate(r.model.terms):
-        lo, hi = post.ci95[j]
-        vague = post.sd[j] > 0.3 * scales[j]
-        if vague or (
-            t.passive and (lo <= 0.02 * max(hi, 1e-300) or post.sd[j] > 0.5 * abs(post.mean[j]))
-        ):
+        if at is not None and t.unit_by_shape:
+            sd[j], ci[j] = at["sd"][j], at["ci95"][j]
+    for j, t in enumerate(r.model.terms):
+        lo, hi = ci[j]
+        vague = sd[j] > 0.3 * scales[j]
+        loose = lo <= 0.02 * max(hi, 1e-300) or sd[j] > 0.5 * abs(post.mean[j])
+        if vague or (t.passive and loose):
             what = (
                 "too little acceleration content"
                 if t.role == "inertia"
@@ -38,12 +48,42 @@ def identifiability(r: ModelResult) -> list[str]:
             flags.append(
                 f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
             )
-        elif t.passive and post.sd[j] > 0.25 * abs(post.mean[j]):
+        elif loose_shape := _loose_shapes(r, t):
+            flags.append(f"{t.symbol} not identified (its shape is not: {loose_shape})")
+        elif t.passive and sd[j] > 0.25 * abs(post.mean[j]):
             flags.append(
-                f"{t.symbol} poorly identified: SD is {100 * post.sd[j] / post.mean[j]:.0f} % "
+                f"{t.symbol} poorly identified: SD is {100 * sd[j] / post.mean[j]:.0f} % "
                 "of its value"
             )
     return flags
+
+
+#: a shape parameter whose 95 % interval covers this much of its prior's range (in the
+#: coordinate the prior is uniform in) is where the prior put it: not identified (a
+#: posterior equal to the prior covers 0.95 of it)
+SHAPE_FILLS = 0.9
+
+
+def _loose_shapes(r: ModelResult, t: Term) -> str:
+    """What the data leave of ``t``'s shape parameters where the prior put them (their
+    95 % intervals and prior ranges), or "" if each is pinned. A coefficient judged at
+    its shape means nothing if the shape itself is not identified."""
+    post, ranges = r.shape_posterior, r.shape_ranges
+    if not t.shapes or post is None or ranges is None:
+        return ""
+    out = []
+    for name in t.shapes:
+        if name not in post or name not in ranges:
+            continue
+        p = t.shape_parameter(name)
+        lo, hi = ranges[name]
+        a, b = post[name]["ci95"]
+        width = p.to_u(hi) - p.to_u(lo) if min(lo, a) > 0 or not p.log else 0.0
+        if width > 0 and p.to_u(b) - p.to_u(a) >= SHAPE_FILLS * width:
+            out.append(
+                f"{name} 95 % interval [{a:.3g}, {b:.3g}] of its prior's [{lo:.3g}, {hi:.3g}]"
+            )
+    return "; ".join(out)
 
 
 def unidentified(r: ModelResult) -> set[int]:

@@ -138,7 +138,12 @@ class Search:
         ``"replace"`` or ``"grow"`` term) any term may go; from a linear law only its
         ``"prune"`` terms (offset, friction, ``x^3``, ``x``): the linear laws enumerate
         damping and inertia already, and taking damping out of a linear law that
-        misfits (a measured recording) trades prediction for evidence."""
+        misfits (a measured recording) trades prediction for evidence.
+
+        A term that equals others at one of its shapes (:attr:`Term.nests`) may also
+        give way to them, or to those of them that keep a stiffness (contact: to a
+        spring and an offset, or a spring): those laws are its sub-laws too, with
+        fewer parameters."""
         built = any(n in self.terms("replace") or n in self.terms("grow") for n in names)
         prune = self.terms("prune")
         out: list[list[str]] = []
@@ -148,8 +153,12 @@ class Search:
             fewer = list(names)
             fewer.remove(drop)
             fewer = [n for n in fewer if all(r in fewer for r in term(n).requires)]
-            if any(term(n).role == "stiffness" for n in fewer):
-                out.append(fewer)
+            nests = [n for n in term(drop).nests if n not in fewer]
+            for k in range(len(nests), -1, -1):
+                for some in itertools.combinations(nests, k):
+                    law = [*fewer, *some]
+                    if any(term(n).role == "stiffness" for n in law) and law not in out:
+                        out.append(law)
         return out
 
     def descend(self, choose: Callable[[], Sequence[ModelResult]], score: Score) -> None:

@@ -256,12 +256,19 @@ def shaped_result(
     Its coefficients' means are those given the shape at ``point``: a coefficient's
     meaning can hang on the shape (a contact stiffness is in N/m^n), so an average
     over shapes would not predict the force the bound law gives. Their SDs and
-    intervals stay those of ``post``, which carry the shape's uncertainty.
+    intervals stay those of ``post``, which carry the shape's uncertainty; those given
+    the shape at ``point`` are kept beside them (``diagnostics["at_shape"]``), to judge
+    a coefficient whose unit hangs on the shape where it has a meaning.
     """
     fp, st, prior, corr, flags, exact = evaluate(point)[1]
     if post.diagnostics.get("shape_nodes", 1) > 1:
         post.diagnostics["mean_over_shapes"] = [float(v) for v in post.mean]
-        post.mean = exact.bounded(fit.rng, CUT_THRESHOLD, intervals=False).mean
+        at = exact.bounded(fit.rng, CUT_THRESHOLD)
+        post.mean = at.mean
+        post.diagnostics["at_shape"] = {
+            "sd": [float(v) for v in at.sd],
+            "ci95": [[float(lo), float(hi)] for lo, hi in at.ci95],
+        }
     return result_of(law.bind(point), post, fp, fit, st, prior, corr, list(flags), law)
 
 
