@@ -30,6 +30,7 @@ from ..core.progress import SILENT, Progress, as_progress
 from ..core.session import Session
 from ..core.terms import Law, term
 from .blas import one_blas_thread
+from .decimate import fit_stride
 from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
@@ -204,9 +205,13 @@ class BayesianFit(Estimator):
             ready.contact,
         )
         sigma_x = self._position_noise(session, ready.trusted) if self.eiv else 0.0
-        y = kin.force
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
+        # a long session's laws are scored on every stride-th filtered sample, the
+        # same statistics at a fraction of the cost (see identify.decimate)
+        stride = fit_stride(kin)
+        full_kin, kin = kin, kin.every(stride)
+        y = kin.force
 
         # one pass per law keeps only its sufficient statistics; the terms' columns are
         # computed once and shared by every law that has them
@@ -237,11 +242,12 @@ class BayesianFit(Estimator):
         # the least-squares fit that explains the data best (by BIC): a warning if it
         # lies far outside the priors
         n_rows = y.size
+        n_samples = n_rows * stride  # what the kept rows stand for
         best_name = min(
             firsts,
             key=lambda k: (
-                n_rows * np.log(max(firsts[k].rss, 1e-300) / n_rows)
-                + firsts[k].beta.size * np.log(n_rows)
+                n_samples * np.log(max(firsts[k].rss, 1e-300) / n_rows)
+                + firsts[k].beta.size * np.log(n_samples)
             ),
         )
         best_ls = next((m for m in linear if m.name == best_name), None)
@@ -257,7 +263,7 @@ class BayesianFit(Estimator):
         # shrank a 10,000-sample session to 13-27 samples and let every law tie; the
         # filter's weight stands, and the chosen law's residuals check it after the
         # search. Bridged stand-ins are not measurements: each counts less.
-        tau_filter = filter_tau(kin.kernels[0])
+        tau_filter = filter_tau(kin.kernels[0]) / stride  # in kept rows
         measured = ready.measured_fraction
         weight_filter = measured / tau_filter
         A = design(best_ls, kin, x_full, sigma_x, columns) if best_ls is not None else None
@@ -320,6 +326,7 @@ class BayesianFit(Estimator):
                 f"of the force range ({span:.3g} N): the session looks noise-free "
                 "(synthetic?), so its intervals reflect rounding, not measurement noise"
             )
+        kin = full_kin
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(outlier_warnings(kin, fitted))
 
@@ -328,7 +335,7 @@ class BayesianFit(Estimator):
         self.sigma_x_ = sigma_x
         self.scales_ = scales
         self.contact_ = contact
-        self.tau_ = tau
+        self.tau_ = tau * stride  # samples of the raw grid
         self.n_eff_ = y.size * weight
         self.results_ = results
         self.best_ = best
@@ -550,7 +557,7 @@ class BayesianFit(Estimator):
         found: list[str] = []
         results = [exact_result(m, firsts[m.name], fit) for m in linear]
         if self.forms in (None, "all"):
-            scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size)
+            scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size * fit.kin.stride)
             tried, notes = self._strategy.run(results, lambda law: self._score(law, fit), scope)
             results += tried
             found += notes

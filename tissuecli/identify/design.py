@@ -109,7 +109,7 @@ def raw_speed(kin: Kinematics, x_full: Array) -> tuple[float, Array]:
     """The sample interval (s) and the central-difference speed on the raw grid (m/s)
     that terms of the closure's history and of closure and speed together are formed
     from."""
-    dt = float(np.median(np.diff(kin.time)))
+    dt = kin.dt
     return dt, np.gradient(x_full, dt)
 
 
@@ -197,7 +197,7 @@ def noise_path(
 
 def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
     if term.variable == "x":
-        return kin.kernels[0], kin.smooth(term.derivative(x_full))
+        return kin.kernels[0], kin.smooth(kin.pointwise(term.derivative, x_full))
     if term.variable == "v":
         return kin.kernels[1], kin.damping_slope(term, x_full, sigma_x**2)
     if term.variable == "a":

@@ -193,11 +193,11 @@ def examine(
         beta = np.linalg.lstsq(cols / d, y, rcond=None)[0] / d
         r = y - cols @ beta
         var = float(r @ r) / n
-        weight = 1.0 / filter_tau(kin.kernels[0])
+        weight = kin.stride / filter_tau(kin.kernels[0])  # a kept row stands for stride
         prior = np.array([scales.force / t.typical(scales) for t in terms])
         design.floor = DETECT_SDS**2 * var / (weight * np.maximum(prior, 1e-300) ** 2)
     rms = {t.variable: float(np.sqrt(gram[j, j] / max(n, 1))) for j, t in enumerate(terms)}
-    dt = float(np.median(np.diff(kin.time))) if kin.time.size > 1 else 1.0
+    dt = kin.dt
     below = {"a": "v", "v": "x"}
     for j, t in enumerate(terms):
         ms = gram[j, j] / max(n, 1)

@@ -118,7 +118,7 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
     end and span are NaN (a pass over every sample saved where only times matter)."""
     x = kin.x_raw
     return SessionSpan(
-        dt=float(np.median(np.diff(kin.time))),
+        dt=kin.dt,
         cutoff_hz=float(kin.cutoff_hz),
         duration_s=float(kin.time[-1] - kin.time[0]),
         x_low=float(np.percentile(x, 2)) if closure else math.nan,

@@ -12,8 +12,11 @@ clipped): a filter cannot see across a hole.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -21,7 +24,7 @@ from numpy.typing import NDArray
 
 from ...core.errors import FitError
 from ...core.terms import Term
-from ..spectrum import convolve_valid, valid_spectrum
+from ..spectrum import convolve_valid, convolve_valid_every, valid_spectrum
 
 Array = NDArray[np.float64]
 
@@ -67,17 +70,57 @@ class Kinematics:
     #: the untrimmed closure (m) that drives terms with memory where it is not the raw
     #: closure: held across free jaw motion (:func:`~tissuecli.identify.design.held_closure`)
     drive: Array | None = None
+    #: every ``stride``-th filtered output is kept (:meth:`every`); 1: all of them
+    stride: int = 1
+    #: the raw grid's sample interval (s), where the kept outputs no longer show it
+    step_s: float | None = None
 
     @property
     def window(self) -> int:
         return int(self.kernels[0].size)
+
+    @property
+    def dt(self) -> float:
+        """The raw grid's sample interval (s)."""
+        if self.step_s is not None:
+            return self.step_s
+        return float(np.median(np.diff(self.time))) if self.time.size > 1 else 1.0
 
     def _rows(self, u: Array) -> Array:
         return u if self.rows is None else u[self.rows]
 
     def smooth(self, u: Array) -> Array:
         """Filter an untrimmed series of the same session like x (for position columns)."""
+        if self.stride > 1:  # only the kept outputs are formed
+            assert self.rows is not None
+            return convolve_valid_every(u, self.kernels[0], self.stride)[self.rows // self.stride]
         return self._rows(convolve_valid(u, self.kernels[0]))
+
+    def every(self, stride: int) -> Kinematics:
+        """These kinematics at the filtered outputs whose index (counted from the first
+        output of the whole record) is a multiple of ``stride``: the same values, exact
+        outputs of the same kernels, at a ``stride`` times coarser grid. Columns formed
+        on it (:meth:`smooth`) cost about ``1/stride`` of the full ones."""
+        if stride <= 1:
+            return self
+        rows = np.arange(self.x_raw.size) if self.rows is None else self.rows
+        stride *= self.stride
+        kept = np.flatnonzero(rows % stride == 0)
+        h = self.window // 2
+        return replace(
+            self,
+            time=self.time[kept],
+            x_raw=self.x_raw[kept],
+            x=self.x[kept],
+            v=self.v[kept],
+            a=self.a[kept],
+            force=self.force[kept],
+            force_raw=self.force_raw[kept],
+            keep=rows[kept] + h,  # type: ignore[arg-type]
+            rows=rows[kept],
+            stride=stride,
+            step_s=self.dt,
+        )
 
     def stiffness_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """The column ``g * r(x)`` of a position term from the untrimmed raw position.
@@ -86,10 +129,25 @@ class Kinematics:
         ``r'' noise_var / 2`` on average (``3 x noise_var`` for x^3): that much is
         taken off, so the column matches ``g * F`` to second order.
         """
-        u = term(x_full)
-        if noise_var > 0:
-            u = u - 0.5 * term.curvature(x_full) * noise_var
-        return self.smooth(u)
+
+        def r(x: Array) -> Array:
+            u = term(x)
+            return u - 0.5 * term.curvature(x) * noise_var if noise_var > 0 else u
+
+        return self.smooth(self.pointwise(r, x_full))
+
+    def pointwise(self, fn: Callable[[Array], Array], x_full: Array) -> Array:
+        """``fn(x_full)`` for a function of each sample's value alone (a term of the
+        closure, its slope or curvature). On the coarse grid of a long session
+        (:meth:`every`), whose closure an ADC has put on few levels, ``fn`` runs on the
+        levels and is read back at each sample: the same numbers, for the cost of
+        indexing where it was that of a power of every sample."""
+        if self.stride > 1:
+            found = _levels(x_full)
+            if found is not None:
+                levels, index = found
+                return fn(levels)[index]
+        return fn(x_full)
 
     def damping_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """The column ``~ g * r(v)`` of a speed term from the untrimmed position.
@@ -145,6 +203,27 @@ class Kinematics:
         col = convolve_valid(u, self.half[0])
         trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
         return self._rows(col[trim : col.size - trim])
+
+
+#: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
+SAMPLES_PER_LEVEL = 8
+
+_levels_lock = threading.Lock()
+_levels_of: list[tuple[weakref.ref[Array], tuple[Array, NDArray[np.intp]] | None]] = []
+
+
+def _levels(x: Array) -> tuple[Array, NDArray[np.intp]] | None:
+    """The distinct values of ``x`` and each sample's index among them, if there are at
+    most one per :data:`SAMPLES_PER_LEVEL` samples; kept for the last closure asked
+    about (a fit asks about one, hundreds of times)."""
+    with _levels_lock:
+        if _levels_of and _levels_of[0][0]() is x:
+            return _levels_of[0][1]
+    levels, index = np.unique(x, return_inverse=True)
+    found = (levels, index.ravel()) if levels.size * SAMPLES_PER_LEVEL <= x.size else None
+    with _levels_lock:
+        _levels_of[:] = [(weakref.ref(x), found)]
+    return found
 
 
 class Differentiator(ABC):
