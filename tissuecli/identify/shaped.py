@@ -231,8 +231,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             )
             if not diag["converged"]:
                 res.flags.append(
-                    f"shape chain stopped at {diag['steps']} steps, shorter than 50 "
-                    f"autocorrelation times ({50 * max(diag['tau']):.0f}): its intervals "
+                    f"shape chain stopped at {diag['steps']} steps, shorter than "
+                    f"{diag['times']:g} autocorrelation times "
+                    f"({diag['times'] * max(diag['tau']):.0f}): its intervals "
                     "are rough"
                 )
 
