@@ -228,6 +228,7 @@ def run_emcee(
                 beta.shape[0] * max(1, int(np.max(tau) / 2)) / max(np.max(tau), 1)
             ),
         },
+        below_zero=exact.below_zero(),
     )
 
 
