@@ -95,8 +95,15 @@ def identifiability(r: ModelResult) -> list[str]:
                 if t.role == "inertia"
                 else "too little excitation"
             )
+            # where the bound alone keeps the interval off zero, say so
+            cut = (
+                f", {100 * below[j]:.0f} % of its posterior below zero without the positivity bound"
+                if below is not None and not vague and lo > REACHES_ZERO * hi
+                else ""
+            )
             flags.append(
-                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
+                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] "
+                f"{t.unit}{cut}"
             )
         elif loose_shape := _loose_shapes(r, t):
             flags.append(f"{t.symbol} not identified (its shape is not: {loose_shape})")
