@@ -36,11 +36,12 @@ Array = NDArray[np.float64]
 MAX_GRID_SHAPES = 2
 
 
-#: most draws of the shape's chain at which the coefficients' conditional posterior is
-#: formed (all the chain keeps, about 450 at 30 autocorrelation times of 8 walkers,
-#: about 220 of them independent); their pooled draws are the coefficients' posterior
+#: draws of the shape's chain at which the coefficients' conditional posterior is formed,
+#: at most (the chain keeps about 450 at 30 autocorrelation times of 8 walkers, thinned
+#: by half an autocorrelation time: about 220 independent, and 256 of them carry nearly
+#: all they hold at half the cost); their pooled draws are the coefficients' posterior
 #: with the shape marginalised, and its quantiles judge identification
-SHAPE_DRAWS = 1000
+SHAPE_DRAWS = 256
 
 #: coefficient proposals drawn from each of those conditional posteriors; those the
 #: positivity bounds keep are kept (rejection: each shape then counts by the mass the
@@ -253,14 +254,16 @@ def marginal_posterior(
 ) -> Posterior:
     """The coefficients' posterior with the shape marginalised over the chain's draws.
 
-    At each of the chain's draws of the shape (at most :data:`SHAPE_DRAWS`) the exact
-    conditional posterior of the coefficients and noise level is formed, and
-    :data:`PROPOSALS` draws are taken from it, kept where the positivity bounds hold;
-    the pooled draws (at least :data:`MARGINAL_DRAWS`) are draws of the bounded joint
-    posterior. Their quantiles carry the Monte Carlo error of the chain's independent
-    draws of the shape (a 2.5 % quantile's about ``2.7 / sqrt(k)`` posterior SDs for
-    ``k`` of them, 0.18 SD at 224), not that of a handful of shapes: the verdict on
-    identification reads them (:func:`~tissuecli.identify.diagnostics.identifiability`).
+    At each of the chain's draws of the shape (:data:`SHAPE_DRAWS` of them at most,
+    picked at random) the exact conditional posterior of the coefficients and noise
+    level is formed, and :data:`PROPOSALS` draws are taken from it, kept where the
+    positivity bounds hold; the pooled draws (at least :data:`MARGINAL_DRAWS`) are
+    draws of the bounded joint posterior. Their quantiles carry the Monte Carlo error
+    of the chain's independent draws of the shape (a 2.5 % quantile's about
+    ``2.7 / sqrt(k)`` posterior SDs for ``k`` of them, 0.18 SD at 224), not that of a
+    handful of shapes; the mass below zero without the bounds is the mean of the
+    closed form's over the same draws. The verdict on identification reads both
+    (:func:`~tissuecli.identify.diagnostics.identifiability`).
 
     Parameters
     ----------
