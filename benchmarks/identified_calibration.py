@@ -7,7 +7,7 @@ depend on the seed).
 
 Usage::
 
-    python benchmarks/identified_calibration.py [--chain 8] [--grid 100]
+    python benchmarks/identified_calibration.py [--chain 8] [--grid 100] [--scenes present,absent,weak]
 
 ``chain``: contact+maxwell+xddot (three shape parameters: its shape sampled by emcee,
 the coefficients' posterior pooled over the chain's draws), Hunt-Crossley contact
@@ -90,11 +90,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--chain", type=int, default=8, help="Sessions of each chain scene.")
     parser.add_argument("--grid", type=int, default=100, help="Sessions of each grid scene.")
+    parser.add_argument("--scenes", default=",".join(SCENES), help="Scenes to run.")
     args = parser.parse_args()
     print(f"load average {', '.join(f'{v:.1f}' for v in os.getloadavg())}", flush=True)
     for part in ("grid", "chain"):
         n = getattr(args, part)
-        for scene, value in SCENES.items() if n else ():
+        for scene in args.scenes.split(",") if n else ():
+            value = SCENES[scene]
             km = value[part] if isinstance(value, dict) else value
             rows = [verdicts(part, km, 100 + s, (0, 1)) for s in range(n)]
             ident = [sum(r[k]["identified"] for r in rows) for k in (0, 1)]
