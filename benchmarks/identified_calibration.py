@@ -7,7 +7,7 @@ depend on the seed).
 
 Usage::
 
-    python benchmarks/identified_calibration.py [--chain 8] [--grid 100] [--scenes present,absent,weak]
+    python benchmarks/identified_calibration.py [--chain 8] [--grid 100] [--scenes LIST]
 
 ``chain``: contact+maxwell+xddot (three shape parameters: its shape sampled by emcee,
 the coefficients' posterior pooled over the chain's draws), Hunt-Crossley contact
