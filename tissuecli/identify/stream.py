@@ -85,7 +85,9 @@ class _Sums:
         R = self.R
         rss = float(R[p, p] ** 2) if R.shape[0] > p else 0.0
         if self.correction is not None:
-            beta = np.linalg.lstsq(R[:p, :p], R[:p, p], rcond=None)[0]
+            d = np.linalg.norm(R[:p, :p], axis=0)  # the columns' norms, as in A
+            d[d == 0] = 1.0
+            beta = np.linalg.lstsq(R[:p, :p] / d, R[:p, p], rcond=None)[0] / d
             beta_c = gram_lstsq(self.G - self.correction, self.b)
             rss = max(rss - float(beta_c @ self.correction @ beta), 0.0)
         return rss
