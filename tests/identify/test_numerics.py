@@ -443,3 +443,56 @@ def test_rejection_reaches_below_the_chains_threshold_where_asked() -> None:
     # the mass is that at the modal noise level, the draws mix over it (its SD is 1.6 %
     # of it at 2000 samples, which moves a mass 3 SDs out by about 5 %): within 20 %
     assert post.diagnostics["acceptance"] == pytest.approx(inside, rel=0.2)
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e-8])
+def test_the_corrected_residual_and_data_weight_do_not_depend_on_a_columns_unit(
+    unit: float,
+) -> None:
+    """An ``x^3`` column in m^3 (1e-8 at a closure of a few mm) beside an offset's column
+    of ones: the errors-in-variables corrected residual, the batch-means data weight and
+    the streamed sums are what they are with the same column in well-scaled units. A
+    change of unit rescales a coefficient and nothing else; solved unscaled, the Gram
+    matrix's eigenvalues spanned 1e-17 and the solver dropped the cubic column as
+    collinear, which took a third of the residual away and gave an offset 27 nats it
+    had not earned."""
+    from tissuecli.core.terms import Law
+    from tissuecli.identify.noise import data_weight
+    from tissuecli.identify.posterior import SufficientStats
+    from tissuecli.identify.scoring import FirstPass, _corrected_rss
+    from tissuecli.identify.stream import _Sums
+
+    rng = np.random.default_rng(61127002)
+    n = 3000
+    t = np.linspace(0.0, 3.0, n)
+    cubic = (0.5 + 0.5 * np.sin(2 * np.pi * 1.3 * t)) ** 3  # positive, as in a grasp
+    speed = np.cos(2 * np.pi * 0.7 * t)
+    y = 2.0 * cubic + 0.3 * speed + 0.01 + 0.02 * rng.standard_normal(n)
+    # the columns as measured, with noise of known variance: C is its expected share
+    noise = np.array([0.01, 0.02, 0.0])
+    A_ref = np.column_stack([cubic, speed, np.ones(n)]) + rng.standard_normal((n, 3)) * noise
+    C_ref = np.diag(n * noise**2)
+    scale = np.array([unit, 1.0, 1.0])
+    A = A_ref * scale
+    C = C_ref * np.outer(scale, scale)
+
+    def corrected(A: np.ndarray, C: np.ndarray) -> float:
+        gram = A.T @ A
+        beta = np.linalg.lstsq(A / np.linalg.norm(A, axis=0), y, rcond=None)[0]
+        beta /= np.linalg.norm(A, axis=0)
+        r = y - A @ beta
+        fp = FirstPass(gram, A.T @ y, float(y @ y), beta, float(r @ r), 1.0, 1.0, C)
+        return _corrected_rss(fp, C)
+
+    want = corrected(A_ref, C_ref)
+    assert 0.5 * float(0.02**2 * n) < want < 1.5 * float(0.02**2 * n)
+    assert corrected(A, C) == pytest.approx(want, rel=1e-9)
+    assert SufficientStats.from_data(A, y, correction=C).rss == pytest.approx(
+        SufficientStats.from_data(A_ref, y, correction=C_ref).rss, rel=1e-9
+    )
+    sums = _Sums.empty(Law.of(["x^3", "xdot", "offset"]), corrected=True)
+    sums.add(A, y)
+    sums.correction = C
+    assert sums.rss() == pytest.approx(want, rel=1e-6)
+    r = y - A_ref @ np.linalg.lstsq(A_ref, y, rcond=None)[0]
+    assert data_weight(A, r, 1.0) == pytest.approx(data_weight(A_ref, r, 1.0), rel=1e-9)

@@ -358,14 +358,17 @@ class BayesianFit(Estimator):
             return known[law.name]
 
         # the law with the most evidence, should it hold a term that is not identified,
-        # stands for the law without it (scored there, as _drop_unidentified would):
-        # the choice may be that law or one of its sub-laws
+        # stands for the law without it (scored there, as _drop_unidentified would), and
+        # that law, should it hold one too, for the law without that, until every term
+        # is identified: the choice may be the last of them or one of its sub-laws
         ranked = evaluated(results)
         if ranked:
-            top = max(ranked, key=lambda r: r.ln_evidence)
-            names = stand_in(top, unidentified_in(top))
-            if names is not None:
-                score(names)
+            r = max(ranked, key=lambda r: r.ln_evidence)
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                names = stand_in(r, unidentified_in(r))
+                if names is None:
+                    break
+                r = score(names)
         self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
@@ -392,8 +395,13 @@ class BayesianFit(Estimator):
             if not bad or best.status == NOT_EVALUATED:
                 break
             terms = (best.family or best.model).terms
-            names = stand_in(best, bad)
-            if names is not None:
+            # the law without the unidentified terms, and should it hold one too, the law
+            # without that, until every term is identified (a law with a term not
+            # identified is no sub-law to pass to)
+            names, held = stand_in(best, bad), best
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                if names is None:
+                    break
                 law = Law.of(names)
                 if law.name not in by_name:
                     new = self._score(law, fit)
@@ -401,6 +409,10 @@ class BayesianFit(Estimator):
                     new.flags.extend(identifiability(new))
                     results.append(new)
                     by_name[new.name] = new
+                if by_name[law.name] is held:
+                    break
+                held = by_name[law.name]
+                names = stand_in(held, unidentified(held))
             mine = Counter(names_of(best))
             mine |= Counter(n for t in terms for n in term(t.name).nests)
             subs = [

@@ -41,6 +41,35 @@ Array = NDArray[np.float64]
 LN_2PI = float(np.log(2 * np.pi))
 
 
+def gram_scales(G: Array) -> Array:
+    """The column norms behind a Gram matrix ``A^T A``, shape (p,): ``sqrt(diag G)``,
+    1 for an empty column."""
+    d = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    d[d == 0] = 1.0
+    return d
+
+
+def gram_lstsq(G: Array, b: Array) -> Array:
+    """Least squares ``G beta = b`` for a Gram-like matrix ``G`` (p, p), solved on unit-norm
+    columns, shape (p,).
+
+    Columns in SI units span many decades (``x^3`` in m^3 is 1e-8 where an offset's
+    column is 1), so the Gram matrix's eigenvalues span their squares: a pseudo-inverse
+    with a relative cut-off (``lstsq``'s ``rcond``) then drops the small column's
+    direction as if it were rank-deficient, though the scaled matrix is well
+    conditioned. Scaled first, only a truly collinear direction is dropped.
+    """
+    d = gram_scales(G)
+    return np.asarray(np.linalg.lstsq(G / np.outer(d, d), b / d, rcond=None)[0] / d)
+
+
+def gram_pinv(G: Array) -> Array:
+    """The pseudo-inverse of a Gram-like matrix (p, p), taken on unit-norm columns (see
+    :func:`gram_lstsq`)."""
+    d = gram_scales(G)
+    return np.asarray(np.linalg.pinv(G / np.outer(d, d), hermitian=True) / np.outer(d, d))
+
+
 @dataclass(frozen=True)
 class Prior:
     """Scales of the coefficients' priors (SI) and the range of the noise SD (N).
@@ -109,7 +138,7 @@ class SufficientStats:
         r = y - A @ beta
         rss = float(r @ r)
         if correction is not None:  # the corrected fit's residual, without cancellation
-            beta_c = np.linalg.lstsq(G, A.T @ y, rcond=None)[0]
+            beta_c = gram_lstsq(G, A.T @ y)
             rss = max(rss - float(beta_c @ correction @ beta), 0.0)
         return cls(
             weight * G,
