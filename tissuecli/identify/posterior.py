@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from ..core.errors import FitError
 from .orthant import (
     normal_cdf,
+    normal_ppf,
     orthant_log_probability,
     orthant_log_upper_bound,
     tail_log_probability,
@@ -443,28 +444,31 @@ class ExactPosterior:
         )
 
     def bounded(
-        self, rng: np.random.Generator, cut: float = 1e-3, intervals: bool = True
+        self,
+        rng: np.random.Generator,
+        cut: float = 1e-3,
+        intervals: bool = True,
+        draws: int = 4000,
     ) -> Posterior:
         """The posterior as exact as it is known: the closed form where the positivity
         bound cuts no more than ``cut`` of it, else exact draws under the bound
         (:meth:`truncated`). ``diagnostics["exact"]`` says whether either applied; if
         not (the bound keeps too little for rejection), a sampler is needed.
 
-        The closed form's summary is formed only if it is the answer; its random
-        numbers are drawn either way, so the generator's stream (and every draw after
-        it) is what it would be had it been formed. Without ``intervals`` the 95 %
-        intervals are left NaN, the rest as with them: a component of a mixture over
-        shapes, or a posterior read for its mean, needs none."""
-        draws = self._summary_draws(rng)
+        ``draws`` posterior draws are kept in ``samples`` (fewer where the closed form's
+        draws fall outside the bound); the closed form's moments and intervals do not
+        depend on them, the draws' do. Without ``intervals`` the 95 % intervals are left
+        NaN, the rest as with them: a component of a mixture over shapes, or a posterior
+        read for its mean, needs none."""
         if 1.0 - self.orthant_mass() > cut:
-            exact = self.truncated(rng, intervals=intervals)
+            exact = self.truncated(rng, draws=draws, intervals=intervals)
             if exact is None:
-                post = self._summary(*draws, intervals=intervals)
+                post = self._summary(*self._summary_draws(rng, draws), intervals=intervals)
                 post.diagnostics["exact"] = False
                 return post
             post = exact
         else:
-            post = self._summary(*draws, intervals=intervals)
+            post = self._summary(*self._summary_draws(rng, draws), intervals=intervals)
         post.diagnostics["exact"] = True
         return post
 
@@ -489,7 +493,7 @@ class ExactPosterior:
         if inside < (min_acceptance or MIN_ACCEPTANCE):
             return None
         w, mus, covs, idx = self.mixture()
-        chol = _matrix_roots(covs)
+        p = mus.shape[1]
         bounded = self.prior.bounded
         # the bounds a draw may plausibly cross are checked on every draw; the whole
         # coefficient vector (and every bound) only on the draws that pass them
@@ -498,28 +502,67 @@ class ExactPosterior:
         near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
         if near.size == 0:
             near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
+        # the near coefficients first, the one the bound cuts most leading: a Cholesky
+        # root's first rows then take only a draw's first normals. The leading one is
+        # drawn under its bound by inverse CDF (its node in proportion to the mass its
+        # bound keeps there), the other near ones checked by rejection, and a draw's
+        # remaining normals drawn only if it passes them
+        near = near[np.argsort(z_m[np.searchsorted(np.flatnonzero(bounded), near)],
+                               kind="stable")]  # fmt: skip
+        order = np.concatenate([near, np.setdiff1d(np.arange(p), near)])
+        back = np.argsort(order)
+        q = near.size
+        try:
+            roots = np.linalg.cholesky(covs[:, order][:, :, order])
+            width = q
+        except np.linalg.LinAlgError:  # a singular direction: plain rejection
+            roots = _matrix_roots(covs[:, order][:, :, order])
+            width = p
+        mus, on = mus[:, order], bounded[order]
+        if width < p:
+            keep = normal_cdf(mus[:, 0] / roots[:, 0, 0])  # each node's mass the lead keeps
+            lead = w * keep
+            share = float(lead.sum())  # of the whole posterior, the lead's bound keeps
+            lead /= share
+        else:
+            keep, lead, share = None, w, 1.0
         node_sigma = np.exp(self.u[idx])
         kept: list[Array] = []
         have, total = 0, 0
-        batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
+        rate = min(1.0, inside / share)  # the share of draws the other bounds keep
+        batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / rate))))
         while have < draws and total < 20 * batch:
-            counts = rng.multinomial(batch, w)
-            z = rng.standard_normal((batch, mus.shape[1]))
+            counts = rng.multinomial(batch, lead)
+            node = np.repeat(np.arange(w.size), counts)
+            if keep is None:
+                z = rng.standard_normal((batch, width))
+            else:  # the lead's normal under its bound: -Phi^-1(u Phi(mu / sd))
+                z = -normal_ppf(rng.random(batch) * keep[node])[:, None]
+                if q > 1:
+                    z = np.hstack([z, rng.standard_normal((batch, q - 1))])
             # every draw against the near bounds, node by node (one small product each)
-            first = _by_node(counts, z, mus[:, near], chol[:, near, :])
-            ok = np.all(first >= 0, axis=1)
+            first = _by_node(counts, z, mus[:, :q], roots[:, :q, :width])
+            ok = first[:, 0] >= 0
+            for j in range(1, q):
+                ok &= first[:, j] >= 0
             # np.compress: what boolean indexing gives, at a third of its cost
-            pick = np.compress(ok, np.repeat(np.arange(w.size), counts))
-            beta = _by_node(np.bincount(pick, minlength=w.size), np.compress(ok, z, axis=0),
-                            mus, chol)  # fmt: skip
-            ok = np.all(beta[:, bounded] >= 0, axis=1)
-            kept.append(np.column_stack([np.compress(ok, beta, axis=0),
+            pick = np.compress(ok, node)
+            z = np.compress(ok, z, axis=0)
+            if width < p:
+                z = np.hstack([z, rng.standard_normal((pick.size, p - width))])
+            beta = _by_node(np.bincount(pick, minlength=w.size), z, mus, roots)
+            ok = np.all(beta[:, on] >= 0, axis=1)
+            kept.append(np.column_stack([np.compress(ok, beta, axis=0)[:, back],
                                          node_sigma[np.compress(ok, pick)]]))  # fmt: skip
             have += int(ok.sum())
             total += batch
         if have < 100:
             return None
-        samples = np.concatenate(kept)[:draws]
+        # in random order: the draws come grouped by noise node, and a first ``draws``
+        # of them would leave out the largest noise levels (and a mixture takes a
+        # component's first draws)
+        samples = np.concatenate(kept)
+        samples = samples[rng.permutation(samples.shape[0])[:draws]]
         beta, sig = samples[:, :-1], samples[:, -1]
         cov = np.atleast_2d(np.cov(beta, rowvar=False))
         ci = (  # the coefficients', then sigma's
@@ -538,7 +581,8 @@ class ExactPosterior:
             outside=1.0 - inside,
             method="exact-draws",
             samples=samples,
-            diagnostics={"draws": int(samples.shape[0]), "acceptance": have / total},
+            # the share of plain Gaussian draws that would pass: what the bounds keep
+            diagnostics={"draws": int(samples.shape[0]), "acceptance": share * have / total},
         )
 
 
