@@ -264,6 +264,8 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         res.sample_shape = sample
     if why:
         not_evaluated(res, why)
+    else:
+        fit.lead = max(fit.lead, res.ln_evidence)
     fit.scored(law.name)
     return res
 
