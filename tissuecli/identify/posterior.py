@@ -562,17 +562,24 @@ class ExactPosterior:
                 z = -normal_ppf(rng.random(batch) * keep[node])[:, None]
                 if q > 1:
                     z = np.hstack([z, rng.standard_normal((batch, q - 1))])
-            # every draw against the near bounds, node by node (one small product each)
-            first = _by_node(counts, z, mus[:, :q], roots[:, :q, :width])
-            ok = first[:, 0] >= 0
-            for j in range(1, q):
-                ok &= first[:, j] >= 0
-            # np.compress: what boolean indexing gives, at a third of its cost
-            pick = np.compress(ok, node)
-            z = np.compress(ok, z, axis=0)
+            # every draw against the other near bounds, node by node (one small product
+            # each); the lead's holds by construction (but for rounding, which the check
+            # of every bound below catches)
+            lead_only = keep is not None and q == 1
+            if lead_only:
+                pick = node
+            else:
+                first = _by_node(counts, z, mus[:, :q], roots[:, :q, :width])
+                ok = first[:, q - 1] >= 0
+                for j in range(0 if keep is None else 1, q - 1):
+                    ok &= first[:, j] >= 0
+                # np.compress: what boolean indexing gives, at a third of its cost
+                pick = np.compress(ok, node)
+                z = np.compress(ok, z, axis=0)
             if width < p:
                 z = np.hstack([z, rng.standard_normal((pick.size, p - width))])
-            beta = _by_node(np.bincount(pick, minlength=w.size), z, mus, roots)
+            beta = _by_node(counts if lead_only else np.bincount(pick, minlength=w.size), z,
+                            mus, roots)  # fmt: skip
             ok = np.all(beta[:, on] >= 0, axis=1)
             kept.append(np.column_stack([np.compress(ok, beta, axis=0)[:, back],
                                          node_sigma[np.compress(ok, pick)]]))  # fmt: skip
