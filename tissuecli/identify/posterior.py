@@ -290,8 +290,10 @@ class ExactPosterior:
             # the conditional posteriors change smoothly with sigma: neighbouring nodes
             # pooled into one (at their weighted centre) change no moment or quantile
             # beyond rounding, and each summary costs a tenth
-            bins = np.array_split(np.arange(idx.size), MIXTURE_NODES)
-            starts = np.array([b[0] for b in bins])
+            # the bins of np.array_split(np.arange(idx.size), MIXTURE_NODES): the first
+            # idx.size % MIXTURE_NODES one longer
+            size, longer = divmod(idx.size, MIXTURE_NODES)
+            starts = np.arange(MIXTURE_NODES) * size + np.minimum(np.arange(MIXTURE_NODES), longer)
             ww = w + 1e-300
             at = np.arange(idx.size, dtype=float)
             centre = np.rint(np.add.reduceat(at * ww, starts) / np.add.reduceat(ww, starts))
@@ -593,15 +595,15 @@ class ExactPosterior:
         samples = np.concatenate(kept)
         samples = samples[rng.permutation(samples.shape[0])[:draws]]
         beta, sig = samples[:, :-1], samples[:, -1]
-        cov = np.atleast_2d(np.cov(beta, rowvar=False))
+        mean = beta.mean(axis=0)
+        centred = beta - mean
+        cov = centred.T @ centred / (beta.shape[0] - 1)
         ci = (  # the coefficients', then sigma's
-            np.percentile(samples, [2.5, 97.5], axis=0).T
-            if intervals
-            else np.full((samples.shape[1], 2), np.nan)
+            _central95(samples) if intervals else np.full((samples.shape[1], 2), np.nan)
         )
         return Posterior(
-            mean=beta.mean(axis=0),
-            sd=beta.std(axis=0, ddof=1),
+            mean=mean,
+            sd=np.sqrt(np.diag(cov)),
             ci95=ci[:-1],
             cov=cov,
             sigma_mean=float(sig.mean()),
@@ -716,6 +718,20 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
         x = np.where(active, new, x)
     out[active] = x[active]
     return out
+
+
+def _central95(samples: Array) -> Array:
+    """Each column's 2.5 and 97.5 percentiles, shape (k, 2), for ``samples`` (n, k):
+    ``np.percentile(samples, [2.5, 97.5], axis=0).T`` (linear interpolation between the
+    order statistics), from one partition at the four order statistics it reads."""
+    n = samples.shape[0]
+    at = np.array([0.025, 0.975]) * (n - 1)
+    lo = np.floor(at).astype(np.intp)
+    hi = np.minimum(lo + 1, n - 1)
+    part = np.partition(samples, np.unique(np.concatenate([lo, hi])), axis=0)
+    a, b, t = part[lo], part[hi], (at - lo)[:, None]
+    # numpy's interpolation: from the nearer order statistic
+    return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t).T
 
 
 def _by_node(counts: NDArray[np.intp], z: Array, mus: Array, roots: Array) -> Array:
