@@ -6,17 +6,27 @@ posterior mean in posterior SDs, the SDs' ratio and the effective samples.
 Usage::
 
     python benchmarks/decimated_fit.py [SECONDS ...]
+    python benchmarks/decimated_fit.py --against CHECKOUT [--repeats R] [SECONDS ...]
 
 The simulated forceps at 10 kHz (default 20, 60 and 100 s: 200,000, 600,000 and
 1,000,000 samples), each fitted once each way in this process (``time.process_time``);
 the load average is printed before each session.
+
+``--against CHECKOUT`` times the default fit alone (decimated, as ``tissuecli fit``
+runs it) of this checkout and of another, side by side: two worker processes, each
+with its checkout first on ``PYTHONPATH``, fit the same sessions (each built by its
+own code) R times (default 3) by turns, who goes first alternating, so that both see
+the same load (this file's worker, the checkout's code). Each prints the CPU seconds
+of its fits (median and range), its chosen law and that law's ln evidence.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -34,13 +44,90 @@ def fit(session: object, above: int) -> tuple[BayesianFit, float]:
     return out, time.process_time() - c0
 
 
+def load() -> str:
+    return ", ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+def worker() -> None:
+    """Fit the session of each length (s) read from stdin by default; print the CPU
+    seconds, the chosen law and its ln evidence."""
+    BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
+    made: dict[float, object] = {}
+    import tissuecli
+
+    print(Path(tissuecli.__file__).parents[1], flush=True)
+    for line in sys.stdin:
+        s = float(line)
+        if s not in made:
+            made[s] = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), s)[0]
+        c0 = time.process_time()
+        est = BayesianFit().fit(made[s])  # type: ignore[arg-type]
+        cpu = time.process_time() - c0
+        print(f"{cpu!r}\t{est.best_.name}\t{est.best_.ln_evidence:.6f}", flush=True)
+
+
+def against(checkout: str, repeats: int, seconds: list[float]) -> None:
+    """This checkout and ``checkout`` by turns (see the module's docstring)."""
+    here = str(Path(__file__).resolve().parents[1])
+    workers = {}
+    for name, root in (("this checkout", here), (checkout, checkout)):
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]))
+        workers[name] = subprocess.Popen(
+            [sys.executable, __file__, "--worker"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+        )  # fmt: skip
+    for name, p in workers.items():
+        assert p.stdout is not None
+        print(f"{name}: the code of {p.stdout.readline().strip()}", flush=True)
+    print(f"load average {load()}", flush=True)
+    for s in seconds:
+        cpu: dict[str, list[float]] = {name: [] for name in workers}
+        chosen: dict[str, str] = {}
+        for k in range(repeats):
+            order = list(workers) if k % 2 == 0 else list(workers)[::-1]
+            for name in order:
+                p = workers[name]
+                assert p.stdin is not None and p.stdout is not None
+                p.stdin.write(f"{s}\n")
+                p.stdin.flush()
+                c, law, ln_z = p.stdout.readline().rstrip("\n").split("\t")
+                cpu[name].append(float(c))
+                chosen[name] = f"{law}, ln Z {float(ln_z):.3f}"
+        n = int(round(s * 10000.0))
+        for name in workers:
+            t = cpu[name]
+            print(f"{n} samples, {name}: CPU median {np.median(t):.2f} s (min {min(t):.2f}, max "
+                  f"{max(t):.2f} of {repeats}); {chosen[name]}", flush=True)  # fmt: skip
+        print(f"load average {load()}", flush=True)
+    for p in workers.values():
+        assert p.stdin is not None
+        p.stdin.close()
+        p.wait()
+
+
 def main() -> None:
-    seconds = [float(a) for a in sys.argv[1:]] or [20.0, 60.0, 100.0]
+    if "--worker" in sys.argv:
+        worker()
+        return
+    args = sys.argv[1:]
+    checkout, repeats = None, 3
+    if "--against" in args:
+        i = args.index("--against")
+        checkout = args[i + 1]
+        del args[i : i + 2]
+    if "--repeats" in args:
+        i = args.index("--repeats")
+        repeats = int(args[i + 1])
+        del args[i : i + 2]
+    seconds = [float(a) for a in args] or [20.0, 60.0, 100.0]
+    if checkout is not None:
+        against(checkout, repeats, seconds)
+        return
     default = decimate.DECIMATE_ABOVE
     BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
     for s in seconds:
         session = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), s)[0]
-        print("load average " + ", ".join(f"{v:.1f}" for v in os.getloadavg()), flush=True)
+        print(f"load average {load()}", flush=True)
         full, t_full = fit(session, 10**15)
         coarse, t_coarse = fit(session, default)
         stride = fit_stride(coarse.kinematics_)

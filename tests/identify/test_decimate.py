@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.signal import lfilter
 
-from tissuecli.core.terms import Law
+from tissuecli.core.terms import Law, Maxwell
 from tissuecli.identify import BayesianFit, decimate
 from tissuecli.identify.decimate import fit_stride
 from tissuecli.identify.derivatives import Gaussian
-from tissuecli.identify.design import design
+from tissuecli.identify.derivatives.base import first_order, level_basis
+from tissuecli.identify.design import design, noise_path
 from tissuecli.identify.noise import filter_tau
 from tissuecli.identify.spectrum import convolve_valid, convolve_valid_every
 from tissuecli.sim.families import FAMILIES
@@ -100,6 +102,100 @@ def test_columns_on_the_coarse_grid_are_the_full_columns_kept_rows() -> None:
         atol=1e-12 * np.abs(full).max(),
     )
     np.testing.assert_array_equal(coarse.keep, np.asarray(holed.keep)[kept])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    a=st.one_of(st.sampled_from([0.0, 1e-300, 1.0]), st.floats(0.0, 1.0)),
+    seed=st.integers(0, 2**31),
+)
+def test_the_doubled_recursion_is_the_recursion(n: int, a: float, seed: int) -> None:
+    u = np.random.default_rng(seed).standard_normal(n)
+    ref, y = np.zeros(n), 0.0
+    for k in range(n):
+        y = a * y + u[k]
+        ref[k] = y
+    # pairwise sums: rounding of at most log2(n) additions of partial sums
+    np.testing.assert_allclose(first_order(u, a), ref, rtol=0, atol=1e-13 * max(n, 1))
+
+
+@pytest.mark.parametrize("stride", [1, 7, 40])
+@pytest.mark.parametrize("tau", [1e-5, 3e-3, 0.3, 30.0, 1e4])
+def test_a_relaxation_column_from_the_filtered_increments(stride: int, tau: float) -> None:
+    # the recursion and the filter are linear from rest and commute: the same column as
+    # the branch's series filtered, at the kept rows, with and without a hole; from a
+    # branch faster than a sample to one that never relaxes within the record
+    s, kin = _kinematics(10000.0, 3.0)
+    valid = np.ones(len(s), bool)
+    valid[12_000:12_300] = False
+    branch = Maxwell(1, {"tau1": tau})
+    a, b = branch.recursion(kin.dt)  # type: ignore[misc]
+    assert branch.series(kin.dt, s.position, s.position, s.position) == pytest.approx(
+        lfilter([b], [1.0, -a], np.diff(s.position, prepend=s.position[0])), rel=1e-9, abs=1e-15
+    )
+    for k in (kin, Gaussian()(s.time, s.position, s.force, valid)):
+        coarse = k.every(stride)
+        ref = coarse.smooth(branch.series(kin.dt, s.position, s.position, s.position))
+        got = coarse.smooth_recursion(a, b, s.position)
+        assert got.shape == ref.shape
+        # rounding: the reference's own blocked recursion is within 2e-12 of its largest
+        # value (for tau = 1e4 s, against a long-double recursion), the new one 2e-13
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+def test_contact_and_speed_columns_on_the_coarse_grid() -> None:
+    # on the coarse grid, a closure on few ADC levels: each level's filtered indicator
+    # (times the speed) once, each shape's columns their sum weighted by its values
+    s, kin = _kinematics(10000.0, 6.0)
+    x0 = float(np.median(s.position))
+    law = Law.of(["contact", "contact*xdot", "xdot", "xddot", "offset"]).bind({"n": 1.7, "x0": x0})
+    full = design(law, kin, s.position, 1e-6)
+    coarse = kin.every(40)
+    assert level_basis(coarse, s.position) is not None
+    assert level_basis(coarse, s.position, speed=True) is not None
+    rows = np.arange(kin.force.size) % 40 == 0
+    np.testing.assert_allclose(
+        design(law, coarse, s.position, 1e-6),
+        full[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(full).max(),
+    )
+    contact = law.terms[0]
+    slope = noise_path(contact, kin, s.position, 1e-6)[1]
+    np.testing.assert_allclose(
+        noise_path(contact, coarse, s.position, 1e-6)[1],
+        slope[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(slope).max(),
+    )
+    # speed terms: the half window's speeds formed once, their mean filtered at the
+    # kept rows alone
+    speed = Law.of(["x", "xdot", "xdot|xdot|", "sign(xdot)", "xddot"])
+    by_speed = design(speed, kin, s.position, 1e-6)
+    np.testing.assert_allclose(
+        design(speed, coarse, s.position, 1e-6),
+        by_speed[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(by_speed).max(),
+    )
+    friction = speed.terms[3]
+    slope = noise_path(friction, kin, s.position, 1e-6)[1]
+    np.testing.assert_allclose(
+        noise_path(friction, coarse, s.position, 1e-6)[1],
+        slope[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(slope).max(),
+    )
+    # a closure on as many levels as samples has no basis: the columns are filtered
+    smooth = s.position + 1e-9 * np.random.default_rng(0).standard_normal(len(s))
+    assert level_basis(coarse, smooth) is None
+    np.testing.assert_allclose(
+        design(law, coarse, smooth, 1e-6),
+        design(law, kin, smooth, 1e-6)[rows],
+        rtol=1e-9,
+        atol=1e-12 * np.abs(full).max(),
+    )
 
 
 def _both(session, monkeypatch, above: int):  # type: ignore[no-untyped-def]

@@ -371,6 +371,21 @@ class Term(ABC):
         the first sample): what a term with memory needs; the others ignore ``dt``."""
         return self.regressor(x, v, a)
 
+    def closure_factor(self, x: Array) -> Array | None:
+        """For a term of closure and speed (``variable`` ``"xv"``) whose regressor is a
+        function of the closure times the speed, ``f(x) xdot``: ``f(x)``; else None.
+        A long session's fit then filters the speed at each closure level once, and
+        each shape's column is their sum weighted by ``f``."""
+        return None
+
+    def recursion(self, dt: float) -> tuple[float, float] | None:
+        """``(a, b)`` if :meth:`series` is the first-order recursion
+        ``r_k = a r_{k-1} + b (x_k - x_{k-1})`` from rest at sample interval ``dt`` (s),
+        else None. Such a series is a linear filter of the closure's increments, which
+        commutes with the fit's smoothing filter: a long session's fit filters the
+        increments once and runs each shape's recursion on them."""
+        return None
+
     def columns(self, x: ArrayLike, v: ArrayLike, a: ArrayLike, dt: float | None = None) -> Array:
         """The term's column at exact kinematics, shape (n,); a term with memory reads the
         series' sample interval ``dt`` (s), the series starting from rest."""
@@ -718,6 +733,9 @@ class ContactDamping(Contact):
     def regressor(self, x: Array, v: Array, a: Array) -> Array:
         return Contact.__call__(self, x) * np.asarray(v, dtype=float)
 
+    def closure_factor(self, x: Array) -> Array | None:
+        return Contact.__call__(self, x)
+
     def typical(self, scales: MotionScales) -> float:
         return float(scales.x ** self._nd()[0] * scales.v) or 1.0
 
@@ -767,6 +785,12 @@ class Maxwell(Term):
 
     def series(self, dt: float, x: Array, v: Array, a: Array) -> Array:
         return relaxation(np.asarray(x, dtype=float), dt, self.tau)[0]
+
+    def recursion(self, dt: float) -> tuple[float, float] | None:
+        tau = self.tau
+        if not (math.isfinite(tau) and tau > 0):
+            return None
+        return math.exp(-dt / tau), (tau / dt) * -math.expm1(-dt / tau)  # as relaxation()
 
     def continued(self, x: Array, dt: float, state: object = None) -> tuple[Array, object]:
         # the exact recursion carries (r, the last closure): no history kept

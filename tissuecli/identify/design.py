@@ -131,10 +131,16 @@ def _column(
         # history (relaxation) are formed on the raw grid and filtered as the force is;
         # the central-difference speed's noise is uncorrelated with the closure at the
         # same sample, so the product carries no noise bias
-        dt, v_full = speed or raw_speed(kin, x_full)
+        drive = x_full
         if term.memory and kin.drive is not None:
-            x_full = kin.drive  # the tissue is not indented while the jaws are free
-        return kin.smooth(term.series(dt, x_full, v_full, np.zeros_like(x_full)))
+            drive = kin.drive  # the tissue is not indented while the jaws are free
+        recursion = term.recursion(kin.dt) if kin.stride > 1 else None
+        if recursion is not None:  # on a long session's coarse grid: the same column
+            return kin.smooth_recursion(*recursion, drive)
+        dt, v_full = speed or raw_speed(kin, x_full)
+        if kin.stride > 1 and not term.memory and term.closure_factor(x_full[:1]) is not None:
+            return kin.smooth_pointwise(term.closure_factor, x_full, v_full)  # type: ignore[arg-type]
+        return kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
     return term(np.ones(kin.time.size))
 
 
@@ -197,6 +203,8 @@ def noise_path(
 
 def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
     if term.variable == "x":
+        if term.shapes:  # many shapes on one closure: filtered once per level
+            return kin.kernels[0], kin.smooth_pointwise(term.derivative, x_full)
         return kin.kernels[0], kin.smooth(kin.pointwise(term.derivative, x_full))
     if term.variable == "v":
         return kin.kernels[1], kin.damping_slope(term, x_full, sigma_x**2)

@@ -12,6 +12,7 @@ clipped): a filter cannot see across a hole.
 
 from __future__ import annotations
 
+import math
 import threading
 import weakref
 from abc import ABC, abstractmethod
@@ -96,6 +97,58 @@ class Kinematics:
             return convolve_valid_every(u, self.kernels[0], self.stride)[self.rows // self.stride]
         return self._rows(convolve_valid(u, self.kernels[0]))
 
+    def smooth_recursion(self, a: float, b: float, x_full: Array) -> Array:
+        """:meth:`smooth` of the first-order recursion ``r_k = a r_{k-1} + b (x_k -
+        x_{k-1})`` from rest over the untrimmed closure ``x_full`` (m), shape (m,):
+        a relaxation branch's column (:meth:`~tissuecli.core.terms.Term.recursion`).
+
+        Both are linear filters from rest, so they commute: the closure's increments
+        are filtered once (:func:`increment_blocks`, kept for the closure last asked
+        about) and the recursion runs on them. On the coarse grid (:meth:`every`) only
+        the kept outputs are formed, ``stride`` filtered increments at a time: each
+        kept output is ``a^stride`` times the one before plus ``b`` times the sum of
+        the increments since, weighted ``a^j`` by their age j. Where the weights vary
+        by at most a factor e either side of the block's middle, their Taylor series
+        in ``ln a`` (to :data:`TAYLOR_TOLERANCE`) weighs the blocks' moments instead,
+        a few numbers per block.
+        """
+        s = self.stride
+        blocks, head, moments = increment_blocks(x_full, self.kernels[0], s)
+        lam = -math.log(a) if a > 0 else math.inf
+        half = lam * (s - 1) / 2  # the largest |ln| of a weight over the middle one's
+        if half <= 1.0:
+            # a^(s-1-j) = a^((s-1)/2) sum_k (-lam d_j)^k / k!, d_j = (s-1)/2 - j
+            coef, bound = [1.0], 1.0  # bound: half^k / k!, the k-th term's largest share
+            while len(coef) < moments.shape[1] and bound > TAYLOR_TOLERANCE:
+                bound *= half / len(coef)
+                coef.append(coef[-1] * -lam / len(coef))
+            sums = math.exp(-half) * (moments[:, : len(coef)] @ np.array(coef))
+        else:
+            sums = blocks @ (a ** np.arange(s - 1, -1, -1, dtype=float))  # a^(s-1-j)
+        y = first_order(b * sums, a**s)[head:]
+        return y if self.rows is None else y[self.rows // s]
+
+    def smooth_pointwise(
+        self, fn: Callable[[Array], Array], x_full: Array, speed: Array | None = None
+    ) -> Array:
+        """:meth:`smooth` of ``fn(x_full)`` (:meth:`pointwise`), or of ``fn(x_full) *
+        speed`` for a term of closure and speed, ``speed`` being the raw closure's
+        central-difference speed ``np.gradient(x_full, self.dt)`` (m/s).
+
+        On the coarse grid (:meth:`every`) of a closure on few ADC levels, the
+        filtered indicator of each level (times the speed) is formed once
+        (:func:`level_basis`), and each function's column is their sum weighted by its
+        values at the levels: a product of a (rows, levels) matrix where each column
+        was a filter pass over the record. The same sums in another order.
+        """
+        basis = level_basis(self, x_full, speed is not None) if self.stride > 1 else None
+        if basis is not None:
+            values = fn(basis.levels)
+            if np.all(np.isfinite(values)):
+                return basis.weigh(values)
+        u = self.pointwise(fn, x_full)
+        return self.smooth(u if speed is None else u * speed)
+
     def every(self, stride: int) -> Kinematics:
         """These kinematics at the filtered outputs whose index (counted from the first
         output of the whole record) is a multiple of ``stride``: the same values, exact
@@ -134,6 +187,8 @@ class Kinematics:
             u = term(x)
             return u - 0.5 * term.curvature(x) * noise_var if noise_var > 0 else u
 
+        if term.shapes:  # many shapes on one closure: filtered once per level
+            return self.smooth_pointwise(r, x_full)
         return self.smooth(self.pointwise(r, x_full))
 
     def pointwise(self, fn: Callable[[Array], Array], x_full: Array) -> Array:
@@ -194,15 +249,189 @@ class Kinematics:
         (m^2/s^2) and its noise's variance (m^2/s^2), on the raw grid's valid outputs."""
         assert self.half is not None
         _, gh1, gh2, s2 = self.half
+        n_v = noise_var * float(gh1 @ gh1)
+        with _half_lock:  # a long session's speed terms share them (see every())
+            if _half_of and _half_of[0][0]() is x_full and _half_of[0][1]() is gh1:
+                return (*_half_of[0][2], n_v)
         a = convolve_valid(x_full, gh2)
-        return convolve_valid(x_full, gh1), s2 * a * a, noise_var * float(gh1 @ gh1)
+        v, spread = convolve_valid(x_full, gh1), s2 * a * a
+        if self.stride > 1:
+            with _half_lock:
+                _half_of[:] = [(weakref.ref(x_full), weakref.ref(gh1), (v, spread))]
+        return v, spread, n_v
 
     def _half_smooth(self, u: Array, x_full: Array) -> Array:
         """``g_h * u`` for ``u`` on the half window's outputs, on the fitted samples."""
         assert self.half is not None
+        trim = (u.size - self.half[0].size + 1 - (x_full.size - self.window + 1)) // 2
+        if self.stride > 1:  # only the kept outputs, from the full filter's first
+            assert self.rows is not None
+            kept = convolve_valid_every(u[trim:], self.half[0], self.stride)
+            return kept[self.rows // self.stride]
         col = convolve_valid(u, self.half[0])
-        trim = (col.size - (x_full.size - self.window + 1)) // 2  # to the full filter's outputs
-        return self._rows(col[trim : col.size - trim])
+        return self._rows(col[trim : col.size - trim])  # to the full filter's outputs
+
+
+_half_lock = threading.Lock()
+_half_of: list[tuple[weakref.ref[Array], weakref.ref[Array], tuple[Array, Array]]] = []
+
+
+def first_order(u: Array, a: float) -> Array:
+    """The recursion ``y_k = a y_{k-1} + u_k`` from rest, shape (n,), for ``0 <= a <=
+    1``, by doubling: after the pass with shift d each ``y_k`` sums the last 2d
+    inputs, ``a^(k-i) u_i``; log2(n) vector passes, the sums added pairwise."""
+    y = np.array(u, dtype=float)
+    d, p = 1, a
+    while d < y.size and p != 0.0:
+        y[d:] += p * y[:-d]  # the product is formed before the sum is written
+        d, p = 2 * d, p * p
+    return y
+
+
+#: the terms of a Taylor series :meth:`Kinematics.smooth_recursion` keeps: those of
+#: more than this fraction of the block's sum of absolute filtered increments
+TAYLOR_TOLERANCE = 1e-18
+
+#: the moments kept of each block (the series' terms at ``|ln| = 1``: 1/20! = 4e-19)
+MOMENTS = 21
+
+_increments_lock = threading.Lock()
+_increments_of: list[tuple[weakref.ref[Array], weakref.ref[Array], int, Array, int, Array]] = []
+
+
+def increment_blocks(x: Array, kernel: Array, stride: int) -> tuple[Array, int, Array]:
+    """The closure's increments ``x_k - x_{k-1}`` (0 at the first sample) through the
+    causal filter ``kernel`` from rest, ``w = np.convolve(dx, kernel)[:n]``, with zeros
+    in front and cut into rows of ``stride``, shape (r, stride), so that the filtered
+    output i * stride of ``np.convolve(., kernel, "valid")`` sits at the end of row
+    ``head + i``; ``head``; and the rows' moments about their middle, ``sum_j w_j
+    d_j^k`` with ``d_j = (stride - 1) / 2 - j``, k < :data:`MOMENTS`, shape (r,
+    MOMENTS), each column contiguous. Kept for the last closure, kernel and stride
+    asked about (a fit asks about one, for each shape of its relaxation branches)."""
+    with _increments_lock:
+        if _increments_of:
+            xr, kr, s, blocks, head, moments = _increments_of[0]
+            if xr() is x and kr() is kernel and s == stride:
+                return blocks, head, moments
+    m = kernel.size
+    count = (x.size - m) // stride + 1  # filtered outputs on the stride's grid
+    dx = np.diff(x, prepend=x[:1])
+    w = convolve_valid(np.concatenate([np.zeros(m - 1), dx]), kernel)
+    pad = (-m) % stride  # the recursion at rest before the record
+    blocks = np.concatenate([np.zeros(pad), w[: m + stride * (count - 1)]]).reshape(-1, stride)
+    head = (pad + m) // stride - 1
+    d = (stride - 1) / 2 - np.arange(stride, dtype=float)
+    moments = np.asfortranarray(blocks @ (d[:, None] ** np.arange(MOMENTS)))
+    with _increments_lock:
+        _increments_of[:] = [(weakref.ref(x), weakref.ref(kernel), stride, blocks, head, moments)]
+    return blocks, head, moments
+
+
+#: largest level basis built (bytes, its entries while they are summed)
+BASIS_BYTES = 64 << 20
+
+#: a level basis is built where a column from it costs at most this fraction of the
+#: multiply-adds of a filter pass over the record
+BASIS_COST = 0.25
+
+
+@dataclass(frozen=True, eq=False)
+class LevelBasis:
+    """The filtered indicators of a closure's levels on a coarse grid
+    (:func:`level_basis`): ``levels`` (L,) in m, and the (rows, L) matrix B, held
+    dense or, where each output's window holds few of the levels, as its nonzero
+    entries ``(row, col, data)``."""
+
+    levels: Array
+    dense: Array | None
+    row: NDArray[np.intp]
+    col: NDArray[np.intp]
+    data: Array
+    size: int
+
+    def weigh(self, values: Array) -> Array:
+        """``B @ values``, shape (rows,): the filtered column of a function whose
+        values at the levels are ``values`` (L,)."""
+        if self.dense is not None:
+            return self.dense @ values
+        return np.bincount(self.row, weights=self.data * values[self.col], minlength=self.size)
+
+
+_basis_lock = threading.Lock()
+_BasisKey = tuple[weakref.ref[object], weakref.ref[Array], bool]
+_basis_of: list[tuple[_BasisKey, LevelBasis | None]] = []
+
+
+def level_basis(kin: Kinematics, x: Array, speed: bool = False) -> LevelBasis | None:
+    """The closure's levels (:func:`_levels`) and the coarse grid's
+    (:meth:`Kinematics.every`) filtered indicators of each, ``B[:, l] =
+    kin.smooth((x == levels[l]) * u)`` with ``u`` 1, or with ``speed`` the closure's
+    central-difference speed ``np.gradient(x, kin.dt)`` (m/s); None where a column
+    from them would not cost much less than filtering it (:data:`BASIS_COST`) or
+    they would take too much memory (:data:`BASIS_BYTES`). Kept for the last two
+    kinematics, closure and ``speed`` asked about.
+
+    Output i sums ``kernel[::-1][j] u[i * stride + j]``. Cut into rows of ``stride``
+    samples, a row of the record holds few levels: each (row, level) pair's samples
+    are summed against each block of ``stride`` taps at once (one matrix product),
+    and each sum is added to the output that block of taps reaches."""
+    key = (weakref.ref(kin), weakref.ref(x), speed)
+    with _basis_lock:
+        for k, found in _basis_of:
+            if k[0]() is kin and k[1]() is x and k[2] == speed:
+                return found
+    found = _level_basis(kin, x, speed)
+    with _basis_lock:
+        _basis_of[:] = [(key, found), *_basis_of[:1]]
+    return found
+
+
+def _level_basis(kin: Kinematics, x: Array, speed: bool) -> LevelBasis | None:
+    found = _levels(x)
+    k0 = kin.kernels[0]
+    s, m = kin.stride, k0.size
+    if found is None or s <= 1 or x.size < m:
+        return None
+    levels, index = found
+    count = (x.size - m) // s + 1  # filtered outputs on the stride's grid
+    L = levels.size
+    q = -(-m // s)  # the kernel's blocks of taps
+    taps = np.zeros(q * s)
+    taps[:m] = k0[::-1]
+    rows = count - 1 + q  # output i reads rows i ... i + q - 1 (taps beyond m are 0)
+    used = min(x.size, rows * s)
+    level = np.zeros(rows * s, dtype=np.intp)
+    level[:used] = index[:used]
+    pairs, pair_of = np.unique(np.repeat(np.arange(rows) * L, s) + level, return_inverse=True)
+    entries = pairs.size * q  # at most, before those of one output and level are summed
+    direct = count * m  # a filter pass's multiply-adds
+    if min(count * L, 4 * entries) > BASIS_COST * direct or 16 * entries > BASIS_BYTES:
+        return None
+    # each pair's samples by their place in the row: 1 (or the speed) where it is there
+    Z = np.zeros((pairs.size, s))
+    u = np.ones(used) if not speed else np.gradient(x, kin.dt)[:used]
+    Z[pair_of[:used], np.arange(used) % s] = u
+    P = Z @ taps.reshape(q, s).T  # (pairs, q): each pair against each block of taps
+    del Z
+    out = (pairs // L)[:, None] - np.arange(q)  # the output a pair's block c reaches
+    ok = (out >= 0) & (out < count)
+    bins = (out * L + (pairs % L)[:, None])[ok]
+    weights = P[ok]
+    del P, out, ok
+    kept = np.arange(count) if kin.rows is None else kin.rows // s
+    if count * L <= 4 * bins.size and 8 * count * L <= BASIS_BYTES:
+        B = np.bincount(bins, weights=weights, minlength=count * L).reshape(count, L)
+        return LevelBasis(levels, B[kept], *_EMPTY, kept.size)
+    keys, where = np.unique(bins, return_inverse=True)
+    data = np.bincount(where, weights=weights)
+    position = np.full(count, -1)
+    position[kept] = np.arange(kept.size)
+    row = position[keys // L]
+    on = row >= 0
+    return LevelBasis(levels, None, row[on], (keys % L)[on], data[on], kept.size)
+
+
+_EMPTY = (np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp), np.zeros(0))
 
 
 #: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
