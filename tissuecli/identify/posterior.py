@@ -172,6 +172,10 @@ class Posterior:
     method: str
     samples: Array
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    #: each coefficient's posterior mass below zero without the positivity bounds (p,),
+    #: where the closed form gives it: a passive coefficient with more than 2.5 % there
+    #: has an unbounded 95 % interval reaching zero (not identified)
+    below_zero: Array | None = None
 
 
 class ExactPosterior:
@@ -302,6 +306,15 @@ class ExactPosterior:
         mus, covs = self.conditionals(np.exp(self.u[idx]))
         w = w / w.sum()
         return w, mus, covs, idx
+
+    def below_zero(self) -> Array:
+        """Each coefficient's mass below zero under the posterior without the positivity
+        bounds (p,): exact, from the Gaussian mixture over sigma's nodes."""
+        w, mus, covs, _ = self.mixture()
+        sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.nan_to_num(-mus / sds, nan=-np.inf)  # SD 0: a point mass, at its mean
+        return np.asarray(w @ normal_cdf(z), dtype=float)
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
@@ -465,6 +478,7 @@ class ExactPosterior:
             outside=1.0 - inside,
             method="exact",
             samples=samples,
+            below_zero=self.below_zero(),
         )
 
     def bounded(
@@ -614,6 +628,7 @@ class ExactPosterior:
             samples=samples,
             # the share of plain Gaussian draws that would pass: what the bounds keep
             diagnostics={"draws": int(samples.shape[0]), "acceptance": share * have / total},
+            below_zero=self.below_zero(),
         )
 
 

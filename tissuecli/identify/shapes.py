@@ -483,4 +483,9 @@ def mix(
             "shape_nodes": len(posteriors),
             "exact": all(q.diagnostics.get("exact", False) for q in posteriors),
         },
+        below_zero=(
+            w @ np.array([q.below_zero for q in posteriors])
+            if all(q.below_zero is not None for q in posteriors)
+            else None
+        ),
     )
