@@ -56,6 +56,8 @@ from .scoring import (
     ModelResult,
     exact_result,
     first_pass,
+    prepared,
+    weigh,
 )
 from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
@@ -290,7 +292,7 @@ class BayesianFit(Estimator):
         tau_best, weight_best = self._residual_weight(results, fit, measured)
         if weight_best < weight / WEIGHT_SLACK or (collapsed and weight_best < weight):
             tau, weight = tau_best, weight_best
-            fit = replace(fit, weight=weight)
+            fit = replace(fit, weight=weight, lead=-math.inf)
             self._progress.stage("structure search, scored again", self._known)
             self._scored = 0
             results, found = self._candidates(linear, shaped, firsts, fit)
@@ -567,7 +569,14 @@ class BayesianFit(Estimator):
         (default forms) and the laws with shape parameters asked for; and what the
         search could not do."""
         found: list[str] = []
-        results = [exact_result(m, firsts[m.name], fit) for m in linear]
+        ready = [prepared(m, firsts[m.name], fit) for m in linear]
+        # the evidences weighed best first, so that a law far behind the best needs its
+        # positivity bounds' mass only roughly; the draws then in the laws' order
+        for i in sorted(range(len(linear)), key=lambda i: -ready[i][4].upper_ln_evidence()):
+            weigh(ready[i][4], fit)
+        results = [
+            exact_result(m, firsts[m.name], fit, r) for m, r in zip(linear, ready, strict=True)
+        ]
         if self.forms in (None, "all"):
             scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size * fit.kin.stride)
             tried, notes = self._strategy.run(results, lambda law: self._score(law, fit), scope)

@@ -114,6 +114,9 @@ class Context:
     chain_progress: Callable[[str], Callable[[int, float], None] | None] = field(
         default=_no_progress, repr=False
     )
+    #: the best evidence of a trusted law scored at this weight so far (a law that
+    #: cannot come near it needs its bounds' mass only roughly: ExactPosterior.rough)
+    lead: float = -math.inf
 
 
 def first_pass(
@@ -185,11 +188,35 @@ def law_stats(
     return st, prior, corr, flags
 
 
-def exact_result(model: Law, fp: FirstPass, fit: Context) -> ModelResult:
-    """The closed-form posterior and evidence of one law."""
+def prepared(
+    model: Law, fp: FirstPass, fit: Context
+) -> tuple[SufficientStats, Prior, Array | None, list[str], ExactPosterior]:
+    """:func:`law_stats` of one law, and its closed-form posterior (no orthant mass yet)."""
     st, prior, corr, flags = law_stats(model, fp, fit)
-    exact = ExactPosterior(st, prior)
+    return st, prior, corr, flags, ExactPosterior(st, prior)
+
+
+def weigh(exact: ExactPosterior, fit: Context) -> str:
+    """Why the law's evidence cannot be trusted, or "" (:meth:`ExactPosterior.untrusted`),
+    its orthant mass taken roughly if it is far behind ``fit.lead``, which a trusted
+    evidence raises."""
+    exact.rough(fit.lead)
     why = exact.untrusted()
+    if not why:
+        fit.lead = max(fit.lead, exact.ln_evidence())
+    return why
+
+
+def exact_result(
+    model: Law,
+    fp: FirstPass,
+    fit: Context,
+    ready: tuple[SufficientStats, Prior, Array | None, list[str], ExactPosterior] | None = None,
+) -> ModelResult:
+    """The closed-form posterior and evidence of one law (``ready``: its
+    :func:`prepared`, if at hand)."""
+    st, prior, corr, flags, exact = ready if ready is not None else prepared(model, fp, fit)
+    why = weigh(exact, fit)
     post = exact.bounded(fit.rng, CUT_THRESHOLD)
     if corr is not None:
         # the correction rests on an estimated noise level: say when it matters
