@@ -57,6 +57,8 @@ from .scoring import (
     ModelResult,
     exact_result,
     first_pass,
+    prepared,
+    weigh,
 )
 from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
@@ -291,7 +293,7 @@ class BayesianFit(Estimator):
         tau_best, weight_best = self._residual_weight(results, fit, measured)
         if weight_best < weight / WEIGHT_SLACK or (collapsed and weight_best < weight):
             tau, weight = tau_best, weight_best
-            fit = replace(fit, weight=weight)
+            fit = replace(fit, weight=weight, lead=-math.inf)
             self._progress.stage("structure search, scored again", self._known)
             self._scored = 0
             results, found = self._candidates(linear, shaped, firsts, fit)
@@ -359,14 +361,17 @@ class BayesianFit(Estimator):
             return known[law.name]
 
         # the law with the most evidence, should it hold a term that is not identified,
-        # stands for the law without it (scored there, as _drop_unidentified would):
-        # the choice may be that law or one of its sub-laws
+        # stands for the law without it (scored there, as _drop_unidentified would), and
+        # that law, should it hold one too, for the law without that, until every term
+        # is identified: the choice may be the last of them or one of its sub-laws
         ranked = evaluated(results)
         if ranked:
-            top = max(ranked, key=lambda r: r.ln_evidence)
-            names = stand_in(top, unidentified_in(top))
-            if names is not None:
-                score(names)
+            r = max(ranked, key=lambda r: r.ln_evidence)
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                names = stand_in(r, unidentified_in(r))
+                if names is None:
+                    break
+                r = score(names)
         self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
@@ -393,8 +398,13 @@ class BayesianFit(Estimator):
             if not bad or best.status == NOT_EVALUATED:
                 break
             terms = (best.family or best.model).terms
-            names = stand_in(best, bad)
-            if names is not None:
+            # the law without the unidentified terms, and should it hold one too, the law
+            # without that, until every term is identified (a law with a term not
+            # identified is no sub-law to pass to)
+            names, held = stand_in(best, bad), best
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                if names is None:
+                    break
                 law = Law.of(names)
                 if law.name not in by_name:
                     new = self._score(law, fit)
@@ -402,6 +412,10 @@ class BayesianFit(Estimator):
                     new.flags.extend(identifiability(new))
                     results.append(new)
                     by_name[new.name] = new
+                if by_name[law.name] is held:
+                    break
+                held = by_name[law.name]
+                names = stand_in(held, unidentified(held))
             mine = Counter(names_of(best))
             mine |= Counter(n for t in terms for n in term(t.name).nests)
             subs = [
@@ -577,7 +591,14 @@ class BayesianFit(Estimator):
         (default forms) and the laws with shape parameters asked for; and what the
         search could not do."""
         found: list[str] = []
-        results = [exact_result(m, firsts[m.name], fit) for m in linear]
+        ready = [prepared(m, firsts[m.name], fit) for m in linear]
+        # the evidences weighed best first, so that a law far behind the best needs its
+        # positivity bounds' mass only roughly; the draws then in the laws' order
+        for i in sorted(range(len(linear)), key=lambda i: -ready[i][4].upper_ln_evidence()):
+            weigh(ready[i][4], fit)
+        results = [
+            exact_result(m, firsts[m.name], fit, r) for m, r in zip(linear, ready, strict=True)
+        ]
         if self.forms in (None, "all"):
             scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size * fit.kin.stride)
             tried, notes = self._strategy.run(results, lambda law: self._score(law, fit), scope)
