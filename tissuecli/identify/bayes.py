@@ -309,6 +309,15 @@ class BayesianFit(Estimator):
                           progress_for=self._progress_for)  # fmt: skip
         results = self._set_aside(results, warnings)
         ln_z = np.array([r.ln_evidence for r in results])
+        if not np.isfinite(ln_z.max()):
+            # every posterior lies wholly beyond the positivity bound: the evidence
+            # cannot rank the laws, so none is preferred over another
+            ln_z = np.zeros_like(ln_z)
+            warnings.append(
+                "no law has finite evidence: the positivity bound cuts every posterior "
+                "whole, so the laws are not ranked; check the force and position columns' "
+                "signs and units"
+            )
         prob = np.exp(ln_z - ln_z.max())
         prob /= prob.sum()
         for r, p in zip(results, prob, strict=True):
