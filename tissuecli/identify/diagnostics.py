@@ -19,41 +19,98 @@ from .scoring import NOT_EVALUATED, Context, ModelResult
 Array = NDArray[np.float64]
 
 
+#: half-width of a Gaussian's central 95 % interval, in SDs
+Z95 = 1.959963984540054
+
+#: a coefficient whose 95 % interval is wider than a Gaussian's with this SD, in prior
+#: scales, is not much narrower than its prior: not identified
+VAGUE = 0.3
+
+#: a passive coefficient with more than this share of its posterior below zero, the
+#: positivity bound set aside, has a 95 % interval that reaches zero: the data do not
+#: tell the term from none (a Gaussian posterior's when its SD exceeds 0.51 of its mean)
+BELOW_ZERO = 0.025
+
+#: a passive coefficient whose 95 % interval [lo, hi] has lo at or below this share of hi
+#: spans more than a factor of 50: not identified (where the mass below zero is not
+#: known, also what tells a term from none: a Gaussian's lo is 0.02 hi at an SD of
+#: 0.49 of its mean)
+REACHES_ZERO = 0.02
+
+#: a passive coefficient whose 95 % interval is wider than a Gaussian's with an SD of
+#: this share of its mean (lo below 0.34 hi; :func:`spread`) is poorly identified
+POOR = 0.25
+
+
+def spread(lo: float, hi: float) -> float:
+    """The SD relative to the mean of the Gaussian whose central 95 % interval is
+    ``[lo, hi]``: ``(hi - lo) / (Z95 (hi + lo))`` (infinite if ``hi + lo <= 0``)."""
+    return (hi - lo) / (Z95 * (hi + lo)) if hi + lo > 0 else float("inf")
+
+
 def identifiability(r: ModelResult) -> list[str]:
-    """Flags for coefficients the data do not pin down.
+    """Flags for coefficients the data do not pin down, judged on posterior quantiles.
+
+    Not identified: the 95 % interval is wider than a Gaussian's with an SD of
+    :data:`VAGUE` prior scales (the prior put it there), or, for a passive
+    coefficient, it reaches zero (more than :data:`BELOW_ZERO` of the posterior lies
+    below zero once the positivity bound is set aside: the data do not tell the term
+    from none) or spans more than a factor of 50 (``lo <= REACHES_ZERO hi``). Poorly
+    identified: a passive coefficient's interval wider than a Gaussian's with an SD
+    of :data:`POOR` of its mean (:func:`spread`).
+
+    For a Gaussian posterior these are the thresholds its SD would give. They read no
+    SD: a coefficient's posterior with its shape marginalised (a relaxation branch
+    whose time constant may lie far out, where its stiffness is many times larger) is
+    heavy-tailed, and its SD over a few hundred of the shape chain's draws moved from
+    19 % to 145 % of its mean from one chain to the next, while its 2.5 % quantile
+    moved by 2 % and its mass below zero stays 0. The mass below zero is the closed
+    form's (exact for a fixed shape; over a chain's shape draws, their mean).
 
     A coefficient whose unit hangs on its term's shape (a contact stiffness in N/m^n)
     is judged given the shape the law is bound at: across shapes its value changes
     unit, and its spread there spans decades even where the force it gives is pinned.
-    The prior's scale, and the mean, are those at that shape too."""
+    The prior's scale is that at that shape too."""
     flags = []
     post = r.posterior
     assert post is not None and r.prior is not None
     scales = r.prior.scales
     at = post.diagnostics.get("at_shape")
-    sd, ci = np.array(post.sd, float), np.array(post.ci95, float)
+    ci = np.array(post.ci95, float)
+    below = None if post.below_zero is None else np.array(post.below_zero, float)
     for j, t in enumerate(r.model.terms):
         if at is not None and t.unit_by_shape:
-            sd[j], ci[j] = at["sd"][j], at["ci95"][j]
+            ci[j] = at["ci95"][j]
+            if below is not None and "below_zero" in at:
+                below[j] = at["below_zero"][j]
     for j, t in enumerate(r.model.terms):
         lo, hi = ci[j]
-        vague = sd[j] > 0.3 * scales[j]
-        loose = lo <= 0.02 * max(hi, 1e-300) or sd[j] > 0.5 * abs(post.mean[j])
+        vague = hi - lo > 2 * Z95 * VAGUE * scales[j]
+        loose = lo <= REACHES_ZERO * max(hi, 1e-300)
+        if below is not None:
+            loose = loose or below[j] > BELOW_ZERO
         if vague or (t.passive and loose):
             what = (
                 "too little acceleration content"
                 if t.role == "inertia"
                 else "too little excitation"
             )
+            # where the bound alone keeps the interval off zero, say so
+            cut = (
+                f", {100 * below[j]:.0f} % of its posterior below zero without the positivity bound"
+                if below is not None and not vague and lo > REACHES_ZERO * hi
+                else ""
+            )
             flags.append(
-                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}"
+                f"{t.symbol} not identified ({what}): 95 % interval [{lo:.3g}, {hi:.3g}] "
+                f"{t.unit}{cut}"
             )
         elif loose_shape := _loose_shapes(r, t):
             flags.append(f"{t.symbol} not identified (its shape is not: {loose_shape})")
-        elif t.passive and sd[j] > 0.25 * abs(post.mean[j]):
+        elif t.passive and spread(lo, hi) > POOR:
             flags.append(
-                f"{t.symbol} poorly identified: SD is {100 * sd[j] / post.mean[j]:.0f} % "
-                "of its value"
+                f"{t.symbol} poorly identified: 95 % interval [{lo:.3g}, {hi:.3g}] {t.unit}, "
+                f"±{100 * (hi - lo) / (hi + lo):.0f} % of its centre"
             )
     return flags
 
