@@ -104,8 +104,10 @@ def test_the_limit_never_falls_below_the_firmwares_nor_passes_its_bound(
 def test_round_trips_through_the_port_are_timed_before_a_link_is_made(tmp_path: Path) -> None:
     port = VirtualPort()
     try:
-        trips = port.round_trips(20, interval_s=0.0)
-        assert len(trips) == 20 and all(0 < t < 0.6 for t in trips)
+        trips = port.round_trips(20, interval_s=0.0, budget_s=0.5)
+        # a starved machine may use the budget before the 20th probe; each direction of
+        # a probe waits at most the budget
+        assert 1 <= len(trips) <= 20 and all(0 < t <= 2 * 0.5 + 0.2 for t in trips)
         assert port.link is None
         port.publish(tmp_path / "d")
         assert (tmp_path / "d").is_symlink() and port.path == str(tmp_path / "d")
