@@ -86,6 +86,20 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         exact = ExactPosterior(st, prior, nodes=nodes)
         return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
 
+    def parts_many(nodes: list[dict[str, float]], n_sigma: int = 401) -> list[float]:
+        """:func:`parts`' ln evidence at many shapes, the same numbers: the first passes
+        not yet known formed together (:meth:`ShapedPass.many`)."""
+        bounds = [law.bind(node) for node in nodes]
+        keys = [(law.name, tuple(node[n] for n in grid.names)) for node in nodes]
+        todo = [i for i, key in enumerate(keys) if key not in fit.shaped_passes]
+        for i, fp in zip(todo, light.many([bounds[i] for i in todo]), strict=True):
+            fit.shaped_passes[keys[i]] = fp
+        out = []
+        for bound, key in zip(bounds, keys, strict=True):
+            st, prior, _, _ = law_stats(bound, fit.shaped_passes[key], fit)
+            out.append(ExactPosterior(st, prior, nodes=n_sigma).ln_z_untruncated)
+        return out
+
     def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
         key = tuple(node[n] for n in grid.names)
         if key not in cache:
@@ -204,10 +218,15 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 # exact to rounding for its near-Gaussian posterior, at a quarter the cost
                 return parts(grid.from_u(u), nodes=101)[0]
 
+            def target_many(us: Array) -> list[float]:
+                # the walkers' proposals of one move together: their first passes are
+                # one batch, the same numbers as one at a time
+                return parts_many([grid.from_u(u) for u in us], n_sigma=101)
+
             try:
                 draws, diag = sample_shapes(
                     target, grid.interior(start), start_cov, grid.inside, fit.rng,
-                    progress=fit.chain_progress(res.name),
+                    progress=fit.chain_progress(res.name), log_post_many=target_many,
                 )  # fmt: skip
             except FitError as e:  # keep the Laplace summary, and say why
                 res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
