@@ -92,7 +92,8 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         bounds = [law.bind(node) for node in nodes]
         keys = [(law.name, tuple(node[n] for n in grid.names)) for node in nodes]
         todo = [i for i, key in enumerate(keys) if key not in fit.shaped_passes]
-        for i, fp in zip(todo, light.many([bounds[i] for i in todo]), strict=True):
+        fps = light.many([bounds[i] for i in todo], keep=False)
+        for i, fp in zip(todo, fps, strict=True):
             fit.shaped_passes[keys[i]] = fp
         out = []
         for bound, key in zip(bounds, keys, strict=True):
@@ -467,26 +468,30 @@ class ShapedPass:
             correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
 
-    def many(self, bounds: list[Law]) -> list[FirstPass]:
+    def many(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
         """:meth:`__call__` at many shapes (``bounds``: the law bound at each), the same
         numbers: the nodes' columns stacked so that their products, eigenvalues and
         solves are one call each (the same LAPACK and BLAS routine per node), in
-        batches of about :data:`BATCH_BYTES` of columns."""
+        batches of about :data:`BATCH_BYTES` of columns. ``keep=False`` leaves the
+        columns out of the recent ones (:data:`~tissuecli.identify.design.RECENT`): a
+        chain's shapes never come back, and keeping each cost as much as a filter pass
+        on a short session."""
         m = self.fit.y.size
         per = max(1, BATCH_BYTES // max(8 * m * len(self.moving), 1))
         out: list[FirstPass] = []
         for start in range(0, len(bounds), per):
-            out += self._batch(bounds[start : start + per])
+            out += self._batch(bounds[start : start + per], keep)
         return out
 
-    def _batch(self, bounds: list[Law]) -> list[FirstPass]:
+    def _batch(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
         fit, fixed, moving = self.fit, self.fixed, self.moving
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         n, p = len(bounds), len(fixed) + len(moving)
         S = np.empty((n, fit.y.size, len(moving)))
         for i, bound in enumerate(bounds):
             for c, j in enumerate(moving):
-                S[i, :, c] = term_column(bound.terms[j], kin, x, sx, raw_speed=self.speed)
+                t = bound.terms[j]
+                S[i, :, c] = term_column(t, kin, x, sx, raw_speed=self.speed, keep=keep)
         St = S.transpose(0, 2, 1)
         gram = self._assemble_many(self.G_ff, St @ self.F, St @ S)
         b = np.empty((n, p))
@@ -515,7 +520,8 @@ class ShapedPass:
             K[:, fixed] = self.K_f
             for i, bound in enumerate(bounds):
                 for c, j in enumerate(moving):
-                    K[i, j], D[i, :, c] = noise_path(bound.terms[j], kin, x, sx)
+                    t = bound.terms[j]
+                    K[i, j], D[i, :, c] = noise_path(t, kin, x, sx, keep=keep)
             Dt = D.transpose(0, 2, 1)
             DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
             corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
