@@ -1,5 +1,6 @@
 """CPU time of the default fit (structure search included) on a 10 s, 1 kHz paper-form
-session, a constant-speed pull and a ramp-and-hold relaxation test.
+session (at 16 bits and at the simulated forceps' 8 bits: the sessions of
+benchmarks/time_budget.py), a constant-speed pull and a ramp-and-hold relaxation test.
 
 Usage::
 
@@ -8,7 +9,7 @@ Usage::
 
 CPU time of this process (``time.process_time``), the median over REPEATS fits after
 one warm-up fit that loads SciPy: on a loaded machine wall time measures the queue.
-The first row is the fit ``tissuecli fit FILE`` runs, ``BayesianFit().fit(session)``
+The first two rows are the fit ``tissuecli fit FILE`` runs, ``BayesianFit().fit(session)``
 with grasp detection; the others fit every sample (``grasps="none"``).
 
 ``--against CHECKOUT`` times another checkout of tissuecli beside this one: a second
@@ -39,8 +40,10 @@ from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize  # noqa: E402
 def sessions() -> dict[str, tuple[Session, str]]:
     """The sessions timed, by label: the session and its ``grasps`` option."""
     paper = synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=16)), 10.0)[0]
+    coarse = synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=8)), 10.0)[0]
     return {
         "default fit (grasp detection), paper form, 10 s at 1 kHz": (paper, "all"),
+        "the same at the simulated forceps' 8 bits": (coarse, "all"),
         "paper form x+xdot+xddot, 10 s at 1 kHz": (paper, "none"),
         "constant-speed pull, 10 s at 1 kHz": (constant_speed(0)[0], "none"),
         "ramp and hold, 20 s at 500 Hz": (relaxation(0)[0], "none"),

@@ -4,6 +4,7 @@ and the harness itself: it must see a destroyed file, a leftover and a traceback
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -78,6 +79,40 @@ def test_the_console_script_turns_a_ctrl_c_while_loading_into_one_line() -> None
     done = subprocess.run(
         [sys.executable, "-c", _CTRL_C_WHILE_LOADING, "record", "--port", "x", "--out", "r.h5"],
         capture_output=True, text=True, timeout=60, env=env,
+    )  # fmt: skip
+    assert (done.returncode, done.stderr) == (
+        130,
+        "aborted: interrupted by SIGINT (Ctrl-C)\n",
+    )
+
+
+_CTRL_C_IN_GENERATED_CODE = """
+import tissuecli.app.batch as batch
+
+def expand_inputs(*args, **kwargs):
+    # what a module loading mid-command does (a dataclass's __init__, a namedtuple):
+    # run code compiled from a string; the Ctrl-C lands inside it
+    exec("import os, signal\\nos.kill(os.getpid(), signal.SIGINT)\\nsum(range(99))")
+    raise AssertionError("the Ctrl-C never arrived")
+
+batch.expand_inputs = expand_inputs
+from tissuecli.__main__ import run
+run()
+"""
+
+
+def test_a_ctrl_c_inside_code_compiled_from_a_string_still_exits_130(tmp_path) -> None:
+    """Run as ``python -m`` (as the suite runs every command), CPython kills a process
+    with SIGINT after it has exited when a KeyboardInterrupt passed through code compiled
+    from a string, even one that was caught: a command stopped there must still say
+    'aborted' and exit 130, not die by the signal."""
+    (tmp_path / "ctrl_c_in_exec.py").write_text(_CTRL_C_IN_GENERATED_CODE)
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), root])}
+    done = subprocess.run(
+        [sys.executable, "-m", "ctrl_c_in_exec", "fit", "g.h5", "--out", "p.json"],
+        capture_output=True, text=True, timeout=60, env=env, cwd=tmp_path,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # even in a job
     )  # fmt: skip
     assert (done.returncode, done.stderr) == (
         130,

@@ -95,3 +95,23 @@ def test_a_law_that_predicts_better_or_is_decisively_ahead_is_kept():
     plain = _cv(["x", "xdot", "xddot"], 8.0, 0.0, 0.011)
     BayesianFit()._parsimony([ahead, plain], fit=None)  # type: ignore[arg-type]
     assert ahead.probability == 1.0
+
+
+def test_laws_whose_posteriors_all_lie_beyond_the_positivity_bound_get_finite_probabilities():
+    # the force climbs 300 N while the jaw closes and opens again: every posterior of a
+    # passive law lies below zero, so no evidence is finite and none may turn into NaN
+    import warnings
+
+    import numpy as np
+
+    from tissuecli.core.session import Session
+
+    t = np.arange(300) * 1e-3
+    position = 2e-3 * (1 - np.cos(6 * np.pi * t)) + np.random.default_rng(0).normal(0, 2e-6, 300)
+    session = Session(t, np.arange(300.0), position)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        fit = BayesianFit(forms="x,xdot").fit(session)
+    probabilities = [r.probability for r in fit.results_]
+    assert all(np.isfinite(probabilities)) and abs(sum(probabilities) - 1.0) < 1e-12
+    assert any(w.startswith("no law has finite evidence") for w in fit.warnings_)

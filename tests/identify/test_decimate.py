@@ -243,3 +243,20 @@ def test_a_long_session_decimated_at_the_threshold(monkeypatch) -> None:  # type
     assert coarse.best_.name == full.best_.name
     pf, pc = full.best_.posterior, coarse.best_.posterior
     assert np.all(np.abs(pc.mean - pf.mean) <= 0.1 * pf.sd)
+
+
+def test_functions_of_the_closure_on_its_adc_levels_are_those_of_every_sample() -> None:
+    """On every sample too, a closure an ADC has put on few levels (the simulated
+    forceps' 8 bits: 96 levels in 10,000 samples) has a term, its slope and curvature
+    evaluated on the levels and read back: the same numbers, to the last bit."""
+    from tissuecli.core.terms import term
+    from tissuecli.sim.synth import Sensors
+
+    s = synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=8)), 10.0)[0]
+    kin = Gaussian()(s.time, s.position, s.force)
+    assert kin.stride == 1 and np.unique(s.position).size <= s.position.size // 8
+    x = np.asarray(s.position)
+    contact = Law.of(["contact"]).bind({"n": 1.7, "x0": float(np.quantile(x, 0.2))}).terms[0]
+    for t in (term("x^3"), contact):
+        for fn in (t, t.derivative, t.curvature):
+            np.testing.assert_array_equal(kin.pointwise(fn, x), fn(x))

@@ -103,6 +103,49 @@ def test_a_paper_form_grasp_session_is_not_given_terms_that_predict_no_better():
     assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
 
 
+def test_a_cubic_law_read_without_a_wrong_sample_is_not_given_an_offset():
+    """A grasp session of x^3+xdot+xddot (10 bits, 1.75 kHz, slow squeezes) whose
+    grasps are read without one sample wrong: the fit gave it an offset at P 1.00, 27
+    nats ahead of the truth, because the position-noise corrected residual was solved
+    on the unscaled Gram matrix, where the x^3 column (1e-8 m^3) beside the offset's
+    ones fell below the solver's cut-off. The reference chose the truth."""
+    seed = 61127002
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+    assert "offset" not in gen.chosen_law(est).name
+
+
+
+def test_a_slow_cubic_squeeze_in_contact_is_not_handed_to_a_law_far_behind():
+    """A 1.9 s slow squeeze of x^3+xdot+xddot in contact throughout (9 bits, 5.4 kHz):
+    the same unscaled solve gave x+x^3+maxwell+xdot+sign(xdot)+xddot 18 nats it had
+    not earned, and the law standing for it without its unidentified terms was
+    x+maxwell+xddot, 318 nats behind (P 0.78). Now x^3+xdot: M's force stands below the
+    noise there, so the truth's structure with or without it."""
+    seed = 61127031
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+
+
+@pytest.mark.slow
+def test_the_law_standing_for_one_with_unidentified_terms_is_followed_to_a_clean_one():
+    """A 2.9 s slow squeeze of x^3+xdot+xddot in contact throughout, 5.8 % noise: two
+    relaxation branches, neither identified, led by 3.6 nats; the law without them,
+    x^3+xdot+xddot, has M not identified, and the law without that, x^3+xdot, was never
+    scored, so the two branches were kept (P 0.86). Scored, x^3+xdot has the most
+    evidence of all (585.0 against 581.7 nats)."""
+    seed = 61127022
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+    assert "maxwell" not in gen.chosen_law(est).name
+
+
 # -- protocols -------------------------------------------------------------------------
 
 #: moderate settings: SI units, 200 Hz, 1000 samples, 1 % noise, a 2 mm stroke

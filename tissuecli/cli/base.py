@@ -46,23 +46,31 @@ def fail_cleanly(fn: F) -> F:
 
 
 def _interrupt(signum: int, frame: Any) -> None:
-    """SIGTERM or SIGHUP in a command without a loop of its own to stop: unwind as Ctrl-C
-    does, so that partial outputs are removed on the way out."""
+    """Ctrl-C, SIGTERM or SIGHUP in a command without a loop of its own to stop: unwind,
+    so that partial outputs are removed on the way out."""
     raise Interrupted(signum)
 
 
 def interruptible() -> Callable[[], None]:
-    """SIGTERM and SIGHUP end the command as Ctrl-C does (the long commands replace
-    these handlers with a :class:`~tissuecli.hw.realtime.StopFlag` for a clean stop);
-    returns what puts the handlers back as they were (for a command run in-process)."""
+    """Ctrl-C, SIGTERM and SIGHUP end the command by :class:`Interrupted` (the long
+    commands replace these handlers with a :class:`~tissuecli.hw.realtime.StopFlag` for a
+    clean stop); returns what puts the handlers back as they were (for a command run
+    in-process).
+
+    Ctrl-C is handled here too rather than left to Python's ``KeyboardInterrupt``: one
+    that passes through code compiled from a string (``exec``, as ``dataclasses`` and
+    ``namedtuple`` do while a module loads) marks the interpreter as ended by an
+    unhandled Ctrl-C, and CPython then kills the process with SIGINT after it exits 130.
+    A Ctrl-C that the process started ignoring (a background job) stays ignored."""
     previous: dict[int, Any] = {}
-    for name in ("SIGTERM", "SIGHUP"):
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
         sig = getattr(signal, name, None)
-        if sig is not None:
-            try:
-                previous[sig] = signal.signal(sig, _interrupt)
-            except ValueError:  # not the main thread (a test's runner): leave them
-                break
+        if sig is None or (name == "SIGINT" and signal.getsignal(sig) == signal.SIG_IGN):
+            continue
+        try:
+            previous[sig] = signal.signal(sig, _interrupt)
+        except ValueError:  # not the main thread (a test's runner): leave them
+            break
 
     def restore() -> None:
         for sig, handler in previous.items():

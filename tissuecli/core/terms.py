@@ -698,13 +698,16 @@ class Contact(Term):
     def __call__(self, u: ArrayLike) -> Array:
         n, x0 = self._nd()
         d = np.maximum(np.asarray(u, dtype=float) - x0, 0.0)
-        return d**n
+        # powers only in contact (0 ** n is 0 for the exponents allowed): the same
+        # numbers, at the cost of the samples in contact
+        return np.power(d, n, out=np.zeros_like(d), where=d > 0)
 
     def derivative(self, u: ArrayLike) -> Array:
         n, x0 = self._nd()
         d = np.maximum(np.asarray(u, dtype=float) - x0, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(d > 0, n * d ** (n - 1.0), 0.0)
+        inside = d > 0
+        out = np.power(d, n - 1.0, out=np.zeros_like(d), where=inside)
+        return np.multiply(n, out, out=out, where=inside)
 
     def scalar(self, u: float) -> float:
         n, x0 = self._nd()

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._version import __version__
-from ..core.errors import SessionExists, StorageError
+from ..core.errors import Interrupted, SessionExists, StorageError
 from .hdf5 import (
     CHUNK_ROWS,
     H5_ERRORS,
@@ -90,7 +90,8 @@ class SeriesWriter:
     Rows are buffered in memory and written whenever `flush_interval_s` has passed
     since the last flush, so a crash loses at most that much data. Use as a context
     manager: leaving the block closes the file, marking the group complete unless
-    an exception other than ``KeyboardInterrupt``/``SystemExit`` is propagating.
+    an exception other than ``KeyboardInterrupt``, ``Interrupted`` (a signal) or
+    ``SystemExit`` is propagating.
 
     Storage faults (disk full, quota, file-size limit, I/O errors) stop the writer at
     once: the rows committed so far stay in the file, the group is marked incomplete
@@ -641,8 +642,8 @@ class SeriesWriter:
             return
         if exc_type is None:
             self.close(complete=True)
-        elif issubclass(exc_type, (KeyboardInterrupt, SystemExit)):
-            # Ctrl-C and SIGTERM (turned into one of these) are normal ways to stop
+        elif issubclass(exc_type, (KeyboardInterrupt, Interrupted, SystemExit)):
+            # Ctrl-C, SIGTERM and SIGHUP (turned into one of these) are normal ways to stop
             if "stop_reason" not in self._pending_attrs:
                 self.set_attrs(stop_reason="interrupted")
             self.close(complete=True)

@@ -31,7 +31,7 @@ from ..core.session import Session
 from ..core.terms import Law, term
 from .blas import one_blas_thread
 from .decimate import fit_stride
-from .derivatives import Differentiator
+from .derivatives import Differentiator, Kinematics
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
     blocked_cv_rms,
@@ -47,6 +47,7 @@ from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .priors import law_prior, prior_conflict, scales_from, session_scales
+from .quantisation import DITHERED, FOURTH, PositionNoise, analog_sd, staircase_analog_sd
 from .sampling import DECISIVE, sample_posteriors, sample_shape_posteriors
 from .scoring import (
     CUT_THRESHOLD,
@@ -56,6 +57,8 @@ from .scoring import (
     ModelResult,
     exact_result,
     first_pass,
+    prepared,
+    weigh,
 )
 from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
@@ -204,7 +207,7 @@ class BayesianFit(Estimator):
             ready.warnings,
             ready.contact,
         )
-        sigma_x = self._position_noise(session, ready.trusted) if self.eiv else 0.0
+        sigma_x = self._position_noise(session, ready.trusted, kin) if self.eiv else 0.0
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
         # a long session's laws are scored on every stride-th filtered sample, the
@@ -290,7 +293,7 @@ class BayesianFit(Estimator):
         tau_best, weight_best = self._residual_weight(results, fit, measured)
         if weight_best < weight / WEIGHT_SLACK or (collapsed and weight_best < weight):
             tau, weight = tau_best, weight_best
-            fit = replace(fit, weight=weight)
+            fit = replace(fit, weight=weight, lead=-math.inf)
             self._progress.stage("structure search, scored again", self._known)
             self._scored = 0
             results, found = self._candidates(linear, shaped, firsts, fit)
@@ -306,6 +309,15 @@ class BayesianFit(Estimator):
                           progress_for=self._progress_for)  # fmt: skip
         results = self._set_aside(results, warnings)
         ln_z = np.array([r.ln_evidence for r in results])
+        if not np.isfinite(ln_z.max()):
+            # every posterior lies wholly beyond the positivity bound: the evidence
+            # cannot rank the laws, so none is preferred over another
+            ln_z = np.zeros_like(ln_z)
+            warnings.append(
+                "no law has finite evidence: the positivity bound cuts every posterior "
+                "whole, so the laws are not ranked; check the force and position columns' "
+                "signs and units"
+            )
         prob = np.exp(ln_z - ln_z.max())
         prob /= prob.sum()
         for r, p in zip(results, prob, strict=True):
@@ -358,14 +370,17 @@ class BayesianFit(Estimator):
             return known[law.name]
 
         # the law with the most evidence, should it hold a term that is not identified,
-        # stands for the law without it (scored there, as _drop_unidentified would):
-        # the choice may be that law or one of its sub-laws
+        # stands for the law without it (scored there, as _drop_unidentified would), and
+        # that law, should it hold one too, for the law without that, until every term
+        # is identified: the choice may be the last of them or one of its sub-laws
         ranked = evaluated(results)
         if ranked:
-            top = max(ranked, key=lambda r: r.ln_evidence)
-            names = stand_in(top, unidentified_in(top))
-            if names is not None:
-                score(names)
+            r = max(ranked, key=lambda r: r.ln_evidence)
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                names = stand_in(r, unidentified_in(r))
+                if names is None:
+                    break
+                r = score(names)
         self._strategy.descend(lambda: [provisional_choice(results)], score)
 
     def _drop_unidentified(self, results: list[ModelResult], fit: Context) -> list[ModelResult]:
@@ -392,8 +407,13 @@ class BayesianFit(Estimator):
             if not bad or best.status == NOT_EVALUATED:
                 break
             terms = (best.family or best.model).terms
-            names = stand_in(best, bad)
-            if names is not None:
+            # the law without the unidentified terms, and should it hold one too, the law
+            # without that, until every term is identified (a law with a term not
+            # identified is no sub-law to pass to)
+            names, held = stand_in(best, bad), best
+            for _ in range(len(PREFERENCE)):  # each step leaves a term out
+                if names is None:
+                    break
                 law = Law.of(names)
                 if law.name not in by_name:
                     new = self._score(law, fit)
@@ -401,6 +421,10 @@ class BayesianFit(Estimator):
                     new.flags.extend(identifiability(new))
                     results.append(new)
                     by_name[new.name] = new
+                if by_name[law.name] is held:
+                    break
+                held = by_name[law.name]
+                names = stand_in(held, unidentified(held))
             mine = Counter(names_of(best))
             mine |= Counter(n for t in terms for n in term(t.name).nests)
             subs = [
@@ -516,19 +540,40 @@ class BayesianFit(Estimator):
                 r.ln_evidence = -1e300
         return results
 
-    def _position_noise(self, session: Session, trusted: NDArray[np.bool_]) -> float:
+    def _position_noise(
+        self, session: Session, trusted: NDArray[np.bool_], kin: Kinematics
+    ) -> float:
         """Position noise SD (m) from the spectrum's flat top over the ``trusted``
         samples, floored by the ADC step.
 
-        Quantisation with little dither is not white and hides from the flat top, so
-        the ADC step sets a floor: step / sqrt(12). Clipped and lost samples are left
+        Quantisation with little dither is not white and hides from the flat top: with
+        an ADC step the noise is a :class:`~tissuecli.identify.quantisation.PositionNoise`,
+        at least step / sqrt(12), whose staircase the errors-in-variables correction
+        takes at each sample's speed. Clipped and lost samples are left
         out: flat at an end of the ADC, or interpolated, they carry no noise (free jaws
         clipped for 31 % of a grasping session read the noise 20 % low, and left M 2 %
         low, 5 posterior SDs).
         """
         fs = 1.0 / float(np.median(np.diff(session.time)))
         step = session.adc.step("position") if session.adc is not None else 0.0
-        return max(position_noise_sd(session.position, fs, trusted), step / np.sqrt(12))
+        measured = position_noise_sd(session.position, fs, trusted)
+        if step <= 0:
+            return measured
+        # the flat top sees the rounding's white part alone: the analog noise beside it
+        # tells whether the steps are dithered or a staircase (identify.quantisation)
+        analog = analog_sd(measured, step)
+        if analog < DITHERED * step:
+            # the staircase's harmonics reach the flat top: its fourth differences, at
+            # each sample's speed, tell the analog noise beneath them
+            x = session.position
+            d4 = np.convolve(x, FOURTH, mode="same")
+            # a difference that reaches a clipped or lost sample, or an end, is not noise
+            whole = np.convolve((~trusted).astype(float), np.ones(FOURTH.size), mode="same")
+            whole[: FOURTH.size // 2] = whole[x.size - FOURTH.size // 2 :] = 1.0
+            rows = np.arange(x.size)[kin.keep]
+            use = whole[rows] == 0
+            analog = staircase_analog_sd(d4[rows][use], kin.v[use] * kin.dt / step, step)
+        return PositionNoise(analog, step)
 
     def _tick(self, name: str) -> None:
         """One more law scored: the progress counts it against the laws known so far
@@ -555,7 +600,14 @@ class BayesianFit(Estimator):
         (default forms) and the laws with shape parameters asked for; and what the
         search could not do."""
         found: list[str] = []
-        results = [exact_result(m, firsts[m.name], fit) for m in linear]
+        ready = [prepared(m, firsts[m.name], fit) for m in linear]
+        # the evidences weighed best first, so that a law far behind the best needs its
+        # positivity bounds' mass only roughly; the draws then in the laws' order
+        for i in sorted(range(len(linear)), key=lambda i: -ready[i][4].upper_ln_evidence()):
+            weigh(ready[i][4], fit)
+        results = [
+            exact_result(m, firsts[m.name], fit, r) for m, r in zip(linear, ready, strict=True)
+        ]
         if self.forms in (None, "all"):
             scope = Scope(fit.kin, getattr(self, "design_", None), fit.y.size * fit.kin.stride)
             tried, notes = self._strategy.run(results, lambda law: self._score(law, fit), scope)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from .posterior import gram_pinv
+
 Array = NDArray[np.float64]
 
 
@@ -57,7 +59,7 @@ def data_weight(A: Array, r: Array, tau: float) -> float:
         block = max(n // 30, 1)
     nb = n // block
     scores = (A[: nb * block] * r[: nb * block, None]).reshape(nb, block, -1).sum(axis=1)
-    G_inv = np.linalg.pinv(A.T @ A)
+    G_inv = gram_pinv(A.T @ A)  # on unit-norm columns: x^3 beside an offset is 1e-8 of it
     v_robust = np.diag(G_inv @ (scores.T @ scores) @ G_inv)
     v_model = (r @ r / n) * np.diag(G_inv)
     ratio = float(np.min(v_model / np.where(v_robust > 0, v_robust, np.inf)))
@@ -105,7 +107,7 @@ def corrected_curvature(
     # pseudo-inverses: a shape node can make two columns one (a branch slower than the
     # session is a spring), which leaves these singular where the posterior is not
     beta_s = np.linalg.lstsq(gc_s, b / d, rcond=None)[0]
-    h_s = gc_s @ np.linalg.pinv(gram_s, hermitian=True) @ gc_s
+    h_s = gc_s @ _pinv_symmetric(gram_s) @ gc_s
     # a correction that took the whole residual (never applied in a full fit) keeps the
     # curvature proper
     ratio = rss_corrected / rss if rss > 0 and rss_corrected > 0 else 1.0
@@ -114,3 +116,16 @@ def corrected_curvature(
     b_c = (h_s @ beta_s) * d
     yy = rss_corrected + float(beta_s @ h_s @ beta_s)
     return G, b_c, yy
+
+
+def _pinv_symmetric(a: Array) -> Array:
+    """``np.linalg.pinv(a, hermitian=True)`` of a symmetric (p, p) matrix, the same
+    numbers at half its cost (its steps without its generality): the eigenvalues by
+    magnitude, those below 1e-15 of the largest dropped."""
+    s, u = np.linalg.eigh(a)
+    order = np.argsort(np.abs(s))[::-1]
+    sign, s, u = np.sign(s)[order], np.abs(s)[order], u[:, order]
+    large = s > 1e-15 * np.max(s)
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    return np.matmul(u * sign[None, :], np.multiply(s[:, None], u.T))

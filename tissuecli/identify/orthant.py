@@ -30,6 +30,9 @@ FIRST_POINTS, MAX_POINTS = 1 << 10, 1 << 16
 #: target: 3 standard errors below this absolute error and this fraction of the mass
 #: (the evidence needs ln P to 1e-3; the sampling rule, P near 1, needs 1e-5 absolute)
 ABS_TOL, REL_TOL = 1e-5, 1e-3
+#: the looser target of a mass whose law's evidence lies far behind the best
+#: (:data:`~tissuecli.identify.posterior.FAR_BEHIND`): ln P to about 0.01
+ROUGH_ABS_TOL, ROUGH_REL_TOL = 1e-3, 1e-2
 #: standardised limits beyond which the lattice works in logarithms
 LINEAR_LIMIT = 8.0
 #: ln of the smallest mass the direct products are trusted to carry
@@ -79,9 +82,12 @@ def orthant_probability(mean: Array, cov: Array) -> float:
     return math.exp(orthant_log_probability(mean, cov)[0])
 
 
-def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
+def orthant_log_probability(
+    mean: Array, cov: Array, abs_tol: float = ABS_TOL, rel_tol: float = REL_TOL
+) -> tuple[float, float]:
     """``ln P(X >= 0)`` for ``X ~ N(mean, cov)`` and its relative error (3 standard
-    errors over the random shifts, as a fraction of P).
+    errors over the random shifts, as a fraction of P), refined until that error is
+    below ``abs_tol`` absolute and ``rel_tol`` of P.
 
     Computed in logarithms throughout (each factor by ``ln Phi``, each quantile from
     a log probability), so a mass of 1e-400 keeps its relative accuracy instead of
@@ -135,8 +141,8 @@ def orthant_log_probability(mean: Array, cov: Array) -> tuple[float, float]:
         rel = 3 * float(np.std(ratio, ddof=1)) / math.sqrt(SHIFTS) / float(np.mean(ratio))
         # 3 SEs below ABS_TOL absolute and REL_TOL of the mass (compared in logarithms:
         # a mass of 1e-400 has no absolute error a double can hold)
-        small = rel == 0 or value + math.log(rel) <= math.log(ABS_TOL)
-        if (small and rel <= REL_TOL) or points >= MAX_POINTS:
+        small = rel == 0 or value + math.log(rel) <= math.log(abs_tol)
+        if (small and rel <= rel_tol) or points >= MAX_POINTS:
             return value, rel
         points *= 4
 

@@ -30,7 +30,10 @@ from numpy.typing import NDArray
 
 from ..core.errors import FitError
 from .orthant import (
+    ROUGH_ABS_TOL,
+    ROUGH_REL_TOL,
     normal_cdf,
+    normal_ppf,
     orthant_log_probability,
     orthant_log_upper_bound,
     tail_log_probability,
@@ -39,6 +42,35 @@ from .orthant import (
 Array = NDArray[np.float64]
 
 LN_2PI = float(np.log(2 * np.pi))
+
+
+def gram_scales(G: Array) -> Array:
+    """The column norms behind a Gram matrix ``A^T A``, shape (p,): ``sqrt(diag G)``,
+    1 for an empty column."""
+    d = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    d[d == 0] = 1.0
+    return d
+
+
+def gram_lstsq(G: Array, b: Array) -> Array:
+    """Least squares ``G beta = b`` for a Gram-like matrix ``G`` (p, p), solved on unit-norm
+    columns, shape (p,).
+
+    Columns in SI units span many decades (``x^3`` in m^3 is 1e-8 where an offset's
+    column is 1), so the Gram matrix's eigenvalues span their squares: a pseudo-inverse
+    with a relative cut-off (``lstsq``'s ``rcond``) then drops the small column's
+    direction as if it were rank-deficient, though the scaled matrix is well
+    conditioned. Scaled first, only a truly collinear direction is dropped.
+    """
+    d = gram_scales(G)
+    return np.asarray(np.linalg.lstsq(G / np.outer(d, d), b / d, rcond=None)[0] / d)
+
+
+def gram_pinv(G: Array) -> Array:
+    """The pseudo-inverse of a Gram-like matrix (p, p), taken on unit-norm columns (see
+    :func:`gram_lstsq`)."""
+    d = gram_scales(G)
+    return np.asarray(np.linalg.pinv(G / np.outer(d, d), hermitian=True) / np.outer(d, d))
 
 
 @dataclass(frozen=True)
@@ -109,7 +141,7 @@ class SufficientStats:
         r = y - A @ beta
         rss = float(r @ r)
         if correction is not None:  # the corrected fit's residual, without cancellation
-            beta_c = np.linalg.lstsq(G, A.T @ y, rcond=None)[0]
+            beta_c = gram_lstsq(G, A.T @ y)
             rss = max(rss - float(beta_c @ correction @ beta), 0.0)
         return cls(
             weight * G,
@@ -193,6 +225,8 @@ class ExactPosterior:
         self._tail: float | None = None
         #: the mass is known only to lie below ``_inside`` (:data:`FAR_NATS`)
         self.bound_only = False
+        #: the lattice's target is the looser one of a law far behind (:meth:`rough`)
+        self._rough = False
         self._mixture: tuple[Array, Array, Array, NDArray[np.intp]] | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
@@ -289,8 +323,10 @@ class ExactPosterior:
             # the conditional posteriors change smoothly with sigma: neighbouring nodes
             # pooled into one (at their weighted centre) change no moment or quantile
             # beyond rounding, and each summary costs a tenth
-            bins = np.array_split(np.arange(idx.size), MIXTURE_NODES)
-            starts = np.array([b[0] for b in bins])
+            # the bins of np.array_split(np.arange(idx.size), MIXTURE_NODES): the first
+            # idx.size % MIXTURE_NODES one longer
+            size, longer = divmod(idx.size, MIXTURE_NODES)
+            starts = np.arange(MIXTURE_NODES) * size + np.minimum(np.arange(MIXTURE_NODES), longer)
             ww = w + 1e-300
             at = np.arange(idx.size, dtype=float)
             centre = np.rint(np.add.reduceat(at * ww, starts) / np.add.reduceat(ww, starts))
@@ -333,6 +369,21 @@ class ExactPosterior:
             self.bound_only = False
         return self._inside
 
+    def upper_ln_evidence(self) -> float:
+        """An upper bound on :meth:`ln_evidence` that needs no orthant mass (it is at
+        most 1)."""
+        return float(self.ln_z_untruncated + int(np.sum(self.prior.bounded)) * np.log(2))
+
+    def rough(self, lead: float) -> None:
+        """Take the orthant mass to the lattice's looser target
+        (:data:`~tissuecli.identify.orthant.ROUGH_ABS_TOL`, about 0.01 in its logarithm)
+        if this law's evidence cannot come within :data:`FAR_BEHIND` nats of ``lead``
+        (the best evidence known): no choice then turns on its last hundredth of a nat,
+        and the full target took a 3-dimensional lattice of 16 times the points. Before
+        the mass is first computed only."""
+        if self._inside is None and self.upper_ln_evidence() < lead - FAR_BEHIND:
+            self._rough = True
+
     def _modal(self) -> tuple[Array, Array]:
         mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
         on = self.prior.bounded
@@ -351,7 +402,10 @@ class ExactPosterior:
             if top < -FAR_NATS:
                 self.bound_only = True
                 return top, 0.0, None
-        ln_p, error = orthant_log_probability(mu, cov)
+        if self._rough:
+            ln_p, error = orthant_log_probability(mu, cov, ROUGH_ABS_TOL, ROUGH_REL_TOL)
+        else:
+            ln_p, error = orthant_log_probability(mu, cov)
         # where the bound keeps little, Laplace's tail estimate checks the lattice
         tail = tail_log_probability(mu, cov) if ln_p < math.log(MIN_ACCEPTANCE) else None
         return ln_p, error, tail
@@ -457,28 +511,31 @@ class ExactPosterior:
         )
 
     def bounded(
-        self, rng: np.random.Generator, cut: float = 1e-3, intervals: bool = True
+        self,
+        rng: np.random.Generator,
+        cut: float = 1e-3,
+        intervals: bool = True,
+        draws: int = 4000,
     ) -> Posterior:
         """The posterior as exact as it is known: the closed form where the positivity
         bound cuts no more than ``cut`` of it, else exact draws under the bound
         (:meth:`truncated`). ``diagnostics["exact"]`` says whether either applied; if
         not (the bound keeps too little for rejection), a sampler is needed.
 
-        The closed form's summary is formed only if it is the answer; its random
-        numbers are drawn either way, so the generator's stream (and every draw after
-        it) is what it would be had it been formed. Without ``intervals`` the 95 %
-        intervals are left NaN, the rest as with them: a component of a mixture over
-        shapes, or a posterior read for its mean, needs none."""
-        draws = self._summary_draws(rng)
+        ``draws`` posterior draws are kept in ``samples`` (fewer where the closed form's
+        draws fall outside the bound); the closed form's moments and intervals do not
+        depend on them, the draws' do. Without ``intervals`` the 95 % intervals are left
+        NaN, the rest as with them: a component of a mixture over shapes, or a posterior
+        read for its mean, needs none."""
         if 1.0 - self.orthant_mass() > cut:
-            exact = self.truncated(rng, intervals=intervals)
+            exact = self.truncated(rng, draws=draws, intervals=intervals)
             if exact is None:
-                post = self._summary(*draws, intervals=intervals)
+                post = self._summary(*self._summary_draws(rng, draws), intervals=intervals)
                 post.diagnostics["exact"] = False
                 return post
             post = exact
         else:
-            post = self._summary(*draws, intervals=intervals)
+            post = self._summary(*self._summary_draws(rng, draws), intervals=intervals)
         post.diagnostics["exact"] = True
         return post
 
@@ -503,7 +560,7 @@ class ExactPosterior:
         if inside < (min_acceptance or MIN_ACCEPTANCE):
             return None
         w, mus, covs, idx = self.mixture()
-        chol = _matrix_roots(covs)
+        p = mus.shape[1]
         bounded = self.prior.bounded
         # the bounds a draw may plausibly cross are checked on every draw; the whole
         # coefficient vector (and every bound) only on the draws that pass them
@@ -512,38 +569,84 @@ class ExactPosterior:
         near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
         if near.size == 0:
             near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
+        # the near coefficients first, the one the bound cuts most leading: a Cholesky
+        # root's first rows then take only a draw's first normals. The leading one is
+        # drawn under its bound by inverse CDF (its node in proportion to the mass its
+        # bound keeps there), the other near ones checked by rejection, and a draw's
+        # remaining normals drawn only if it passes them
+        near = near[np.argsort(z_m[np.searchsorted(np.flatnonzero(bounded), near)],
+                               kind="stable")]  # fmt: skip
+        order = np.concatenate([near, np.setdiff1d(np.arange(p), near)])
+        back = np.argsort(order)
+        q = near.size
+        try:
+            roots = np.linalg.cholesky(covs[:, order][:, :, order])
+            width = q
+        except np.linalg.LinAlgError:  # a singular direction: plain rejection
+            roots = _matrix_roots(covs[:, order][:, :, order])
+            width = p
+        mus, on = mus[:, order], bounded[order]
+        if width < p:
+            keep = normal_cdf(mus[:, 0] / roots[:, 0, 0])  # each node's mass the lead keeps
+            lead = w * keep
+            share = float(lead.sum())  # of the whole posterior, the lead's bound keeps
+            lead /= share
+        else:
+            keep, lead, share = None, w, 1.0
         node_sigma = np.exp(self.u[idx])
         kept: list[Array] = []
         have, total = 0, 0
-        batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / inside))))
+        rate = min(1.0, inside / share)  # the share of draws the other bounds keep
+        batch = int(min(2_000_000, max(draws, math.ceil(1.3 * draws / rate))))
         while have < draws and total < 20 * batch:
-            counts = rng.multinomial(batch, w)
-            z = rng.standard_normal((batch, mus.shape[1]))
-            # every draw against the near bounds, node by node (one small product each)
-            first = _by_node(counts, z, mus[:, near], chol[:, near, :])
-            ok = np.all(first >= 0, axis=1)
-            # np.compress: what boolean indexing gives, at a third of its cost
-            pick = np.compress(ok, np.repeat(np.arange(w.size), counts))
-            beta = _by_node(np.bincount(pick, minlength=w.size), np.compress(ok, z, axis=0),
-                            mus, chol)  # fmt: skip
-            ok = np.all(beta[:, bounded] >= 0, axis=1)
-            kept.append(np.column_stack([np.compress(ok, beta, axis=0),
+            counts = rng.multinomial(batch, lead)
+            node = np.repeat(np.arange(w.size), counts)
+            if keep is None:
+                z = rng.standard_normal((batch, width))
+            else:  # the lead's normal under its bound: -Phi^-1(u Phi(mu / sd))
+                z = -normal_ppf(rng.random(batch) * keep[node])[:, None]
+                if q > 1:
+                    z = np.hstack([z, rng.standard_normal((batch, q - 1))])
+            # every draw against the other near bounds, node by node (one small product
+            # each); the lead's holds by construction (but for rounding, which the check
+            # of every bound below catches)
+            lead_only = keep is not None and q == 1
+            if lead_only:
+                pick = node
+            else:
+                first = _by_node(counts, z, mus[:, :q], roots[:, :q, :width])
+                ok = first[:, q - 1] >= 0
+                for j in range(0 if keep is None else 1, q - 1):
+                    ok &= first[:, j] >= 0
+                # np.compress: what boolean indexing gives, at a third of its cost
+                pick = np.compress(ok, node)
+                z = np.compress(ok, z, axis=0)
+            if width < p:
+                z = np.hstack([z, rng.standard_normal((pick.size, p - width))])
+            beta = _by_node(counts if lead_only else np.bincount(pick, minlength=w.size), z,
+                            mus, roots)  # fmt: skip
+            ok = np.all(beta[:, on] >= 0, axis=1)
+            kept.append(np.column_stack([np.compress(ok, beta, axis=0)[:, back],
                                          node_sigma[np.compress(ok, pick)]]))  # fmt: skip
             have += int(ok.sum())
             total += batch
         if have < 100:
             return None
-        samples = np.concatenate(kept)[:draws]
+        # in random order: the draws come grouped by noise node, and a first ``draws``
+        # of them would leave out the largest noise levels (and a mixture takes a
+        # component's first draws)
+        samples = np.concatenate(kept)
+        samples = samples[rng.permutation(samples.shape[0])[:draws]]
         beta, sig = samples[:, :-1], samples[:, -1]
-        cov = np.atleast_2d(np.cov(beta, rowvar=False))
+        mean = beta.mean(axis=0)
+        centred = beta - mean
+        cov = centred.T @ centred / (beta.shape[0] - 1)
         ci = (  # the coefficients', then sigma's
-            np.percentile(samples, [2.5, 97.5], axis=0).T
-            if intervals
-            else np.full((samples.shape[1], 2), np.nan)
+            _central95(samples) if intervals else np.full((samples.shape[1], 2), np.nan)
         )
         return Posterior(
-            mean=beta.mean(axis=0),
-            sd=beta.std(axis=0, ddof=1),
+            mean=mean,
+            sd=np.sqrt(np.diag(cov)),
             ci95=ci[:-1],
             cov=cov,
             sigma_mean=float(sig.mean()),
@@ -552,7 +655,8 @@ class ExactPosterior:
             outside=1.0 - inside,
             method="exact-draws",
             samples=samples,
-            diagnostics={"draws": int(samples.shape[0]), "acceptance": have / total},
+            # the share of plain Gaussian draws that would pass: what the bounds keep
+            diagnostics={"draws": int(samples.shape[0]), "acceptance": share * have / total},
             below_zero=self.below_zero(),
         )
 
@@ -582,6 +686,10 @@ TAIL_NATS = 20.0
 #: the bound stands for the mass and the lattice is not run: such a tail cost it its
 #: largest size (0.2-0.3 s) and said only how far beyond
 FAR_NATS = 500.0
+#: a law whose evidence is at most this many nats below the best known has its orthant
+#: mass to the lattice's full target (:meth:`ExactPosterior.rough`): far beyond any
+#: ln Bayes factor a choice is made on (DECISIVE, 4.6)
+FAR_BEHIND = 50.0
 #: two estimates of one evidence (or of its truncation) that disagree by more than this
 #: many nats are flagged
 CHECK_NATS = 3.0
@@ -654,6 +762,20 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
         x = np.where(active, new, x)
     out[active] = x[active]
     return out
+
+
+def _central95(samples: Array) -> Array:
+    """Each column's 2.5 and 97.5 percentiles, shape (k, 2), for ``samples`` (n, k):
+    ``np.percentile(samples, [2.5, 97.5], axis=0).T`` (linear interpolation between the
+    order statistics), from one partition at the four order statistics it reads."""
+    n = samples.shape[0]
+    at = np.array([0.025, 0.975]) * (n - 1)
+    lo = np.floor(at).astype(np.intp)
+    hi = np.minimum(lo + 1, n - 1)
+    part = np.partition(samples, np.unique(np.concatenate([lo, hi])), axis=0)
+    a, b, t = part[lo], part[hi], (at - lo)[:, None]
+    # numpy's interpolation: from the nearer order statistic
+    return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t).T
 
 
 def _by_node(counts: NDArray[np.intp], z: Array, mus: Array, roots: Array) -> Array:

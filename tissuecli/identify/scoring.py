@@ -17,7 +17,7 @@ from ..core.terms import Law, MotionScales
 from .derivatives import Kinematics
 from .design import design, eiv_correction, lstsq_scaled_cond
 from .noise import corrected_curvature
-from .posterior import ExactPosterior, Posterior, Prior, SufficientStats
+from .posterior import ExactPosterior, Posterior, Prior, SufficientStats, gram_lstsq
 from .priors import law_prior
 
 Array = NDArray[np.float64]
@@ -114,6 +114,9 @@ class Context:
     chain_progress: Callable[[str], Callable[[int, float], None] | None] = field(
         default=_no_progress, repr=False
     )
+    #: the best evidence of a trusted law scored at this weight so far (a law that
+    #: cannot come near it needs its bounds' mass only roughly: ExactPosterior.rough)
+    lead: float = -math.inf
 
 
 def first_pass(
@@ -185,11 +188,35 @@ def law_stats(
     return st, prior, corr, flags
 
 
-def exact_result(model: Law, fp: FirstPass, fit: Context) -> ModelResult:
-    """The closed-form posterior and evidence of one law."""
+def prepared(
+    model: Law, fp: FirstPass, fit: Context
+) -> tuple[SufficientStats, Prior, Array | None, list[str], ExactPosterior]:
+    """:func:`law_stats` of one law, and its closed-form posterior (no orthant mass yet)."""
     st, prior, corr, flags = law_stats(model, fp, fit)
-    exact = ExactPosterior(st, prior)
+    return st, prior, corr, flags, ExactPosterior(st, prior)
+
+
+def weigh(exact: ExactPosterior, fit: Context) -> str:
+    """Why the law's evidence cannot be trusted, or "" (:meth:`ExactPosterior.untrusted`),
+    its orthant mass taken roughly if it is far behind ``fit.lead``, which a trusted
+    evidence raises."""
+    exact.rough(fit.lead)
     why = exact.untrusted()
+    if not why:
+        fit.lead = max(fit.lead, exact.ln_evidence())
+    return why
+
+
+def exact_result(
+    model: Law,
+    fp: FirstPass,
+    fit: Context,
+    ready: tuple[SufficientStats, Prior, Array | None, list[str], ExactPosterior] | None = None,
+) -> ModelResult:
+    """The closed-form posterior and evidence of one law (``ready``: its
+    :func:`prepared`, if at hand)."""
+    st, prior, corr, flags, exact = ready if ready is not None else prepared(model, fp, fit)
+    why = weigh(exact, fit)
     post = exact.bounded(fit.rng, CUT_THRESHOLD)
     if corr is not None:
         # the correction rests on an estimated noise level: say when it matters
@@ -243,6 +270,11 @@ def not_evaluated(res: ModelResult, why: str) -> None:
     res.ln_evidence = -math.inf
 
 
+#: the least share of the raw residual the corrected one must keep (a correction that
+#: takes off more is taken to say the noise is as large as the motion)
+CORRECTABLE = 0.1
+
+
 def _correctable(fp: FirstPass, corr: Array) -> float | None:
     """The corrected fit's residual sum of squares (:func:`_corrected_rss`, N^2) if the
     errors-in-variables correction leaves a proper regression, else None: ``A^T A - C``
@@ -253,12 +285,14 @@ def _correctable(fp: FirstPass, corr: Array) -> float | None:
     if np.any(np.linalg.eigvalsh(G) <= 0):
         return None
     rss = _corrected_rss(fp, corr)
-    return rss if rss > 0.1 * fp.rss else None
+    return rss if rss > CORRECTABLE * fp.rss else None
 
 
 def _corrected_rss(fp: FirstPass, corr: Array) -> float:
     """The residual sum of squares of the errors-in-variables corrected fit, N^2:
     ``rss - beta_c^T C beta`` (``yy - beta_c^T b`` cancels to rounding when the law
-    explains all but a millionth of ``yy``)."""
-    beta_c = np.linalg.lstsq(fp.gram - corr, fp.b, rcond=None)[0]
+    explains all but a millionth of ``yy``). Solved on unit-norm columns: unscaled, an
+    ``x^3`` column beside an offset's fell below the solver's cut-off, and the corrected
+    fit without it took a third of the residual away."""
+    beta_c = gram_lstsq(fp.gram - corr, fp.b)
     return fp.rss - float(beta_c @ corr @ fp.beta)

@@ -17,6 +17,7 @@ from ..core.errors import FitError
 from ..core.terms import Law
 from .design import noise_path, raw_speed, term_column, term_noise_path
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, _by_node, _matrix_roots
+from .quantisation import is_staircase, staircase_cross
 from .scoring import (
     CUT_THRESHOLD,
     Context,
@@ -27,7 +28,16 @@ from .scoring import (
     not_evaluated,
     result_of,
 )
-from .shapes import ShapeGrid, hermite_nodes, kept, laplace, mix, shape_grid, shape_summary
+from .shapes import (
+    MIX_DRAWS,
+    ShapeGrid,
+    hermite_nodes,
+    kept,
+    laplace,
+    mix,
+    shape_grid,
+    shape_summary,
+)
 
 Array = NDArray[np.float64]
 
@@ -52,6 +62,17 @@ PROPOSALS = 16
 #: proposals are drawn where the bounds reject many)
 MARGINAL_DRAWS = 4000
 
+#: noise levels of the closed form at a shape node scanned for its evidence alone (the
+#: grid, the climbs, a shape chain): 101 over ln sigma give the evidence of the full
+#: grid's 401 to rounding (2e-13 nats at most over a fit's 176 laws and nodes) for its
+#: near-Gaussian posterior, at a quarter of the cost; a node whose truncation, posterior
+#: or checks are wanted is formed again on the full grid
+SCAN_NODES = 101
+
+#: the fewest draws a component of a mixture over shape nodes takes under the positivity
+#: bounds (:func:`mixed_posterior`): its mean and covariance come from them
+COMPONENT_DRAWS = 200
+
 #: bytes of shaped columns a batch of grid nodes holds at once (:meth:`ShapedPass.many`)
 BATCH_BYTES = 8 << 20
 
@@ -74,9 +95,10 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     light = ShapedPass(law, fit)
     cache: dict[tuple[float, ...], tuple[float, tuple[Any, ...]]] = {}
 
-    def parts(node: dict[str, float], nodes: int = 401) -> tuple[float, tuple[Any, ...]]:
+    def parts(node: dict[str, float], nodes: int = SCAN_NODES) -> tuple[float, tuple[Any, ...]]:
         """ln evidence given the shape without the positivity bounds' orthant mass
-        (the costly part, and nearly constant over a peak), and the fit's parts."""
+        (the costly part, and nearly constant over a peak), and the fit's parts (the
+        closed form on ``nodes`` noise levels: :func:`exact_at` has it on the full grid)."""
         bound = law.bind(node)
         key = (law.name, tuple(node[n] for n in grid.names))
         fp = fit.shaped_passes.get(key)
@@ -86,7 +108,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         exact = ExactPosterior(st, prior, nodes=nodes)
         return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
 
-    def parts_many(nodes: list[dict[str, float]], n_sigma: int = 401) -> list[float]:
+    def parts_many(nodes: list[dict[str, float]]) -> list[float]:
         """:func:`parts`' ln evidence at many shapes, the same numbers: the first passes
         not yet known formed together (:meth:`ShapedPass.many`)."""
         bounds = [law.bind(node) for node in nodes]
@@ -98,7 +120,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         out = []
         for bound, key in zip(bounds, keys, strict=True):
             st, prior, _, _ = law_stats(bound, fit.shaped_passes[key], fit)
-            out.append(ExactPosterior(st, prior, nodes=n_sigma).ln_z_untruncated)
+            out.append(ExactPosterior(st, prior, nodes=SCAN_NODES).ln_z_untruncated)
         return out
 
     def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
@@ -107,9 +129,25 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             cache[key] = parts(node)
         return cache[key]
 
+    fine: dict[tuple[float, ...], ExactPosterior] = {}
+
+    def exact_at(node: dict[str, float]) -> ExactPosterior:
+        """The closed form at ``node`` on the full grid of noise levels: what its
+        truncation, posterior and checks are taken from."""
+        key = tuple(node[n] for n in grid.names)
+        if key not in fine:
+            _, (_, st, prior, *_) = evaluate(node)
+            fine[key] = ExactPosterior(st, prior)
+        return fine[key]
+
+    def evaluate_fine(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
+        """:func:`evaluate` with the closed form of :func:`exact_at`."""
+        ln_z, (fp, st, prior, corr, flags, _) = evaluate(node)
+        return ln_z, (fp, st, prior, corr, flags, exact_at(node))
+
     def truncation(node: dict[str, float]) -> float:
         """ln of what the positivity bounds keep of the closed form's evidence."""
-        exact = evaluate(node)[1][5]
+        exact = exact_at(node)
         return exact.ln_evidence() - exact.ln_z_untruncated
 
     # the grid's first passes in batches; the climbs' nodes come one at a time
@@ -133,14 +171,14 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             if not near.size:
                 break
             for i in near:
-                exact = evaluate(grid.nodes[i])[1][5]
+                exact = exact_at(grid.nodes[i])
                 exact.refine()
                 ln_z[i] = untruncated[i] + truncation(grid.nodes[i])
             rough[near] = False
             continue
         for i in near:
             ln_z[i] += truncation(grid.nodes[i])
-            rough[i] = evaluate(grid.nodes[i])[1][5].bound_only
+            rough[i] = exact_at(grid.nodes[i]).bound_only
         done[near] = True
     log_post = ln_z + grid.log_weight
     tops = np.argsort(-log_post)[:3]
@@ -159,15 +197,12 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         )
         point = grid.from_u(peak.u)
         if many:  # the chain will carry the shape's uncertainty, if it runs
-            post = evaluate(point)[1][5].bounded(fit.rng, CUT_THRESHOLD)
+            post = exact_at(point).bounded(fit.rng, CUT_THRESHOLD)
         else:
             nodes_u, w = hermite_nodes(peak)
             inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            alone = len(inside) == 1  # a mixture's components need no intervals
-            posts = [evaluate(grid.from_u(nodes_u[i]))[1][5].bounded(fit.rng, CUT_THRESHOLD,
-                                                                     intervals=alone)
-                     for i in inside]  # fmt: skip
-            post = mix(posts, w[inside], fit.rng)
+            post = mixed_posterior([exact_at(grid.from_u(nodes_u[i])) for i in inside],
+                                   w[inside], fit.rng)  # fmt: skip
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
         shape_post = _shape_draws(grid, draws)
         how = (
@@ -179,10 +214,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         ln_evidence = float(_logsumexp(log_post))
         heavy = kept(log_post)
         weights = np.exp(log_post[heavy] - log_post[heavy[0]])
-        alone = len(heavy) == 1
-        posts = [evaluate(grid.nodes[i])[1][5].bounded(fit.rng, CUT_THRESHOLD, intervals=alone)
-                 for i in heavy]  # fmt: skip
-        post = mix(posts, weights, fit.rng)
+        post = mixed_posterior([exact_at(grid.nodes[i]) for i in heavy], weights, fit.rng)
         shape_post, point = shape_summary(grid, log_post)
         how = f"quadrature over {len(grid.nodes)} shape nodes"
         start, start_cov = grid.to_u(grid.nodes[heavy[0]]), np.diag((grid.spacing / 4) ** 2)
@@ -191,11 +223,11 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
     ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.y.size))
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
-    res = shaped_result(law, point, post, evaluate, fit)
+    res = shaped_result(law, point, post, evaluate_fine, fit)
     res.reason = f"{how} ({ranges})"
     # the evidence is trusted only if the node it rests on is, and if it stays
     # below the likelihood's maximum over every shape evaluated
-    why = evaluate(point)[1][5].untrusted()
+    why = exact_at(point).untrusted()
     top = max(entry[1][1].max_log_likelihood() for entry in cache.values())
     if not why and not ln_evidence <= top + CHECK_NATS:
         why = (
@@ -215,14 +247,13 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             from .sampling import sample_shapes  # emcee, only when a shape is sampled
 
             def target(u: Array) -> float:
-                # uniform prior in u inside the support; 101 nodes over ln sigma are
-                # exact to rounding for its near-Gaussian posterior, at a quarter the cost
-                return parts(grid.from_u(u), nodes=101)[0]
+                # uniform prior in u inside the support
+                return parts(grid.from_u(u))[0]
 
             def target_many(us: Array) -> list[float]:
                 # the walkers' proposals of one move together: their first passes are
                 # one batch, the same numbers as one at a time
-                return parts_many([grid.from_u(u) for u in us], n_sigma=101)
+                return parts_many([grid.from_u(u) for u in us])
 
             try:
                 draws, diag = sample_shapes(
@@ -242,7 +273,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             mixed.ln_evidence = res.ln_evidence
             median = np.median(draws, axis=0)
             centre = grid.from_u(median) if grid.inside(median) else grid.from_u(draws[0])
-            new = shaped_result(law, centre, mixed, evaluate, fit)
+            new = shaped_result(law, centre, mixed, evaluate_fine, fit)
             for name in ("model", "posterior", "cond", "cond_scaled", "residual_rms",
                          "gram", "correction", "stats", "prior", "flags"):  # fmt: skip
                 setattr(res, name, getattr(new, name))
@@ -265,8 +296,31 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         res.sample_shape = sample
     if why:
         not_evaluated(res, why)
+    else:
+        fit.lead = max(fit.lead, res.ln_evidence)
     fit.scored(law.name)
     return res
+
+
+def mixed_posterior(
+    exacts: list[ExactPosterior], weights: Array, rng: np.random.Generator
+) -> Posterior:
+    """The posterior of a law whose shape is marginalised over several nodes: the
+    mixture (:func:`~tissuecli.identify.shapes.mix`) of each node's bounded posterior
+    (:meth:`ExactPosterior.bounded`). Each component draws only what the mixture takes
+    of it (its share of :data:`~tissuecli.identify.shapes.MIX_DRAWS` by weight), and at
+    least :data:`COMPONENT_DRAWS` for its own mean and covariance where those come from
+    draws: a mixture of twelve nodes drew 48,000 draws under the bounds where it keeps
+    4,000. A single node's posterior is that node's, intervals and all."""
+    if len(exacts) == 1:
+        return exacts[0].bounded(rng, CUT_THRESHOLD)
+    w = np.asarray(weights, dtype=float) / float(np.sum(weights))
+    counts = rng.multinomial(MIX_DRAWS, w)
+    posts = [
+        e.bounded(rng, CUT_THRESHOLD, intervals=False, draws=max(int(k), COMPONENT_DRAWS))
+        for e, k in zip(exacts, counts, strict=True)
+    ]
+    return mix(posts, w, rng, counts)
 
 
 def marginal_posterior(
@@ -429,6 +483,9 @@ class ShapedPass:
             self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
+            if is_staircase(sx):  # the rounding's covariance at each sample's speed
+                self.DtD_f = staircase_cross(list(self.K_f), self.D_f, list(self.K_f),
+                                             self.D_f, kin.v, kin.dt, sx)  # type: ignore[arg-type]  # fmt: skip
 
     def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
         """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
@@ -464,8 +521,17 @@ class ShapedPass:
             K[fixed] = self.K_f
             K[moving] = [k for k, _ in paths]
             D = np.column_stack([dd for _, dd in paths])
-            DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
-            correction = fit.sigma_x**2 * (K @ K.T) * DtD
+            if is_staircase(fit.sigma_x):
+                km = [k for k, _ in paths]
+                kin, sx = fit.kin, fit.sigma_x
+                correction = self._assemble(
+                    self.DtD_f,
+                    staircase_cross(km, D, list(self.K_f), self.D_f, kin.v, kin.dt, sx),  # type: ignore[arg-type]
+                    staircase_cross(km, D, km, D, kin.v, kin.dt, sx),  # type: ignore[arg-type]
+                )
+            else:
+                DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
+                correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
 
     def many(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
@@ -522,9 +588,19 @@ class ShapedPass:
                 for c, j in enumerate(moving):
                     t = bound.terms[j]
                     K[i, j], D[i, :, c] = noise_path(t, kin, x, sx, keep=keep)
-            Dt = D.transpose(0, 2, 1)
-            DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
-            corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
+            if is_staircase(sx):
+                corrections = np.stack([
+                    self._assemble(
+                        self.DtD_f,
+                        staircase_cross(list(K[i, moving]), D[i], list(self.K_f), self.D_f,
+                                        kin.v, kin.dt, sx),  # type: ignore[arg-type]
+                        staircase_cross(list(K[i, moving]), D[i], list(K[i, moving]), D[i],
+                                        kin.v, kin.dt, sx),  # type: ignore[arg-type]
+                    ) for i in range(n)])  # fmt: skip
+            else:
+                Dt = D.transpose(0, 2, 1)
+                DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
+                corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
         out = []
         for i, bound in enumerate(bounds):
             if cond_s[i] >= 1e5:

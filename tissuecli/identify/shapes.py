@@ -42,6 +42,8 @@ EDGE_SETTLE = 6
 INWARD = (1 / 32, 1 / 8, 1 / 2, 1.0)
 #: nodes holding this much of the posterior are summarised (at most MAX_KEPT of them)
 KEPT_MASS, MAX_KEPT = 0.999, 12
+#: draws of a mixture over shape nodes, shared out among its components by weight
+MIX_DRAWS = 4000
 
 
 @dataclass
@@ -431,10 +433,17 @@ def shape_summary(
     return out, point
 
 
-def mix(posteriors: list[Posterior], weights: Array, rng: np.random.Generator) -> Posterior:
+def mix(
+    posteriors: list[Posterior],
+    weights: Array,
+    rng: np.random.Generator,
+    counts: NDArray[np.intp] | None = None,
+) -> Posterior:
     """One posterior from the conditional posteriors of several shape nodes: the
     mixture's mean and covariance (law of total variance), its intervals from draws
-    taken in proportion to the weights."""
+    taken in proportion to the weights: ``counts[i]`` of component ``i``'s draws (its
+    first ones; drawn here, multinomially from the weights, if not given), each
+    component's drawn again with replacement where it has too few."""
     w = np.asarray(weights, dtype=float) / float(np.sum(weights))
     if len(posteriors) == 1:
         return posteriors[0]
@@ -444,13 +453,13 @@ def mix(posteriors: list[Posterior], weights: Array, rng: np.random.Generator) -
         wi * (q.cov + np.outer(q.mean, q.mean)) for wi, q in zip(w, posteriors, strict=True)
     )
     cov = second - np.outer(mean, mean)
-    draws = 4000
-    pick = rng.choice(len(posteriors), size=draws, p=w)
+    if counts is None:
+        counts = rng.multinomial(MIX_DRAWS, w)
     parts = []
-    for i, q in enumerate(posteriors):
-        k = int(np.sum(pick == i))
-        if k and q.samples.shape[0]:
-            parts.append(q.samples[rng.integers(0, q.samples.shape[0], k)])
+    for k, q in zip(counts, posteriors, strict=True):
+        have = q.samples.shape[0]
+        if k and have:
+            parts.append(q.samples[:k] if have >= k else q.samples[rng.integers(0, have, k)])
     samples = np.vstack(parts) if parts else np.zeros((0, mean.size + 1))
     beta = samples[:, :-1]
     ci = (

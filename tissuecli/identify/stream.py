@@ -36,7 +36,7 @@ from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
 from .derivatives import Frozen
 from .design import design, eiv_correction
 from .noise import corrected_curvature
-from .posterior import ExactPosterior, SufficientStats
+from .posterior import ExactPosterior, SufficientStats, gram_lstsq
 
 Array = NDArray[np.float64]
 
@@ -85,8 +85,10 @@ class _Sums:
         R = self.R
         rss = float(R[p, p] ** 2) if R.shape[0] > p else 0.0
         if self.correction is not None:
-            beta = np.linalg.lstsq(R[:p, :p], R[:p, p], rcond=None)[0]
-            beta_c = np.linalg.lstsq(self.G - self.correction, self.b, rcond=None)[0]
+            d = np.linalg.norm(R[:p, :p], axis=0)  # the columns' norms, as in A
+            d[d == 0] = 1.0
+            beta = np.linalg.lstsq(R[:p, :p] / d, R[:p, p], rcond=None)[0] / d
+            beta_c = gram_lstsq(self.G - self.correction, self.b)
             rss = max(rss - float(beta_c @ self.correction @ beta), 0.0)
         return rss
 
