@@ -23,7 +23,7 @@ from tissuecli.core.errors import DeviceError, DeviceLost, RenderError, TissueEr
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
 from tissuecli.hw.link import Link
-from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetVoltage
+from tissuecli.hw.protocol import FLAG_WATCHDOG, START, Command, Encoder, SetModel, SetVoltage
 from tissuecli.hw.realtime import StopFlag
 from tissuecli.render import PAPER_DISPLAY
 from tissuecli.sim.display import SIM_WATCHDOG_MAX_S
@@ -301,11 +301,13 @@ def test_losing_the_display_sends_zero_and_raises_device_lost(display, monkeypat
     d = display()
     sent: list[float] = []
     killed: list[float] = []
+    last_sent: list[object] = []
     original = Link.send
 
     def spy(self: Link, message: object) -> None:
-        if isinstance(message, SetVoltage):
+        if isinstance(message, (SetVoltage, SetModel)):  # the simulated display takes both
             sent.append(message.volts)
+            last_sent[:] = [message]
             # 800 commands into the loop (0.8 s at 1 kHz, into the press), counted in
             # periods rather than wall-clock time, which a loaded machine stretches
             if len(sent) == 800:
@@ -321,6 +323,7 @@ def test_losing_the_display_sends_zero_and_raises_device_lost(display, monkeypat
     # (the bound leaves room for a process descheduled on a loaded machine)
     assert time.monotonic() - killed[0] < 5.0
     assert sent[-1] == 0.0 and max(sent) > 0.1
+    assert last_sent and type(last_sent[-1]) is SetVoltage  # the fail-safe carries no model
     # the command line turns it into one line on stderr, without a traceback
     assert isinstance(info.value, TissueError)
     with pytest.raises(click.ClickException):

@@ -17,6 +17,8 @@ from tissuecli.core.calibration import Channel
 from tissuecli.hw.protocol import (
     COMMANDS,
     FLAG_LIMIT,
+    FLAG_MODEL,
+    FLAG_STALE,
     FLAG_WATCHDOG,
     IDENTIFY,
     MAX_FRAME,
@@ -30,6 +32,7 @@ from tissuecli.hw.protocol import (
     Message,
     Sample,
     SequenceTracker,
+    SetModel,
     SetVoltage,
     cobs_decode,
     cobs_encode,
@@ -72,12 +75,13 @@ MESSAGE_STRATEGIES: dict[type[Message], st.SearchStrategy[Message]] = {
     Sample: st.builds(Sample, u32, u32, i16, i16),
     Encoder: st.builds(Encoder, u32, u32, i32, f32, u8),
     SetVoltage: st.builds(SetVoltage, u32, f32),
+    SetModel: st.builds(SetModel, u32, f32, f32, f32, f32),
     Command: st.builds(Command, u8),
     Info: st.builds(Info, st.dictionaries(st.text(max_size=6), json_values, max_size=4)),
 }
 # messages whose frames stay well below MAX_FRAME
 short_messages = st.one_of(
-    *(MESSAGE_STRATEGIES[k] for k in (Sample, Encoder, SetVoltage, Command)),
+    *(MESSAGE_STRATEGIES[k] for k in (Sample, Encoder, SetVoltage, SetModel, Command)),
     st.builds(Info, st.dictionaries(st.text("abc", max_size=5), st.integers(), max_size=4)),
 )
 samples = MESSAGE_STRATEGIES[Sample]
@@ -222,20 +226,21 @@ def test_cobs_decode_rejects_any_zero_byte(data: bytes) -> None:
 def test_every_message_type_is_covered() -> None:
     assert set(MESSAGE_STRATEGIES) == set(MESSAGES.values())
     assert {m.TYPE for m in MESSAGE_STRATEGIES} == set(MESSAGES)
-    assert len(MESSAGES) == 5  # types are distinct
+    assert len(MESSAGES) == 6  # types are distinct
 
 
 def test_type_bytes_and_constants() -> None:
-    assert (Sample.TYPE, Encoder.TYPE, Info.TYPE, Command.TYPE, SetVoltage.TYPE) == (
-        0x01,
-        0x02,
-        0x03,
-        0x10,
-        0x21,
-    )
+    assert (
+        Sample.TYPE,
+        Encoder.TYPE,
+        Info.TYPE,
+        Command.TYPE,
+        SetVoltage.TYPE,
+        SetModel.TYPE,
+    ) == (0x01, 0x02, 0x03, 0x10, 0x21, 0x22)
     assert (IDENTIFY, START, STOP) == (1, 2, 3)
     assert COMMANDS == {"identify": IDENTIFY, "start": START, "stop": STOP}
-    assert (FLAG_WATCHDOG, FLAG_LIMIT) == (0x01, 0x02)
+    assert (FLAG_WATCHDOG, FLAG_LIMIT, FLAG_STALE, FLAG_MODEL) == (0x01, 0x02, 0x04, 0x08)
 
 
 @pytest.mark.parametrize("kind", list(MESSAGE_STRATEGIES), ids=lambda k: k.__name__)
@@ -255,7 +260,8 @@ def test_encode_decode_round_trip(kind: type[Message], draw: st.DataObject) -> N
 
 
 @pytest.mark.parametrize(
-    ("kind", "frame_len"), [(Sample, 17), (Encoder, 22), (SetVoltage, 13), (Command, 6)]
+    ("kind", "frame_len"),
+    [(Sample, 17), (Encoder, 22), (SetVoltage, 13), (SetModel, 25), (Command, 6)],
 )
 @fixed(50)
 @given(draw=st.data())
@@ -278,6 +284,9 @@ def test_encoder_and_set_voltage_layout() -> None:
     enc = Encoder(seq=7, clock=2, position=-5, volts=1.5, flags=FLAG_WATCHDOG | FLAG_LIMIT)
     assert enc.pack() == bytes.fromhex("02 07000000 02000000 fbffffff 0000c03f 03")
     assert SetVoltage(seq=9, volts=-2.0).pack() == bytes.fromhex("21 09000000 000000c0")
+    assert SetModel(seq=9, volts=1.0, u=1.0, du_dx=-2.0, du_dv=0.5).pack() == bytes.fromhex(
+        "22 09000000 0000803f 0000803f 000000c0 0000003f"
+    )
     assert Command(START).pack() == b"\x10\x02"
     assert Info({"protocol": 1}).pack() == b'\x03{"protocol":1}'
 

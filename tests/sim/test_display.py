@@ -20,11 +20,13 @@ from tissuecli.app.play import watchdog_periods
 from tissuecli.core.errors import EXIT_WATCHDOG, InputError
 from tissuecli.hw.link import open_device
 from tissuecli.hw.protocol import (
+    FLAG_MODEL,
     FLAG_STALE,
     START,
     Command,
     Encoder,
     FrameDecoder,
+    SetModel,
     SetVoltage,
     encode,
 )
@@ -32,6 +34,7 @@ from tissuecli.render.profile import PAPER_DISPLAY
 from tissuecli.sim import display as display_module
 from tissuecli.sim.display import (
     CATCH_UP_S,
+    MODEL_HORIZON_PERIODS,
     PROBES,
     ROUND_TRIP_MARGIN,
     SIM_WATCHDOG_FLOOR_S,
@@ -287,3 +290,72 @@ def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -
     finally:
         os.close(host)
         port.close()
+
+
+def test_a_late_answer_is_rendered_from_its_local_model_within_the_horizon() -> None:
+    """Once an answer is late, a display sent SetModel applies the answer's pull moved by
+    its slopes over what the encoder saw since the tick the answer was meant for
+    (``FLAG_MODEL``, not stale), clamped to what the solenoid can do, for up to
+    :data:`MODEL_HORIZON_PERIODS`; beyond, it holds its voltage and flags the periods
+    stale. A plain SetVoltage carries no model."""
+    port = VirtualPort()
+    host = os.open(port.name, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        fw = _Firmware(PAPER_DISPLAY, port, 1000.0, lambda t: 0.0, None, watchdog_periods=50)
+        decoder = FrameDecoder()
+
+        def send(message: Any) -> None:
+            os.write(host, encode(message))
+            time.sleep(0.02)  # through the pseudo-terminal
+
+        def tick(x: float, late: bool = False) -> Encoder:
+            fw.x = x  # the piston, where the test puts it
+            fw.receive()
+            fw.tick(late)
+            time.sleep(0.02)
+            got = [m for m in decoder.feed(os.read(host, 4096)) if isinstance(m, Encoder)]
+            return got[-1]
+
+        send(Command(START))
+        first = tick(0.0)
+        send(SetModel(first.seq, 1.0, u=1.0, du_dx=1000.0, du_dv=1.0))
+        second = tick(0.0)
+        assert second.volts == 1.0 and not second.flags & (FLAG_STALE | FLAG_MODEL)
+        # late: 0.1 mm deeper at 0.1 m/s, u = 1 + 1000 * 1e-4 + 1.0 * 0.1
+        third = tick(1e-4)
+        assert third.flags & FLAG_MODEL and not third.flags & FLAG_STALE
+        assert third.volts == pytest.approx(math.sqrt(1.2), rel=1e-6)
+        # still within the horizon, at rest there: u = 1 + 1000 * 1e-4
+        for _ in range(MODEL_HORIZON_PERIODS - 1):
+            frame = tick(1e-4)
+            assert frame.flags & FLAG_MODEL and frame.volts == pytest.approx(math.sqrt(1.1))
+        held = tick(-2e-3)  # beyond the horizon: held, and stale
+        assert held.flags & FLAG_STALE and not held.flags & FLAG_MODEL
+        assert held.volts == pytest.approx(math.sqrt(1.1))
+        assert not tick(-2e-3, late=True).flags & (FLAG_STALE | FLAG_MODEL)  # catching up
+        assert fw.modelled == MODEL_HORIZON_PERIODS
+        # an answer whose model asks the solenoid to push: 0 V, not a negative root
+        now = tick(0.0)
+        send(SetModel(now.seq, 0.5, u=0.25, du_dx=1000.0, du_dv=0.0))
+        assert tick(0.0).volts == 0.5
+        assert tick(-1e-3).volts == 0.0  # u = 0.25 - 1
+        # ... and one past v_max: v_max
+        now = tick(0.0)
+        send(SetModel(now.seq, 1.0, u=1.0, du_dx=1e5, du_dv=0.0))
+        tick(0.0)
+        assert tick(1e-3).volts == PAPER_DISPLAY.v_max
+        # a plain SetVoltage: no model, so a late answer is stale again
+        now = tick(0.0)
+        send(SetVoltage(now.seq, 0.7))
+        tick(0.0)
+        late = tick(1e-3)
+        assert late.flags & FLAG_STALE and late.volts == pytest.approx(0.7)
+    finally:
+        os.close(host)
+        port.close()
+
+
+def test_the_display_says_it_renders_from_a_local_model() -> None:
+    info = display_info(PAPER_DISPLAY, 1000.0)
+    assert info["local_model"] is True
+    assert info["model_horizon_periods"] == MODEL_HORIZON_PERIODS == WATCHDOG_PERIODS

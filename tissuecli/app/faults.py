@@ -98,8 +98,9 @@ def classify_faults(summary: Mapping[str, Any], rate_hz: float) -> list[tuple[in
     # periods on a late answer: as the display reports them, else the frames the host
     # could answer only together with a later one (a period on a stale voltage each)
     stale = summary.get("stale_frames")
+    beyond = " beyond its local model" if summary.get("modelled_frames") is not None else ""
     late, what = (
-        (num("stale_frames"), "the display ran {n:.0f} periods on a late answer")
+        (num("stale_frames"), "the display ran {n:.0f} periods on a late answer" + beyond)
         if isinstance(stale, (int, float))
         else (num("unanswered_frames"), "{n:.0f} frames reached the host too late to answer")
     )

@@ -170,7 +170,7 @@ def _live_loop(
             stop=parent.stop,
             idle_timeout_s=DISPLAY_SILENCE_S,
             status_interval_s=1.0,
-            before_stop=lambda: loop.send(0.0),
+            before_stop=lambda: loop.send(0.0, modelled=False),  # no model to render from
         )
         render = loop.run(
             stream, None, lambda s: parent.send(("status", {"energy_j": rendering.pc.energy_j}))

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core.flags import (
     FLAG_LIMIT,
+    FLAG_MODEL,
     FLAG_STALE,
     FLAG_WATCHDOG,
     NONFINITE,
@@ -49,6 +50,10 @@ class PlayFigures:
         self.watchdog = self.limit = self.sends = 0
         self.stale = self.stale_run = self.stale_run_max = 0
         self.reports_stale = False  # the display raises FLAG_STALE (it says so)
+        # periods rendered from the local model of a late answer (FLAG_MODEL), and the
+        # longest run of late answers of either kind
+        self.modelled = self.late_run = self.late_run_max = 0
+        self.reports_model = False  # the display renders from SetModel (it says so)
         self.sum_e2 = self.max_e = self.max_a = self.work = 0.0
         self.x_lo, self.x_hi = math.inf, -math.inf
         self.hist = [0] * 1001
@@ -108,7 +113,11 @@ class PlayFigures:
         ``stale_frames`` are the periods the display ran on a command that was not the
         answer to its previous frame (``FLAG_STALE``: a late answer, whichever way it was
         late), ``stale_run_max`` the longest run of them; None if the display does not
-        report it.
+        report it. From a display that renders late answers from their local model
+        (``"local_model": true``), ``modelled_frames`` are the periods it did so
+        (``FLAG_MODEL``), ``stale_frames`` those beyond the model's horizon, and
+        ``late_run_max`` the longest run of late answers of either kind (None
+        otherwise).
         """
         return {
             "loop_rate_hz": self.frame_rate(),
@@ -116,6 +125,8 @@ class PlayFigures:
             "unanswered_frames": self.frames - self.sends,
             "stale_frames": self.stale if self.reports_stale else None,
             "stale_run_max": self.stale_run_max if self.reports_stale else None,
+            "modelled_frames": self.modelled if self.reports_model else None,
+            "late_run_max": self.late_run_max if self.reports_model else None,
         }
 
     def loop_rate(self) -> float:
@@ -149,6 +160,12 @@ class PlayFigures:
             self.stale_run_max = max(self.stale_run_max, self.stale_run)
         else:
             self.stale_run = 0
+        if flags & (FLAG_STALE | FLAG_MODEL):
+            self.modelled += bool(flags & FLAG_MODEL)
+            self.late_run += 1
+            self.late_run_max = max(self.late_run_max, self.late_run)
+        else:
+            self.late_run = 0
         return flags
 
     def summary(self, ctrl: Controller, profile: DisplayProfile) -> dict[str, Any]:

@@ -33,7 +33,7 @@ from ..formats.outputs import Output, check_outputs
 from ..formats.params import read_profile, read_tissue
 from ..hw.device import Device, Display, device_class
 from ..hw.link import DEFAULT_BAUD
-from ..hw.protocol import Encoder, SetVoltage
+from ..hw.protocol import Encoder, SetModel, SetVoltage
 from ..hw.realtime import (
     Deadlines,
     Elevation,
@@ -270,7 +270,9 @@ def play(
         ``saturated_fraction``, ``unrenderable_fraction``, ``loop_rate_hz`` (frames run
         through the loop per second), ``answer_rate_hz``, ``unanswered_frames``,
         ``stale_frames`` and ``stale_run_max`` (periods the display ran on a late answer,
-        as it reports them; see :meth:`.loopstats.PlayFigures.rates`),
+        as it reports them, beyond its local model if it has one), ``modelled_frames``
+        and ``late_run_max`` (periods it rendered from the local model of a late answer,
+        and the longest run of late answers; see :meth:`.loopstats.PlayFigures.rates`),
         ``period_p99_ms``, ``period_max_ms``, ``frames``, ``frames_lost``,
         ``frames_bad``, ``missed_periods``, ``watchdog_frames``, ``watchdog_periods``
         (the display's stated watchdog limit), ``commands_sent``,
@@ -427,7 +429,8 @@ def _render(
             stop=stop if stop is not None else StopFlag(),
             idle_timeout_s=DISPLAY_SILENCE_S if idle_timeout_s is None else idle_timeout_s,
             status_interval_s=status_interval_s,
-            before_stop=lambda: player.send(0.0),  # fail-safe: the solenoid off first
+            # fail-safe: the solenoid off first, with no model to render from
+            before_stop=lambda: player.send(0.0, modelled=False),
         )
         player.auto_silence = idle_timeout_s is None
         player.watchdog_periods = watchdog_periods(info)
@@ -524,6 +527,55 @@ class Rendering:
     def handle(self, message: Any) -> None:
         """A message from the process that started the loop (``live`` sends tissues)."""
 
+    def local_model(
+        self, step: Step, volts: float, profile: DisplayProfile
+    ) -> tuple[float, float, float] | None:
+        """The tissue's local linear model around the answer ``volts`` to ``step``, for a
+        display that renders from it while the next answer is late
+        (:class:`~tissuecli.hw.protocol.SetModel`): the pull over ``alpha`` (V^2) and its
+        slopes against the piston's position (V^2/m) and velocity (V^2 s/m) over the
+        first periods after the answer. Against position, the law's local stiffness (its
+        relaxation branches' springs included, as they act within a few periods) less the
+        display's spring: the tracking error moves only over tens of periods. Against
+        velocity, the law's local damping less the piston's, plus the error feedback's
+        share: before its damping acts, the error equation
+        ``M e'' + (s + Cv) e' + (k + Cp) e = (M - Mp) xp''`` moves the error's velocity by
+        ``(M - Mp) / M`` of the piston's, so ``Cv e'`` by ``Cv (M - Mp) / M`` of it. None
+        when there is nothing to model (no controller yet, a non-finite step), or when
+        ``volts`` is not the law's own answer to the pull it asked for (``live`` switched
+        off, or its passivity controller changed the answer): a model would then render
+        the law where the answer did not."""
+        ctrl, alpha = self.ctrl, profile.alpha
+        if ctrl is None or not alpha > 0 or not ctrl.mass > 0:
+            return None
+        law, x, v = ctrl.law, step.xp, step.vp
+        # the pull as asked over alpha, negative where the solenoid cannot push
+        u = step.pull / alpha
+        v_max = law.v_max
+        own = 0.0 if not u > 0.0 else v_max if u >= v_max * v_max else math.sqrt(u)
+        if not math.isclose(volts, own, rel_tol=1e-6, abs_tol=1e-9):
+            return None
+        hx, hv = SLOPE_STEP_M, SLOPE_STEP_M_S
+        try:
+            k = (law.static(x + hx) - law.static(x - hx)) + (
+                law.mixed(x + hx, v) - law.mixed(x - hx, v)
+            )
+            k = k / (2 * hx) + sum(br.Km for br in law.branches) - law.Kp
+            s = (law.speed(v + hv) - law.speed(v - hv)) + (
+                law.mixed(x, v + hv) - law.mixed(x, v - hv)
+            )
+            s = s / (2 * hv) - law.b + law.Cv * (ctrl.mass - profile.Mp) / ctrl.mass
+        except (ArithmeticError, ValueError, TypeError):
+            return None
+        model = (u, k / alpha, s / alpha)
+        return model if all(math.isfinite(z) for z in model) else None
+
+
+#: Steps of the central differences that give the law's local slopes, m and m/s: small
+#: against the depths (mm) and speeds (tens of mm/s) of a grasp, large against rounding.
+SLOPE_STEP_M = 1e-6
+SLOPE_STEP_M_S = 1e-4
+
 
 class HostLoop:
     """The haptic loop over a display: read each Encoder frame, compute the answer
@@ -568,6 +620,10 @@ class HostLoop:
         # a display that says so marks the periods it ran on a late answer (FLAG_STALE)
         info = getattr(link, "info", None)
         self.figures.reports_stale = isinstance(info, dict) and info.get("stale_flag") is True
+        # a display that renders from the local model of a late answer takes SetModel
+        self.modelled = isinstance(info, dict) and info.get("local_model") is True
+        self.figures.reports_model = self.modelled
+        self.last_step: Step | None = None
         self.volts = 0.0
         self.sent = 0
         self.clamped = 0  # commands clamped to [0, v_max] before sending
@@ -576,12 +632,20 @@ class HostLoop:
         self.answers = 0  # seq of the last Encoder frame: the one the next command answers
         self.elapsed = 0.0  # display clock since the first frame, s
 
-    def send(self, value: float) -> None:
+    def send(self, value: float, modelled: bool = True) -> None:
         # every command within the limits the display reported (or a lower --profile)
         value, clamped = clamp_volts(value, self.profile.v_max)
         self.clamped += clamped
         # numbered by the frame it answers: the display tells a late answer (FLAG_STALE)
-        self.link.send(SetVoltage(self.answers, value))
+        model = (
+            self.rendering.local_model(self.last_step, value, self.profile)
+            if modelled and self.modelled and self.last_step is not None and not clamped
+            else None
+        )
+        if model is None:
+            self.link.send(SetVoltage(self.answers, value))
+        else:
+            self.link.send(SetModel(self.answers, value, *model))
         self.sent += 1
 
     def run(
@@ -661,8 +725,11 @@ class HostLoop:
                     if clock is not None:
                         self.missed += 1
                         self.misses_in_row += 1
-                        # bridge a lost frame with the last voltage, briefly
-                        self.send(self.volts if self.misses_in_row <= HOLD_PERIODS else 0.0)
+                        # bridge a lost frame with the last voltage (and its model), briefly
+                        if self.misses_in_row <= HOLD_PERIODS:
+                            self.send(self.volts)
+                        else:
+                            self.send(0.0, modelled=False)
                 if duration_s is not None and self.elapsed >= duration_s:
                     break
                 if on_status is not None and stream.status_due(now):
@@ -701,7 +768,7 @@ class HostLoop:
                 self.last_clock, self.answers = msg.clock, msg.seq
                 x = msg.position * self.profile.resolution
                 step = self.step(x, msg.volts, dt)
-                self.volts = step.volts
+                self.volts, self.last_step = step.volts, step
                 flags = self.figures.account(step, msg, x, self.profile.alpha)
                 if self.log is not None:
                     self.log.add(

@@ -45,11 +45,19 @@ def play_lines(summary: Mapping[str, Any]) -> list[str]:
 def _late(summary: Mapping[str, Any]) -> str:
     """``48 on a late answer (longest run 6)``: the periods the display ran on a command
     that did not answer its previous frame, as it reported them (else the host's count
-    of frames it answered only together with a later one)."""
+    of frames it answered only together with a later one); from a display that renders
+    late answers from their local model, how many it did and how many were beyond it."""
     stale = summary.get("stale_frames")
     if stale is None:
         return f"{summary.get('unanswered_frames', 0)} answered only with a later frame"
-    return f"{stale} on a late answer (longest run {summary.get('stale_run_max', 0)})"
+    modelled = summary.get("modelled_frames")
+    if modelled is None:
+        return f"{stale} on a late answer (longest run {summary.get('stale_run_max', 0)})"
+    return (
+        f"{stale + modelled} on a late answer (longest run {summary.get('late_run_max', 0)}), "
+        f"{modelled} of them rendered from the display's local model and {stale} beyond it "
+        f"(longest run {summary.get('stale_run_max', 0)})"
+    )
 
 
 def tissue_words(described: Mapping[str, Any] | None) -> str:

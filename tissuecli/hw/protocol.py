@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 
 # the display's flag bits travel in Encoder frames; their table lives with the controller's
 from ..core.flags import FLAG_LIMIT as FLAG_LIMIT
+from ..core.flags import FLAG_MODEL as FLAG_MODEL
 from ..core.flags import FLAG_STALE as FLAG_STALE
 from ..core.flags import FLAG_WATCHDOG as FLAG_WATCHDOG
 
@@ -144,6 +145,32 @@ class SetVoltage(Message):
 
 
 @dataclass(frozen=True)
+class SetModel(Message):
+    """Host -> display: a SetVoltage with the tissue's local linear model around it.
+
+    ``seq`` and ``volts`` are a :class:`SetVoltage`'s: applied as they are while the
+    answer is on time. The rest let a display that states ``"local_model": true`` keep
+    rendering the tissue while the next answer is late: ``u`` is the pull the law asked
+    for over ``alpha`` (V^2; negative where the solenoid would have to push), meant for
+    the tick after frame ``seq``; ``du_dx`` (V^2/m) and ``du_dv`` (V^2 s/m) are its
+    slopes against the piston's position and velocity with the tracking error held (the
+    tissue's local stiffness less the display's spring, and its local damping less the
+    piston's, over ``alpha``). A display running on the answer ``d`` periods late
+    applies ``sqrt(u + du_dx dx + du_dv dv)``, clamped to [0, v_max], ``dx`` and ``dv``
+    its encoder's change since the tick the answer was meant for (docs/protocol.md,
+    section 7).
+    """
+
+    TYPE: ClassVar[int] = 0x22
+    FORMAT: ClassVar[str] = "Iffff"
+    seq: int
+    volts: float
+    u: float
+    du_dx: float
+    du_dv: float
+
+
+@dataclass(frozen=True)
 class Command(Message):
     """Host -> device: a command without arguments (see :data:`COMMANDS`)."""
 
@@ -174,7 +201,7 @@ IDENTIFY, START, STOP = 1, 2, 3
 COMMANDS = {"identify": IDENTIFY, "start": START, "stop": STOP}
 
 MESSAGES: dict[int, type[Message]] = {
-    m.TYPE: m for m in (Sample, Encoder, SetVoltage, Command, Info)
+    m.TYPE: m for m in (Sample, Encoder, SetVoltage, SetModel, Command, Info)
 }
 
 

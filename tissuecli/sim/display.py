@@ -23,6 +23,7 @@ from .._version import __version__
 from ..core.errors import InputError
 from ..hw.protocol import (
     FLAG_LIMIT,
+    FLAG_MODEL,
     FLAG_STALE,
     FLAG_WATCHDOG,
     IDENTIFY,
@@ -33,6 +34,7 @@ from ..hw.protocol import (
     Encoder,
     FrameDecoder,
     Info,
+    SetModel,
     SetVoltage,
     encode,
 )
@@ -91,6 +93,16 @@ ANSWER_WAIT_PERIODS = 0.5
 #: The display counts its ticks by the age of the command in use, in periods, up to
 #: this one (and more).
 AGES = 4
+#: How many periods the display renders from the local model of a late answer
+#: (:class:`~tissuecli.hw.protocol.SetModel`): the firmware's watchdog limit, the longest
+#: a display may hold a command without a new one. Within it, a late answer costs the
+#: rendering the model's second-order terms (the tracking error's change, the curvature
+#: of the law), not the tissue's stiffness; beyond it the display holds its voltage and
+#: flags the periods stale, as a display without a model does.
+MODEL_HORIZON_PERIODS = WATCHDOG_PERIODS
+#: Encoder positions the display keeps, by tick: enough to reach the tick a late answer
+#: was meant for, and the one before it (its velocity), within the horizon.
+HISTORY = 16
 #: Heaviest reference mass the simulated piston carries, kg.
 MAX_LOAD_KG = 5.0
 #: Standard gravity, m/s^2.
@@ -163,6 +175,8 @@ def display_info(
         "clock_hz": CLOCK_HZ,
         "watchdog_periods": watchdog_periods,
         "stale_flag": True,
+        "local_model": True,
+        "model_horizon_periods": MODEL_HORIZON_PERIODS,
         "calibration": {"position": {"gain": profile.resolution, "offset": 0.0, "unit": "m"}},
         "profile": profile.as_dict(),
     }
@@ -302,6 +316,7 @@ def simulate_display(
         "stale_ticks": sum(fw.ages[1:]),
         "command_ages": fw.ages,
         "command_ages_late": fw.ages_late,
+        "model_ticks": fw.modelled,
         "overrun_bytes": port.overruns,
     }
 
@@ -342,6 +357,11 @@ class _Firmware:
         self.streamed = 0
         self.ages = [0] * (AGES + 1)
         self.ages_late = [0] * (AGES + 1)
+        # the local model of the last answer (u V^2, du/dx V^2/m, du/dv V^2 s/m), or None
+        # (a plain SetVoltage); the encoder's positions by tick, m; ticks rendered from it
+        self.model: tuple[float, float, float] | None = None
+        self.history = [0.0] * HISTORY
+        self.modelled = 0
         self.seq = self.sent = self.commands = self.trips = 0
         self.last_command: float | None = None
         self.max_command: float | None = None
@@ -360,10 +380,16 @@ class _Firmware:
         """Act on what the host sent since the last tick; the latest SetVoltage wins."""
         self.answered = False
         for msg in self.decoder.feed(self.port.read()):
-            if isinstance(msg, SetVoltage):
+            if isinstance(msg, (SetVoltage, SetModel)):
                 if self.streaming:
                     value = float(msg.volts)
                     self.volts = min(max(value, 0.0), self.profile.v_max) if value == value else 0.0
+                    self.model = (
+                        (float(msg.u), float(msg.du_dx), float(msg.du_dv))
+                        if isinstance(msg, SetModel)
+                        and all(math.isfinite(z) for z in (msg.u, msg.du_dx, msg.du_dv))
+                        else None
+                    )
                     self.last_command, self.watched_command = value, self.watched
                     if value == value and (self.max_command is None or value > self.max_command):
                         self.max_command = value
@@ -377,9 +403,10 @@ class _Firmware:
                 elif msg.code == START and not self.streaming:
                     self.streaming, self.armed, self.tripped = True, False, False
                     self.k_start = -1  # set by the next tick
-                    self.answers, self.streamed = None, 0
+                    self.answers, self.streamed, self.model = None, 0, None
                 elif msg.code == STOP:
                     self.streaming, self.armed, self.volts = False, False, 0.0
+                    self.model = None
 
     def tick(self, late: bool = False) -> None:
         """Watchdog, then this tick's Encoder frame; a ``late`` tick (run to catch up)
@@ -404,21 +431,46 @@ class _Firmware:
                 )
         if self.streaming:
             flags = (FLAG_WATCHDOG if self.tripped else 0) | (FLAG_LIMIT if self.at_limit else 0)
+            counts = int(round(self.x / self.profile.resolution))
+            seq = self.seq
+            self.history[seq % HISTORY] = counts * self.profile.resolution
             if self.armed and self.streamed:
                 # the voltage in use answers the frame sent a tick ago, or is stale; a tick
                 # run late to catch up comes before the host could answer (its watchdog
                 # rule): counted apart and not flagged
-                age = AGES if self.tripped else (self.seq - 1 - (self.answers or 0)) & 0xFFFFFFFF
+                age = AGES if self.tripped else (seq - 1 - (self.answers or 0)) & 0xFFFFFFFF
                 (self.ages_late if late else self.ages)[min(age, AGES)] += 1
-                flags |= FLAG_STALE if age and not late else 0
+                if age and not self.tripped and self._bridge(seq, age):
+                    self.modelled += not late
+                    flags |= FLAG_MODEL if not late else 0
+                else:
+                    flags |= FLAG_STALE if age and not late else 0
             ticks = int(round(self.ticks_run * self.period * CLOCK_HZ)) & 0xFFFFFFFF
-            counts = int(round(self.x / self.profile.resolution))
             self.port.write(
                 encode(Encoder(self.seq & 0xFFFFFFFF, ticks, counts, self.volts, flags))
             )
             self.seq += 1
             self.sent += 1
             self.streamed += 1
+
+    def _bridge(self, seq: int, age: int) -> bool:
+        """On an answer ``age`` periods late, set the voltage from its local model (the
+        answer's pull moved by the law's slopes over what the encoder saw since the tick
+        it was meant for); False (voltage held) without a model or beyond the horizon.
+
+        The velocities are the encoder's differences over one period, as a firmware
+        would have them."""
+        if self.model is None or age > MODEL_HORIZON_PERIODS or self.streamed < age + 1:
+            return False
+        h, period = self.history, self.period
+        meant = seq - age  # the tick the answer was meant for
+        x, x_prev = h[seq % HISTORY], h[(seq - 1) % HISTORY]
+        x_meant, x_before = h[meant % HISTORY], h[(meant - 1) % HISTORY]
+        u, du_dx, du_dv = self.model
+        u += du_dx * (x - x_meant) + du_dv * ((x - x_prev) - (x_meant - x_before)) / period
+        v_max = self.profile.v_max
+        self.volts = math.sqrt(min(u, v_max * v_max)) if u > 0.0 else 0.0
+        return True
 
     def advance(self) -> None:
         """Integrate the piston over one period, voltage held."""
