@@ -55,12 +55,16 @@ def term_column(
     sigma_x: float = 0.0,
     columns: dict[str, Array] | None = None,
     raw_speed: tuple[float, Array] | None = None,
+    keep: bool = True,
 ) -> Array:
     """One term's column of :func:`design`, shape (m,); kept in ``columns`` (by
     :func:`column_key`) unless the term has shape parameters. ``raw_speed``, the sample
     interval (s) and central-difference speed (m/s) of :func:`raw_speed`, if already
-    known."""
+    known. ``keep=False``: a shaped column neither looked up nor kept among the recent
+    ones (a shape that will not come back, as a chain's)."""
     var = sigma_x**2
+    if term.shapes and not keep:
+        return _column(term, kin, x_full, var, raw_speed)
     if term.shapes:  # one column per shape node: only the most recent are kept
         key = ("column", var, column_key(term))
         found = RECENT.get(key, kin, x_full)
@@ -192,14 +196,15 @@ def term_noise_path(
 
 
 def noise_path(
-    term: Term, kin: Kinematics, x_full: Array, sigma_x: float = 0.0
+    term: Term, kin: Kinematics, x_full: Array, sigma_x: float = 0.0, keep: bool = True
 ) -> tuple[Array, Array]:
     """How position noise of SD ``sigma_x`` (m) reaches a term's column
     (:func:`eiv_correction`): the kernel it passes through, shape (w,), and the
     column's slope at each fitted sample, shape (m,) (a term with shape parameters:
     kept among the most recent, as its column is). Only a :attr:`~Term.step` term's
-    slope depends on ``sigma_x`` (:meth:`Kinematics.damping_slope`)."""
-    if not term.shapes:
+    slope depends on ``sigma_x`` (:meth:`Kinematics.damping_slope`); ``keep`` as in
+    :func:`term_column`."""
+    if not term.shapes or not keep:
         return _noise_path(term, kin, x_full, sigma_x)
     key = ("path", sigma_x**2 if term.step else 0.0, column_key(term))
     found = RECENT.get(key, kin, x_full)

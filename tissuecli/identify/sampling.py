@@ -321,6 +321,7 @@ def sample_shapes(
     max_steps: int = 3000,
     times: float = SHAPE_TIMES,
     progress: Callable[[int, float], None] | None = None,
+    log_post_many: Callable[[Array], Any] | None = None,
 ) -> tuple[Array, dict[str, Any]]:
     """Sample a law's shape parameters with emcee, the coefficients and noise level
     marginalised exactly (``log_post`` is the log evidence given the shape plus the log
@@ -344,6 +345,9 @@ def sample_shapes(
         (:data:`SHAPE_TIMES`), or at ``max_steps`` with ``converged`` false.
     times : float
         Autocorrelation times the chain must span.
+    log_post_many : callable, optional
+        ``log_post`` at many points ``u``, shape (k, d), returning k values: the same
+        numbers, cheaper together. emcee then hands it each move's proposals at once.
 
     Returns
     -------
@@ -379,7 +383,18 @@ def sample_shapes(
     # differential evolution moves suit a compact posterior in a few dimensions: they
     # mix faster than the stretch move there (emcee's documentation)
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    sampler = emcee.EnsembleSampler(walkers, d, target, moves=moves)
+    def target_many(us: Array) -> Array:
+        out = np.full(us.shape[0], -np.inf)
+        ok = [k for k in range(us.shape[0]) if inside(us[k])]
+        if ok:
+            assert log_post_many is not None
+            values = np.asarray(log_post_many(us[ok]), dtype=float)
+            out[ok] = np.where(np.isfinite(values), values, -np.inf)
+        return out
+
+    vectorize = log_post_many is not None
+    sampler = emcee.EnsembleSampler(walkers, d, target_many if vectorize else target,
+                                    moves=moves, vectorize=vectorize)  # fmt: skip
     sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
     tau, converged, draws = _run_chain(
         sampler, p0, chunk, min_steps, max_steps, progress, times=times

@@ -108,6 +108,21 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         exact = ExactPosterior(st, prior, nodes=nodes)
         return exact.ln_z_untruncated, (fp, st, prior, corr, flags, exact)
 
+    def parts_many(nodes: list[dict[str, float]]) -> list[float]:
+        """:func:`parts`' ln evidence at many shapes, the same numbers: the first passes
+        not yet known formed together (:meth:`ShapedPass.many`)."""
+        bounds = [law.bind(node) for node in nodes]
+        keys = [(law.name, tuple(node[n] for n in grid.names)) for node in nodes]
+        todo = [i for i, key in enumerate(keys) if key not in fit.shaped_passes]
+        fps = light.many([bounds[i] for i in todo], keep=False)
+        for i, fp in zip(todo, fps, strict=True):
+            fit.shaped_passes[keys[i]] = fp
+        out = []
+        for bound, key in zip(bounds, keys, strict=True):
+            st, prior, _, _ = law_stats(bound, fit.shaped_passes[key], fit)
+            out.append(ExactPosterior(st, prior, nodes=SCAN_NODES).ln_z_untruncated)
+        return out
+
     def evaluate(node: dict[str, float]) -> tuple[float, tuple[Any, ...]]:
         key = tuple(node[n] for n in grid.names)
         if key not in cache:
@@ -235,10 +250,15 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 # uniform prior in u inside the support
                 return parts(grid.from_u(u))[0]
 
+            def target_many(us: Array) -> list[float]:
+                # the walkers' proposals of one move together: their first passes are
+                # one batch, the same numbers as one at a time
+                return parts_many([grid.from_u(u) for u in us])
+
             try:
                 draws, diag = sample_shapes(
                     target, grid.interior(start), start_cov, grid.inside, fit.rng,
-                    progress=fit.chain_progress(res.name),
+                    progress=fit.chain_progress(res.name), log_post_many=target_many,
                 )  # fmt: skip
             except FitError as e:  # keep the Laplace summary, and say why
                 res.shape_sampler = {"status": "failed", "reason": str(e), "evidence": how}
@@ -514,26 +534,30 @@ class ShapedPass:
                 correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
 
-    def many(self, bounds: list[Law]) -> list[FirstPass]:
+    def many(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
         """:meth:`__call__` at many shapes (``bounds``: the law bound at each), the same
         numbers: the nodes' columns stacked so that their products, eigenvalues and
         solves are one call each (the same LAPACK and BLAS routine per node), in
-        batches of about :data:`BATCH_BYTES` of columns."""
+        batches of about :data:`BATCH_BYTES` of columns. ``keep=False`` leaves the
+        columns out of the recent ones (:data:`~tissuecli.identify.design.RECENT`): a
+        chain's shapes never come back, and keeping each cost as much as a filter pass
+        on a short session."""
         m = self.fit.y.size
         per = max(1, BATCH_BYTES // max(8 * m * len(self.moving), 1))
         out: list[FirstPass] = []
         for start in range(0, len(bounds), per):
-            out += self._batch(bounds[start : start + per])
+            out += self._batch(bounds[start : start + per], keep)
         return out
 
-    def _batch(self, bounds: list[Law]) -> list[FirstPass]:
+    def _batch(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
         fit, fixed, moving = self.fit, self.fixed, self.moving
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         n, p = len(bounds), len(fixed) + len(moving)
         S = np.empty((n, fit.y.size, len(moving)))
         for i, bound in enumerate(bounds):
             for c, j in enumerate(moving):
-                S[i, :, c] = term_column(bound.terms[j], kin, x, sx, raw_speed=self.speed)
+                t = bound.terms[j]
+                S[i, :, c] = term_column(t, kin, x, sx, raw_speed=self.speed, keep=keep)
         St = S.transpose(0, 2, 1)
         gram = self._assemble_many(self.G_ff, St @ self.F, St @ S)
         b = np.empty((n, p))
@@ -562,7 +586,8 @@ class ShapedPass:
             K[:, fixed] = self.K_f
             for i, bound in enumerate(bounds):
                 for c, j in enumerate(moving):
-                    K[i, j], D[i, :, c] = noise_path(bound.terms[j], kin, x, sx)
+                    t = bound.terms[j]
+                    K[i, j], D[i, :, c] = noise_path(t, kin, x, sx, keep=keep)
             if is_staircase(sx):
                 corrections = np.stack([
                     self._assemble(
