@@ -50,10 +50,12 @@ def main() -> None:
     passed = 0
     with busy(args.busy):
         print(f"load average before: {os.getloadavg()[0]:.2f}; {args.busy} busy processes")
-        print(f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} "
-              f"{'watchdog':>8} {'missed':>6} {'late':>5} {'run':>4} {'model':>5} {'beyond':>6} "
-              f"{'run':>4} {'limit':>5} {'sched':>10} "
-              f"{'s':>5}  faults")
+        print(
+            f"{'run':>3} {'exit':>4} {'rate Hz':>8} {'p99 ms':>7} {'max ms':>7} "
+            f"{'watchdog':>8} {'missed':>6} {'late':>5} {'run':>4} {'model':>5} {'beyond':>6} "
+            f"{'run':>4} {'limit':>5} {'sched':>10} "
+            f"{'s':>5}  faults"
+        )
         for run in range(args.runs):
             t0 = time.monotonic()
             done = subprocess.run(
@@ -76,7 +78,8 @@ def main() -> None:
                 [g if g is not None else "-" for g in late.groups()] if late else ["?"] * 5
             )
             faults = "; ".join(
-                line[len("FAULT: ") :][:60] for line in done.stdout.splitlines()
+                line[len("FAULT: ") :][:60]
+                for line in done.stdout.splitlines()
                 if line.startswith("FAULT: ")
             )
             print(

@@ -311,10 +311,17 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
     ap.add_argument("--seed", type=int, default=None, help="repeat a run (default: fresh)")
     ap.add_argument("--max-samples", type=int, default=60_000,
                     help="longest session drawn (samples)")  # fmt: skip
-    ap.add_argument("--families", default="",
-                    help="comma-separated names of scenes.FAMILIES ('paper': its four forms)")
-    ap.add_argument("--contact", type=int, default=0,
-                    help="also this many noisy paper-form sessions in contact throughout")
+    ap.add_argument(
+        "--families",
+        default="",
+        help="comma-separated names of scenes.FAMILIES ('paper': its four forms)",
+    )
+    ap.add_argument(
+        "--contact",
+        type=int,
+        default=0,
+        help="also this many noisy paper-form sessions in contact throughout",
+    )
     ap.add_argument("--quiet", action="store_true", help="the summary alone")
     args = ap.parse_args(argv)
     seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(3), "little")

@@ -81,9 +81,7 @@ def main() -> None:
     ap.add_argument("--busy", type=int, default=2, help="busy processes for the loaded case")
     ap.add_argument("--loops", default=",".join(VARIANTS), help="which host loops, comma-separated")
     ap.add_argument("--display-fifo", action="store_true", help="raise the display to SCHED_FIFO")
-    ap.add_argument(
-        "--display-other", action="store_true", help="lower the display to SCHED_OTHER"
-    )
+    ap.add_argument("--display-other", action="store_true", help="lower the display to SCHED_OTHER")
     ap.add_argument("--live", type=float, default=0.0, help="also run live for this many s")
     args = ap.parse_args()
     tissue = Tissue(Law.paper("x", "xdot"), 600.0, 3.0, 0.05)
@@ -136,9 +134,7 @@ def _live(tmp: Path, load: str, args: argparse.Namespace) -> str:
         with SimulatorProcess("forceps", tmp / f"f-{tag}") as forceps:
             disp = _display(tmp / f"dl-{tag}", args.display_fifo, args.display_other)
             try:
-                s = live(
-                    str(forceps.link), str(disp.link), tmp / f"live-{tag}.h5", "s", args.live
-                )
+                s = live(str(forceps.link), str(disp.link), tmp / f"live-{tag}.h5", "s", args.live)
             finally:
                 disp.stop()
     except (DeviceLost, DeviceError) as exc:

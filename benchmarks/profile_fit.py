@@ -35,8 +35,10 @@ def main() -> None:
     calls = {f"{k[0].rsplit('/', 1)[-1]}:{k[2]}": v for k, v in stats.stats.items()}  # type: ignore[attr-defined]
     shaped = calls.get("shaped.py:exact_shaped", (0,))[0]
     nodes = calls.get("shaped.py:parts", (0,))[0]  # each distinct shape node once
-    print(f"{len(session)} samples: CPU {cpu:.2f} s, {len(fit.results_)} laws kept, "
-          f"{shaped} laws with shape parameters scored, {nodes} shape nodes evaluated")
+    print(
+        f"{len(session)} samples: CPU {cpu:.2f} s, {len(fit.results_)} laws kept, "
+        f"{shaped} laws with shape parameters scored, {nodes} shape nodes evaluated"
+    )
     stats.sort_stats("cumulative").print_stats(25)
 
 

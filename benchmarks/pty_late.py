@@ -174,9 +174,9 @@ def main() -> None:
                 print(
                     f"{placement:>5} {100 * n_late / len(late):6.2f} {late_in:>4}"
                     f" {n_late - late_in:>4}"
-                    f" {q(inbound, .5):6.3f} {q(inbound, .99):6.2f} {q(inbound, 1):6.2f}"
-                    f" {q(back, .5):8.3f} {q(back, .99):6.2f} {q(back, 1):6.2f}"
-                    f" {q(r['wake'], .99):8.3f} {both:>10} {os.getloadavg()[0]:6.2f}",  # type: ignore[arg-type]
+                    f" {q(inbound, 0.5):6.3f} {q(inbound, 0.99):6.2f} {q(inbound, 1):6.2f}"
+                    f" {q(back, 0.5):8.3f} {q(back, 0.99):6.2f} {q(back, 1):6.2f}"
+                    f" {q(r['wake'], 0.99):8.3f} {both:>10} {os.getloadavg()[0]:6.2f}",  # type: ignore[arg-type]
                     flush=True,
                 )
 

@@ -117,7 +117,6 @@ def test_a_cubic_law_read_without_a_wrong_sample_is_not_given_an_offset():
     assert "offset" not in gen.chosen_law(est).name
 
 
-
 def test_a_slow_cubic_squeeze_in_contact_is_not_handed_to_a_law_far_behind():
     """A 1.9 s slow squeeze of x^3+xdot+xddot in contact throughout (9 bits, 5.4 kHz):
     the same unscaled solve gave x+x^3+maxwell+xdot+sign(xdot)+xddot 18 nats it had

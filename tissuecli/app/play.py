@@ -667,12 +667,9 @@ class HostLoop:
         self.spin_s = spin_for(self.elevation)  # the simulated devices' rule too
         if self.auto_silence:
             elevated = self.elevation.elevated
-            stream.idle_timeout_s = (
-                DISPLAY_SILENCE_S if elevated else DISPLAY_SILENCE_UNELEVATED_S
-            )
-            stream.limit_note = (
-                f"; the limit is {stream.idle_timeout_s * 1e3:g} ms for a loop "
-                + ("under SCHED_FIFO" if elevated else "without real-time scheduling")
+            stream.idle_timeout_s = DISPLAY_SILENCE_S if elevated else DISPLAY_SILENCE_UNELEVATED_S
+            stream.limit_note = f"; the limit is {stream.idle_timeout_s * 1e3:g} ms for a loop " + (
+                "under SCHED_FIFO" if elevated else "without real-time scheduling"
             )
         try:
             summary = self._loop(stream, duration_s, on_status, period, fd)

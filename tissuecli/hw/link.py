@@ -42,7 +42,6 @@ def device_class(kind: str) -> Any:
 DEFAULT_BAUD = 921600  # ptys ignore it; real 1 kHz forceps need >= 460800 (docs/protocol.md)
 
 
-
 class Link:
     """A host's connection to one framed device.
 
@@ -319,8 +318,6 @@ def calibration_problem(calibration: object, bits: int) -> tuple[str, object, st
                 f"large enough for the ADC range to span at least {span:g} {unit}",
             )
     return None
-
-
 
 
 _MISSING = object()  # a field the device did not send

@@ -185,7 +185,11 @@ def examine(
             k, slope = term_noise_path(t, kin, x_full, sigma_x=sigma_x)
             if is_staircase(sigma_x):  # the rounding's share at each sample's speed
                 noise[j] = staircase_correction(
-                    [k], slope[:, None], kin.v, kin.dt, sigma_x  # type: ignore[arg-type]
+                    [k],
+                    slope[:, None],
+                    kin.v,
+                    kin.dt,
+                    sigma_x,  # type: ignore[arg-type]
                 )[0, 0] / max(slope.size, 1)
             else:
                 noise[j] = sigma_x**2 * float(k @ k) * float(np.mean(slope**2))

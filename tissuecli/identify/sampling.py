@@ -383,6 +383,7 @@ def sample_shapes(
     # differential evolution moves suit a compact posterior in a few dimensions: they
     # mix faster than the stretch move there (emcee's documentation)
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+
     def target_many(us: Array) -> Array:
         out = np.full(us.shape[0], -np.inf)
         ok = [k for k in range(us.shape[0]) if inside(us[k])]
