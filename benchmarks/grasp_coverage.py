@@ -5,15 +5,13 @@ Random paper-form scenes with grasps (``random_scene(seed, contact="grasps")``, 
 contact are left out (their misses are the detector's). For K, S and M: the share of 95 %
 intervals that hold the truth, the mean and RMS of ``(mean - truth) / sd``, over all
 sessions and by ADC bits, rate and tempo. ``--bits 16`` draws the same scenes with a
-16-bit ADC (the quantisation apart; everything else is drawn alike). The fit takes the
-ADC's staircase into its errors-in-variables correction
-(:mod:`tissuecli.identify.quantisation`: the rounding's covariance through each kernel
-at each sample's speed). ``--staircase`` reports M again with the correction's
-acceleration entry measured instead, by Monte Carlo: the mean energy of
-``k_a * (Q(x_s + u + n) - x_s)`` over 16 draws of the grid's phase ``u`` and of the
-analog noise ``n`` the fit reads beside the step (``x_s`` a cubic Savitzky-Golay
-smoothing of the closure, ``k_a`` the acceleration kernel), its interval from the
-corrected sandwich: a check of the fit's closed form, not its method.
+16-bit ADC (the quantisation apart; everything else is drawn alike). ``--staircase``
+reports M again with the errors-in-variables correction of the acceleration column taken
+from the ADC's staircase rather than from white noise of the step's variance: the mean
+energy of ``k_a * (Q(x_s + u + n) - x_s)`` over 16 draws of the grid's phase ``u`` and
+of the analog noise ``n`` left beside the step (``x_s`` a cubic Savitzky-Golay smoothing
+of the closure, ``k_a`` the acceleration kernel), its interval from the corrected
+sandwich (a diagnostic, not the fit's method).
 
     python benchmarks/grasp_coverage.py --scenes 200
     python benchmarks/grasp_coverage.py --scenes 200 --bits 16
@@ -62,7 +60,7 @@ def staircase_z(est: BayesianFit, truth: np.ndarray) -> float:
     x = est.session_.position
     q = est.session_.adc.step("position") if est.session_.adc is not None else 0.0
     fs = 1.0 / float(np.median(np.diff(est.session_.time)))
-    analog = getattr(sx, "analog", np.sqrt(max(position_noise_sd(x, fs) ** 2 - q**2 / 12, 0.0)))
+    analog = np.sqrt(max(position_noise_sd(x, fs) ** 2 - q**2 / 12, 0.0))
     smooth = savgol_filter(x, kin.kernels[0].size | 1, 3, mode="interp")
     rng = np.random.default_rng(0)
     energy = 0.0

@@ -189,35 +189,3 @@ def test_noisy_continuous_contact_covers_its_truth() -> None:
         misses += int(np.count_nonzero((tissue.coef < lo) | (tissue.coef > hi)))
         total += tissue.coef.size
     assert misses <= allowed_misses(total), (misses, total)
-
-
-def _inertia_misses(seeds: range, most_bits: int) -> tuple[int, int]:
-    """Misses of M's interval over the grasp scenes of ``seeds`` read at ``most_bits``
-    bits or fewer whose free jaws are found, each fitted with its own form."""
-    misses = total = 0
-    for seed in seeds:
-        scene = random_scene(seed, families=PAPER_FAMILIES, max_samples=20_000,
-                             contact="grasps")  # fmt: skip
-        if scene.settings["bits"] > most_bits:
-            continue
-        est = BayesianFit(forms=scene.tissue.law.name, seed=0).fit(scene.session)
-        if est.contact_.all_contact:
-            continue  # the detector's miss, not the noise model's
-        lo, hi = est.best_.posterior.ci95[2]
-        m = float(scene.coefficients[2])
-        misses += int(not lo <= m <= hi)
-        total += 1
-    return misses, total
-
-
-def test_inertia_covers_on_coarse_quantised_grasps() -> None:
-    """The inertia of grasp sessions read through an 8-11-bit ADC, whose closure's
-    rounding is a staircase (the analog noise does not dither the steps): each
-    interval holds the truth as a calibrated 95 % interval does, up to the binomial
-    count it exceeds once in 10,000 runs. Of these 40 sessions the white model of the
-    step's variance missed 1 and the staircase's misses 2 (9 allowed): at this count
-    the test tells only a gross miscalibration (80 % coverage fails it in a quarter
-    of such seed sets); ``benchmarks/coverage.py`` measures the rate."""
-    misses, total = _inertia_misses(range(9000, 9090), 11)
-    assert total >= 40, total
-    assert misses <= allowed_misses(total), (misses, total)

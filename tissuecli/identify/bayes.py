@@ -31,7 +31,7 @@ from ..core.session import Session
 from ..core.terms import Law, term
 from .blas import one_blas_thread
 from .decimate import fit_stride
-from .derivatives import Differentiator, Kinematics
+from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
     blocked_cv_rms,
@@ -47,7 +47,6 @@ from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, examine
 from .noise import data_weight, filter_tau, residual_tau
 from .priors import law_prior, prior_conflict, scales_from, session_scales
-from .quantisation import DITHERED, FOURTH, PositionNoise, analog_sd, staircase_analog_sd
 from .sampling import DECISIVE, sample_posteriors, sample_shape_posteriors
 from .scoring import (
     CUT_THRESHOLD,
@@ -207,7 +206,7 @@ class BayesianFit(Estimator):
             ready.warnings,
             ready.contact,
         )
-        sigma_x = self._position_noise(session, ready.trusted, kin) if self.eiv else 0.0
+        sigma_x = self._position_noise(session, ready.trusted) if self.eiv else 0.0
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
         # a long session's laws are scored on every stride-th filtered sample, the
@@ -540,40 +539,19 @@ class BayesianFit(Estimator):
                 r.ln_evidence = -1e300
         return results
 
-    def _position_noise(
-        self, session: Session, trusted: NDArray[np.bool_], kin: Kinematics
-    ) -> float:
+    def _position_noise(self, session: Session, trusted: NDArray[np.bool_]) -> float:
         """Position noise SD (m) from the spectrum's flat top over the ``trusted``
         samples, floored by the ADC step.
 
-        Quantisation with little dither is not white and hides from the flat top: with
-        an ADC step the noise is a :class:`~tissuecli.identify.quantisation.PositionNoise`,
-        at least step / sqrt(12), whose staircase the errors-in-variables correction
-        takes at each sample's speed. Clipped and lost samples are left
+        Quantisation with little dither is not white and hides from the flat top, so
+        the ADC step sets a floor: step / sqrt(12). Clipped and lost samples are left
         out: flat at an end of the ADC, or interpolated, they carry no noise (free jaws
         clipped for 31 % of a grasping session read the noise 20 % low, and left M 2 %
         low, 5 posterior SDs).
         """
         fs = 1.0 / float(np.median(np.diff(session.time)))
         step = session.adc.step("position") if session.adc is not None else 0.0
-        measured = position_noise_sd(session.position, fs, trusted)
-        if step <= 0:
-            return measured
-        # the flat top sees the rounding's white part alone: the analog noise beside it
-        # tells whether the steps are dithered or a staircase (identify.quantisation)
-        analog = analog_sd(measured, step)
-        if analog < DITHERED * step:
-            # the staircase's harmonics reach the flat top: its fourth differences, at
-            # each sample's speed, tell the analog noise beneath them
-            x = session.position
-            d4 = np.convolve(x, FOURTH, mode="same")
-            # a difference that reaches a clipped or lost sample, or an end, is not noise
-            whole = np.convolve((~trusted).astype(float), np.ones(FOURTH.size), mode="same")
-            whole[: FOURTH.size // 2] = whole[x.size - FOURTH.size // 2 :] = 1.0
-            rows = np.arange(x.size)[kin.keep]
-            use = whole[rows] == 0
-            analog = staircase_analog_sd(d4[rows][use], kin.v[use] * kin.dt / step, step)
-        return PositionNoise(analog, step)
+        return max(position_noise_sd(session.position, fs, trusted), step / np.sqrt(12))
 
     def _tick(self, name: str) -> None:
         """One more law scored: the progress counts it against the laws known so far

@@ -13,7 +13,6 @@ from numpy.typing import NDArray
 
 from ..core.terms import Law, Term
 from .derivatives import Kinematics
-from .quantisation import is_staircase, staircase_correction
 from .spectrum import valid_spectrum
 
 Array = NDArray[np.float64]
@@ -161,19 +160,13 @@ def eiv_correction(
     Column j carries noise ``d_j * (k_j * e)`` to first order, with ``d_j`` the
     term's slope and ``k_j`` its kernel (none for an offset), so
     ``E[noise_i . noise_j] = sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it
-    removes the attenuation bias that noisy derivatives put on M. A quantised
-    closure whose steps the analog noise does not dither
-    (:class:`~tissuecli.identify.quantisation.PositionNoise`) carries a staircase
-    instead: its covariance through the kernels is taken at each sample's speed
-    (:func:`~tissuecli.identify.quantisation.staircase_correction`). ``paths``, if
+    removes the attenuation bias that noisy derivatives put on M. ``paths``, if
     given, keeps each term's :func:`noise_path` by name, as ``columns`` does in
     :func:`design`.
     """
     parts = [term_noise_path(t, kin, x_full, paths, sigma_x) for t in law.terms]
-    d = np.column_stack([slope for _, slope in parts])
-    if is_staircase(sigma_x):
-        return staircase_correction([k for k, _ in parts], d, kin.v, kin.dt, sigma_x)  # type: ignore[arg-type]
     K = np.array([k for k, _ in parts])
+    d = np.column_stack([slope for _, slope in parts])
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
 
 

@@ -23,7 +23,6 @@ from ..core.terms import Law, MotionScales, Term
 from .derivatives import Kinematics
 from .design import term_column, term_noise_path
 from .noise import filter_tau
-from .quantisation import is_staircase, staircase_correction
 
 Array = NDArray[np.float64]
 
@@ -183,16 +182,7 @@ def examine(
     if sigma_x > 0:
         for j, t in enumerate(terms):
             k, slope = term_noise_path(t, kin, x_full, sigma_x=sigma_x)
-            if is_staircase(sigma_x):  # the rounding's share at each sample's speed
-                noise[j] = staircase_correction(
-                    [k],
-                    slope[:, None],
-                    kin.v,
-                    kin.dt,
-                    sigma_x,  # type: ignore[arg-type]
-                )[0, 0] / max(slope.size, 1)
-            else:
-                noise[j] = sigma_x**2 * float(k @ k) * float(np.mean(slope**2))
+            noise[j] = sigma_x**2 * float(k @ k) * float(np.mean(slope**2))
     design = Design(list(names), gram, noise, n)
     if scales is not None and n > len(terms):
         # the force noise from the fit of every column at once, and the samples it

@@ -270,11 +270,6 @@ def not_evaluated(res: ModelResult, why: str) -> None:
     res.ln_evidence = -math.inf
 
 
-#: the least share of the raw residual the corrected one must keep (a correction that
-#: takes off more is taken to say the noise is as large as the motion)
-CORRECTABLE = 0.1
-
-
 def _correctable(fp: FirstPass, corr: Array) -> float | None:
     """The corrected fit's residual sum of squares (:func:`_corrected_rss`, N^2) if the
     errors-in-variables correction leaves a proper regression, else None: ``A^T A - C``
@@ -285,7 +280,7 @@ def _correctable(fp: FirstPass, corr: Array) -> float | None:
     if np.any(np.linalg.eigvalsh(G) <= 0):
         return None
     rss = _corrected_rss(fp, corr)
-    return rss if rss > CORRECTABLE * fp.rss else None
+    return rss if rss > 0.1 * fp.rss else None
 
 
 def _corrected_rss(fp: FirstPass, corr: Array) -> float:

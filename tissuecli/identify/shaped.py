@@ -17,7 +17,6 @@ from ..core.errors import FitError
 from ..core.terms import Law
 from .design import noise_path, raw_speed, term_column, term_noise_path
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, _by_node, _matrix_roots
-from .quantisation import is_staircase, staircase_cross
 from .scoring import (
     CUT_THRESHOLD,
     Context,
@@ -483,9 +482,6 @@ class ShapedPass:
             self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
             self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
             self.DtD_f = self.D_f.T @ self.D_f
-            if is_staircase(sx):  # the rounding's covariance at each sample's speed
-                self.DtD_f = staircase_cross(list(self.K_f), self.D_f, list(self.K_f),
-                                             self.D_f, kin.v, kin.dt, sx)  # type: ignore[arg-type]  # fmt: skip
 
     def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
         """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
@@ -521,17 +517,8 @@ class ShapedPass:
             K[fixed] = self.K_f
             K[moving] = [k for k, _ in paths]
             D = np.column_stack([dd for _, dd in paths])
-            if is_staircase(fit.sigma_x):
-                km = [k for k, _ in paths]
-                kin, sx = fit.kin, fit.sigma_x
-                correction = self._assemble(
-                    self.DtD_f,
-                    staircase_cross(km, D, list(self.K_f), self.D_f, kin.v, kin.dt, sx),  # type: ignore[arg-type]
-                    staircase_cross(km, D, km, D, kin.v, kin.dt, sx),  # type: ignore[arg-type]
-                )
-            else:
-                DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
-                correction = fit.sigma_x**2 * (K @ K.T) * DtD
+            DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
+            correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
 
     def many(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
@@ -588,19 +575,9 @@ class ShapedPass:
                 for c, j in enumerate(moving):
                     t = bound.terms[j]
                     K[i, j], D[i, :, c] = noise_path(t, kin, x, sx, keep=keep)
-            if is_staircase(sx):
-                corrections = np.stack([
-                    self._assemble(
-                        self.DtD_f,
-                        staircase_cross(list(K[i, moving]), D[i], list(self.K_f), self.D_f,
-                                        kin.v, kin.dt, sx),  # type: ignore[arg-type]
-                        staircase_cross(list(K[i, moving]), D[i], list(K[i, moving]), D[i],
-                                        kin.v, kin.dt, sx),  # type: ignore[arg-type]
-                    ) for i in range(n)])  # fmt: skip
-            else:
-                Dt = D.transpose(0, 2, 1)
-                DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
-                corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
+            Dt = D.transpose(0, 2, 1)
+            DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
+            corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
         out = []
         for i, bound in enumerate(bounds):
             if cond_s[i] >= 1e5:
