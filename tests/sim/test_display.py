@@ -257,10 +257,11 @@ def test_ticks_run_to_catch_up_do_not_count_towards_the_watchdog() -> None:
         port.close()
 
 
-def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -> None:
-    """The host numbers each SetVoltage by the frame it answers; the display flags each
-    period whose voltage is not the answer to the frame before, but not a tick it runs
-    late to catch up (counted apart)."""
+@contextlib.contextmanager
+def _firmware_bench() -> Iterator[tuple[Any, Any, Any]]:
+    """A display firmware stepped by hand behind a pseudo-terminal: the firmware, a
+    ``send(message)`` from the host, and a ``tick(late=False, x=None)`` that runs one
+    period (the piston at ``x`` if given) and returns the Encoder frame it sent."""
     port = VirtualPort()
     host = os.open(port.name, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     try:
@@ -271,13 +272,26 @@ def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -
             os.write(host, encode(message))
             time.sleep(0.02)  # through the pseudo-terminal
 
-        def tick(late: bool = False) -> Encoder:
+        def tick(late: bool = False, x: float | None = None) -> Encoder:
+            if x is not None:
+                fw.x = x  # the piston, where the test puts it
             fw.receive()
             fw.tick(late)
             time.sleep(0.02)
             got = [m for m in decoder.feed(os.read(host, 4096)) if isinstance(m, Encoder)]
             return got[-1]
 
+        yield fw, send, tick
+    finally:
+        os.close(host)
+        port.close()
+
+
+def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -> None:
+    """The host numbers each SetVoltage by the frame it answers; the display flags each
+    period whose voltage is not the answer to the frame before, but not a tick it runs
+    late to catch up (counted apart)."""
+    with _firmware_bench() as (fw, send, tick):
         send(Command(START))
         first = tick()
         assert not first.flags & FLAG_STALE  # not yet commanded
@@ -289,9 +303,6 @@ def test_a_period_not_run_on_the_answer_to_the_frame_before_is_flagged_stale() -
         assert tick().flags & FLAG_STALE
         assert not tick(late=True).flags & FLAG_STALE  # run to catch up: counted apart
         assert fw.ages[0] == 1 and sum(fw.ages[1:]) == 2 and sum(fw.ages_late) == 1
-    finally:
-        os.close(host)
-        port.close()
 
 
 def test_a_late_answer_is_rendered_from_its_local_model_within_the_horizon() -> None:
@@ -300,23 +311,10 @@ def test_a_late_answer_is_rendered_from_its_local_model_within_the_horizon() -> 
     (``FLAG_MODEL``, not stale), clamped to what the solenoid can do, for up to
     :data:`MODEL_HORIZON_PERIODS`; beyond, it holds its voltage and flags the periods
     stale. A plain SetVoltage carries no model."""
-    port = VirtualPort()
-    host = os.open(port.name, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    try:
-        fw = _Firmware(PAPER_DISPLAY, port, 1000.0, lambda t: 0.0, None, watchdog_periods=50)
-        decoder = FrameDecoder()
-
-        def send(message: Any) -> None:
-            os.write(host, encode(message))
-            time.sleep(0.02)  # through the pseudo-terminal
+    with _firmware_bench() as (fw, send, at):
 
         def tick(x: float, late: bool = False) -> Encoder:
-            fw.x = x  # the piston, where the test puts it
-            fw.receive()
-            fw.tick(late)
-            time.sleep(0.02)
-            got = [m for m in decoder.feed(os.read(host, 4096)) if isinstance(m, Encoder)]
-            return got[-1]
+            return at(late, x)
 
         send(Command(START))
         first = tick(0.0)
@@ -352,9 +350,6 @@ def test_a_late_answer_is_rendered_from_its_local_model_within_the_horizon() -> 
         tick(0.0)
         late = tick(1e-3)
         assert late.flags & FLAG_STALE and late.volts == pytest.approx(0.7)
-    finally:
-        os.close(host)
-        port.close()
 
 
 def test_the_display_says_it_renders_from_a_local_model() -> None:
