@@ -90,6 +90,17 @@ MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 2, 32
 #: a force whose noise SD is at least this many quantisation steps is dithered: its
 #: moving mean averages the noise down
 DITHER_STEPS = 2.0
+#: a grasp lasts at least this many smoothing widths (an outlier spread by the moving
+#: mean stands out for one width) and this many samples; never more than MIN_GRASP_S
+SPIKE_WIDTHS, MIN_GRASP_SAMPLES = 2, 4
+#: weak contact is sought by moving means this many times wider, then again, up to
+#: COARSE_SCALES times; each needs this many independent widths of free samples below
+#: the free-jaw level to measure its noise (the median of 16 half-normal values is
+#: within about 30 % of its own: the threshold then stays above 4 SDs)
+SCALE_RATIO, COARSE_SCALES, SCALE_WINDOWS = 4, 3, 16
+#: a grasp's edge is pushed outward while the raw force stands about this many noise SDs
+#: from the free-jaw level
+EDGE_SD = 2.0
 
 
 @dataclass(frozen=True)
@@ -195,9 +206,14 @@ def find_contact(session: Session) -> Contact:
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
     if dithered:
         mask = _sharpen(mask, f - baseline, width)
+        # contact too weak for the moving mean of one width, seen by longer ones
+        mask |= _weak_contact(f - baseline, mask, noise, width)
+        mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
+        mask = _extend(mask, f - baseline, noise, width)
     grasps = []
+    shortest = _min_grasp(dt, width)
     for start, stop in _runs(mask):
-        if (stop - start) * dt < MIN_GRASP_S:
+        if stop - start < shortest and not _cut_by_end(start, stop, f - baseline, noise, width):
             mask[start:stop] = False
             continue
         grasps.append(
@@ -210,6 +226,136 @@ def find_contact(session: Session) -> Contact:
             )
         )
     return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
+
+
+def _extend(mask: NDArray[np.bool_], above: Array, noise: float, width: int) -> NDArray[np.bool_]:
+    """Each grasp's edges pushed outward over the raw force ``above`` the free-jaw level
+    that still stands out of its noise (SD ``noise``, N), by at most a smoothing width.
+
+    A grasp that ends by a fast release (or starts by a fast squeeze) falls to the level
+    within a width: the moving mean crosses its threshold, and the steepest step lies,
+    part of the way down the ramp, so the ramp's foot (several noise SDs of force)
+    was read free. Outward from each edge, the edge goes where the sum of
+    ``above**2 - EDGE_SD**2 * noise**2`` over the samples it takes in is largest: a
+    sample of free jaws adds ``-(EDGE_SD**2 - 1) noise**2`` on average, and one
+    ``EDGE_SD`` noise SDs away from the level or more adds at least nothing, so the
+    edge stops where the force comes within about ``EDGE_SD`` SDs of the level; free
+    noise takes in a first sample with the probability that it lies beyond
+    ``EDGE_SD`` SDs (4.6 % at 2).
+    """
+    if width <= 1 or not noise > 0:
+        return mask
+    out = mask.copy()
+    gain = above**2 - (EDGE_SD * noise) ** 2
+    runs = _runs(mask)
+    for k, (start, stop) in enumerate(runs):
+        lo = runs[k - 1][1] if k else 0
+        hi = runs[k + 1][0] if k + 1 < len(runs) else mask.size
+        after = gain[stop : min(stop + width, hi)]
+        if after.size:
+            total = np.cumsum(after)
+            if total.max() > 0:
+                out[stop : stop + int(np.argmax(total)) + 1] = True
+        before = gain[max(start - width, lo) : start][::-1]
+        if before.size:
+            total = np.cumsum(before)
+            if total.max() > 0:
+                out[start - int(np.argmax(total)) - 1 : start] = True
+    return out
+
+
+def _cut_by_end(start: int, stop: int, above: Array, noise: float, width: int) -> bool:
+    """Whether a run too short for a grasp is one cut by the recording's start or end:
+    it touches it, lasts a smoothing width, and the mean of its own raw force ``above``
+    the free-jaw level lies beyond :data:`ENTER_SD` of its noise SD
+    (``noise / sqrt(stop - start)``). The moving mean repeats the end sample to fill its
+    window there, so the run alone is no evidence: one noisy last sample counts half."""
+    if not (start == 0 or stop == above.size) or stop - start < max(width, MIN_GRASP_SAMPLES):
+        return False
+    mean = float(np.mean(above[start:stop]))
+    return abs(mean) > ENTER_SD * noise / np.sqrt(stop - start)
+
+
+def _min_grasp(dt: float, width: int) -> int:
+    """Fewest samples in a grasp: :data:`SPIKE_WIDTHS` smoothing widths and
+    :data:`MIN_GRASP_SAMPLES`, no more than :data:`MIN_GRASP_S`.
+
+    The hysteresis enters at :data:`ENTER_SD` SDs of the smoothed noise, which white
+    noise passes about twice in a billion independent widths: a run that reaches it is
+    no noise, however short. What a length rule must still reject is an outlier: one
+    sample spread by the moving mean stands above the level for one width at most.
+    (A fixed 0.1 s dropped short strong contact: a grasp cut by the end of the
+    recording, a quick tap.)"""
+    fixed = int(np.ceil(MIN_GRASP_S / dt - 1e-9))
+    return max(min(fixed, max(SPIKE_WIDTHS * width, MIN_GRASP_SAMPLES)), 2)
+
+
+def _weak_contact(
+    above: Array, mask: NDArray[np.bool_], noise: float, width: int
+) -> NDArray[np.bool_]:
+    """Contact too weak for the moving mean of ``width`` samples, found by moving means
+    :data:`SCALE_RATIO`, ``SCALE_RATIO**2``, ... times wider (at most
+    :data:`COARSE_SCALES` of them): samples where the mean of the raw force ``above``
+    the free-jaw level stands beyond :data:`ENTER_SD` SDs of that mean's own noise.
+
+    A grasp resting a noise SD above the level for a few hundred samples (a soft law at
+    small closure, a relaxed hold, a weak grasp in a noisy session) is far outside the
+    noise of a mean over many samples, though no single width of it is. Each wider
+    mean sees the force with the contact found so far set to the level, so a strong
+    grasp is not spread past its edges; and a stretch first found at a width ``w`` is
+    one the mean over ``w / SCALE_RATIO`` did not reach, so its level is under
+    ``ENTER_SD * SCALE_RATIO ** 0.5`` SDs of the mean over ``w``: that mean passes the
+    threshold only where more than half its window lies on it, inside the stretch.
+
+    The noise SD of each mean is measured where the jaws are free (:func:`_scale_sd`);
+    a scale whose free samples are too few to measure it, or longer than a sixteenth of
+    the session, is not used. The false-alarm rate is that of the fine scale (about
+    2e-9 per independent window at 6 SDs) per scale.
+    """
+    found = mask.copy()
+    out = np.zeros_like(mask)
+    n = above.size
+    w = width
+    for _ in range(COARSE_SCALES):
+        w *= SCALE_RATIO
+        if 16 * w > n:
+            break
+        smooth, count = _window_mean(np.where(found, 0.0, above), w)
+        sd = _scale_sd(smooth, found, noise, w)
+        if sd is None:
+            break
+        # near the ends the window holds fewer samples, and its mean more noise
+        new = (np.abs(smooth) > ENTER_SD * sd * np.sqrt(w / count)) & ~found
+        out |= new
+        found |= new
+    return out
+
+
+def _window_mean(f: Array, w: int) -> tuple[Array, Array]:
+    """The mean of the samples within a centred window of ``w`` at each sample, and how
+    many it holds (fewer near the ends: no sample is repeated to fill the window)."""
+    csum = np.concatenate([[0.0], np.cumsum(f)])
+    i = np.arange(f.size)
+    lo = np.clip(i - w // 2, 0, f.size)
+    hi = np.clip(i - w // 2 + w, 0, f.size)
+    count = (hi - lo).astype(float)
+    return (csum[hi] - csum[lo]) / count, count
+
+
+def _scale_sd(smooth: Array, found: NDArray[np.bool_], noise: float, w: int) -> float | None:
+    """SD of a moving mean ``w`` samples wide of the force above the free-jaw level,
+    where the jaws are free (away from ``found`` by a width): robustly from the half
+    below the level, as :func:`_free_sd`, between ``noise / sqrt(w)`` (white noise) and
+    ``noise``. None where fewer than :data:`SCALE_WINDOWS` independent widths of free
+    samples lie below the level (too few to measure it)."""
+    away = ~found.copy()
+    for start, stop in _runs(found):
+        away[max(start - w, 0) : stop + w] = False
+    below = smooth[away & (smooth < 0)]
+    if below.size < SCALE_WINDOWS * w:
+        return None
+    sd = float(np.median(-below)) / 0.6745
+    return float(np.clip(sd, noise / np.sqrt(w), noise))
 
 
 def _free_sd(above: Array, mask: NDArray[np.bool_], noise: float, width: int) -> float:
