@@ -13,6 +13,9 @@ sample by sample against the true contact (closure above 0):
 - grasps merged (one found grasp over two true ones or more), missed (no found grasp
   over a true one), split (a true grasp cut in two or more), spurious (a found grasp
   over no true one);
+- the true force read free: the RMS over the session of the noise-free force on contact
+  samples read free, in noise SDs (what a prediction that sets the tissue's force to
+  zero on free jaws loses; a soft law's contact at near zero force costs nothing);
 - edge offsets of the grasps matched one to one, in samples and in smoothing widths
   (found minus true, start and stop);
 - each scene read wrong is classed as ``one contact``, ``merged``, ``missed``,
@@ -59,6 +62,7 @@ class Reading:
     spurious: int = 0
     edges: list[tuple[int, int]] = field(default_factory=list)  # (start, stop) offsets
     width: int = 1  # smoothing width, samples
+    missed_force: float = 0.0  # RMS of the true force on contact read free, noise SDs
     settings: dict = field(default_factory=dict)
 
     def worst_edge(self) -> int:
@@ -139,7 +143,10 @@ def main() -> None:
         runs = _runs(~true)
         inner = [b - a for a, b in runs if a > 0 and b < true.size]
         settings["free_s"] = (min(inner) if inner else 0) * dt
-        readings.append(score(s, true, found.mask, found.all_contact, width, settings))
+        r = score(s, true, found.mask, found.all_contact, width, settings)
+        missed = np.where(true & ~found.mask, scene.force, 0.0)
+        r.missed_force = float(np.sqrt(np.mean(missed**2))) / scene.noise_n
+        readings.append(r)
     cpu = time.process_time() - c0
     n = len(readings)
     found_rs = [r for r in readings if not r.one_contact]
@@ -152,6 +159,10 @@ def main() -> None:
           f"{np.percentile(fc, 90):.4f}  worst {fc.max():.4f}")  # fmt: skip
     print(f"contact samples read free          median {np.median(cf):.4f}  90th "
           f"{np.percentile(cf, 90):.4f}  worst {cf.max():.4f}")  # fmt: skip
+    mf = np.array([r.missed_force for r in readings])
+    print(f"true force read free, noise SDs    median {np.median(mf):.3f}  90th "
+          f"{np.percentile(mf, 90):.3f}  worst {mf.max():.3f}; scenes over 0.5: "
+          f"{int(np.sum(mf > 0.5))}")  # fmt: skip
     print(f"scenes with grasps merged {sum(r.merged > 0 for r in found_rs)}, missed "
           f"{sum(r.missed > 0 for r in found_rs)}, split {sum(r.split > 0 for r in found_rs)}, "
           f"spurious {sum(r.spurious > 0 for r in found_rs)}")  # fmt: skip
