@@ -206,8 +206,11 @@ def convolve_padded_every(padded: Array, kernel: Array, step: int, out: int) -> 
     kr = np.zeros(q * step)
     kr[:m] = k[::-1]  # output i is sum_j kr[j] u[i + j]
     rows = out - 1 + q
-    blocks = padded.reshape(rows, step) @ kr.reshape(q, step).T  # (rows, q)
+    # (q, rows): each block of taps against every row, a row of the product apiece, so
+    # that the sums below read contiguous memory (each entry the same dot product of
+    # ``step`` terms as in the product's transpose)
+    blocks = kr.reshape(q, step) @ padded.reshape(rows, step).T
     y = np.zeros(out)
     for j in range(q):
-        y += blocks[j : j + out, j]
+        y += blocks[j, j : j + out]
     return y
