@@ -124,6 +124,9 @@ def main() -> None:
         worker(sys.argv[sys.argv.index("--worker") + 1])
         return
     args = sys.argv[1:]
+    if "-h" in args or "--help" in args:
+        print(__doc__)
+        return
     checkout, repeats, scene = None, 3, "forceps"
     if "--scene" in args:
         i = args.index("--scene")
