@@ -72,7 +72,7 @@ class ARFilter:
         r = np.asarray(r, dtype=float)
         n = r.size
         top = int(max(0, min(self.max_order, n // ROWS_PER_ORDER)))
-        x = r - r.mean()
+        x = r - r.mean() if n else r
         size = 2 << int(np.ceil(np.log2(max(n, 1))))
         f = np.fft.rfft(x, size)
         acov = np.fft.irfft(f.real**2 + f.imag**2, size)[: top + 1] / max(n, 1)

@@ -1,0 +1,112 @@
+"""The prewhitened likelihood: the autoregressive filter, its effective samples and the
+calibration of the intervals it gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from tissuecli.core.errors import FitError
+from tissuecli.identify.whiten import (
+    ARFilter,
+    Prewhitened,
+    Tempered,
+    likelihood_strategy,
+    precision_ratio,
+)
+
+
+def _ar1(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
+    """A stationary AR(1) series of unit innovations."""
+    e = rng.standard_normal(n)
+    r = np.empty(n)
+    r[0] = e[0] / np.sqrt(1.0 - phi**2)
+    for t in range(1, n):
+        r[t] = phi * r[t - 1] + e[t]
+    return r
+
+
+def test_ar1_noise_gives_the_theoretical_effective_samples():
+    """AR(1) residuals of coefficient 0.8 over 20,000 samples: BIC picks order 1, and the
+    evidence's effective samples for a constant and a slow sine are n (1 - phi) / (1 + phi)
+    = n / 9. The coefficient's SE is sqrt((1 - phi^2) / n) = 0.0042; the ratio's
+    logarithm moves 2 / (1 - phi^2) = 5.6 times as much, 2.4 %: 10 % is 4 SE."""
+    n, phi = 20_000, 0.8
+    r = _ar1(np.random.default_rng(7), n, phi)
+    f = ARFilter().fit(r)
+    assert f.order_ == 1
+    assert f.coef_[0] == pytest.approx(phi, abs=4 * np.sqrt((1 - phi**2) / n))
+    t = np.arange(n) / n
+    A = np.column_stack([np.ones(n), np.sin(2 * np.pi * t)])
+    Aw = f.transform(A)
+    ratio = precision_ratio(Aw.T @ Aw, f.innovation_var_, A.T @ A, f.variance_)
+    assert ratio * n == pytest.approx(n * (1 - phi) / (1 + phi), rel=0.10)
+    assert 1.0 / f.tau == pytest.approx((1 - phi) / (1 + phi), rel=0.10)
+
+
+def test_prewhitened_intervals_cover_at_their_nominal_rate():
+    """A line fitted through AR(1) noise (phi 0.9), 400 sessions of 2,000 samples: the
+    95 % intervals of the prewhitened regression hold the slope in 93-97 % of them
+    (the binomial range of 400 draws at 95 % is 92.8-97.0 %); the white likelihood's,
+    too narrow by sqrt(19), hold it far less often."""
+    rng = np.random.default_rng(11)
+    n, phi, slope = 2000, 0.9, 2.0
+    t = np.linspace(0.0, 1.0, n)
+    A = np.column_stack([np.ones(n), t])
+    held = white_held = 0
+    sessions = 400
+    z = stats.norm.ppf(0.975)
+    for _ in range(sessions):
+        y = A @ np.array([1.0, slope]) + 0.1 * _ar1(rng, n, phi)
+        r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+        f = ARFilter().fit(r)
+        Aw, yw = f.transform(A), f.transform(y)
+        beta, *_ = np.linalg.lstsq(Aw, yw, rcond=None)
+        rw = yw - Aw @ beta
+        sd = np.sqrt(rw @ rw / (yw.size - 2) * np.linalg.inv(Aw.T @ Aw)[1, 1])
+        held += abs(beta[1] - slope) < z * sd
+        b0 = np.linalg.lstsq(A, y, rcond=None)[0]
+        sd0 = np.sqrt(r @ r / (n - 2) * np.linalg.inv(A.T @ A)[1, 1])
+        white_held += abs(b0[1] - slope) < z * sd0
+    assert 0.928 <= held / sessions <= 0.970
+    assert white_held / sessions < 0.6
+
+
+def test_the_filter_keeps_rows_and_kernels_consistent():
+    """The filter leaves out the first q rows, and a kernel through it is the kernel
+    convolved with its taps spread ``stride`` samples apart."""
+    f = ARFilter(max_order=3).fit(_ar1(np.random.default_rng(3), 5000, 0.5))
+    X = np.arange(20.0).reshape(10, 2)
+    out = f.transform(X)
+    assert out.shape == (10 - f.order_, 2)
+    k = np.array([[0.25, 0.5, 0.25]])
+    spread = f.kernels(k, stride=2)
+    assert spread.shape == (1, 3 + 2 * f.order_)
+    assert spread.sum() == pytest.approx(k.sum() * f.phi.sum())
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(
+        st.floats(min_value=-1e6, max_value=1e6, allow_nan=False), min_size=0, max_size=60
+    )
+)
+def test_any_residuals_give_a_stable_filter(values):
+    """Short, constant or wild residuals: a filter of order at most n / 20, finite, whose
+    innovation variance does not exceed the residuals' own."""
+    r = np.asarray(values, dtype=float)
+    f = ARFilter().fit(r)
+    assert 0 <= f.order_ <= max(r.size // 20, 0)
+    assert np.all(np.isfinite(f.coef_))
+    assert f.innovation_var_ <= f.variance_ * (1 + 1e-9) + 1e-300
+    assert f.transform(r).shape == (max(r.size - f.order_, 0),)
+
+
+def test_strategies_by_name():
+    assert isinstance(likelihood_strategy("prewhitened"), Prewhitened)
+    assert isinstance(likelihood_strategy("tempered"), Tempered)
+    with pytest.raises(FitError, match="unknown likelihood"):
+        likelihood_strategy("robust")
