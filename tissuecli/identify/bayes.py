@@ -287,12 +287,14 @@ class BayesianFit(Estimator):
                 tau, weight = tau_ls, weight_ls
         del A
         collapsed = weight == weight_filter
-        # the prewhitened likelihood: the best linear law's residuals set the filter,
-        # and each sample counts as one (bridged stand-ins less)
+        # the prewhitened likelihood: the best linear law's residuals set the filter, its
+        # lags one smoothing-filter correlation time apart, and the rows keep the
+        # filter's weight (what it says of the smoothed sensor noise, exact for it)
         whiten: ARFilter | None = None
+        step = max(1, round(tau_filter))
         if isinstance(likelihood, Prewhitened) and best_ls is not None:
-            whiten = likelihood.filter_for(residual)
-            weight = measured
+            whiten = likelihood.filter_for(residual, step)
+            tau, weight = tau_filter, weight_filter
             firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths, whiten)
                       for m in linear}  # fmt: skip
 
@@ -313,7 +315,7 @@ class BayesianFit(Estimator):
             # the one that set it
             top, residual_top = self._top_residual(results, fit)
             if top != best_name:
-                whiten = likelihood.filter_for(residual_top)
+                whiten = likelihood.filter_for(residual_top, step)
                 firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths, whiten)
                           for m in linear}  # fmt: skip
                 fit = replace(fit, whiten=whiten, lead=-math.inf, shaped_passes={})
@@ -372,8 +374,8 @@ class BayesianFit(Estimator):
             )
         if whiten is not None:
             ratio = self._whitened_ratio(best, fit)
-            tau = 1.0 / ratio
-            weight = measured * ratio
+            weight *= ratio
+            tau = measured / weight
         kin = full_kin
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(outlier_warnings(kin, fitted))

@@ -174,7 +174,7 @@ def eiv_correction(
     K = np.array([k for k, _ in parts])
     d = np.column_stack([slope for _, slope in parts])
     if whiten is not None:
-        K, d = whiten.kernels(K, kin.stride), d[whiten.order_ :]
+        K, d = whiten.kernels(K, kin.stride), d[whiten.span :]
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
 
 

@@ -136,7 +136,7 @@ class Context:
     @property
     def rows(self) -> int:
         """Rows of the statistics: ``y``'s, less the filter's order."""
-        return self.y.size - (self.whiten.order_ if self.whiten is not None else 0)
+        return self.y.size - (self.whiten.span if self.whiten is not None else 0)
 
 
 def first_pass(

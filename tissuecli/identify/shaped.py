@@ -493,7 +493,7 @@ class ShapedPass:
     def _white_rows(self, D: Array) -> Array:
         """Slopes at the rows the filter keeps (slow beside the noise: not filtered)."""
         w = self.fit.whiten
-        return D if w is None else D[w.order_ :]
+        return D if w is None else D[w.span :]
 
     def _kernels(self, K: Array) -> Array:
         """Noise kernels as the filtered columns see them."""

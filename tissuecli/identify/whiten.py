@@ -47,6 +47,13 @@ class ARFilter:
     ----------
     max_order : int
         Highest order tried; the order is chosen by BIC among ``0..max_order``.
+    step : int
+        Rows between the model's lags: ``r_t = sum_k a_k r_{t - k step} + e_t``. The
+        fit's force is smoothed, so its sensor noise is correlated over the smoothing
+        filter's ``tau_g`` rows whatever the law; at lags of ``tau_g`` the model sees
+        only what correlates residuals beyond that (a law's misfit, coloured noise),
+        and the filter never undoes the smoothing (which would hand the regression the
+        position noise the smoothing took out of the derivatives).
 
     Attributes
     ----------
@@ -60,8 +67,9 @@ class ARFilter:
         Variance of the residuals themselves.
     """
 
-    def __init__(self, max_order: int = MAX_ORDER) -> None:
+    def __init__(self, max_order: int = MAX_ORDER, step: int = 1) -> None:
         self.max_order = max_order
+        self.step = step
 
     def fit(self, r: Array) -> ARFilter:
         """Fit the order and coefficients to residuals ``r``, shape (n,); returns self.
@@ -70,12 +78,14 @@ class ARFilter:
         construction), the order minimising ``n ln s_q^2 + q ln n``.
         """
         r = np.asarray(r, dtype=float)
-        n = r.size
+        step = max(int(self.step), 1)
+        n_all = r.size
+        n = n_all // step  # independent rows, as BIC counts them
         top = int(max(0, min(self.max_order, n // ROWS_PER_ORDER)))
-        x = r - r.mean() if n else r
-        size = 2 << int(np.ceil(np.log2(max(n, 1))))
+        x = r - r.mean() if n_all else r
+        size = 2 << int(np.ceil(np.log2(max(n_all, 1))))
         f = np.fft.rfft(x, size)
-        acov = np.fft.irfft(f.real**2 + f.imag**2, size)[: top + 1] / max(n, 1)
+        acov = np.fft.irfft(f.real**2 + f.imag**2, size)[: top * step + 1 : step] / max(n_all, 1)
         self.variance_ = float(acov[0])
         best_bic, best = n * math.log(max(acov[0], 1e-300)), np.zeros(0)
         best_var = float(acov[0])
@@ -102,22 +112,29 @@ class ARFilter:
         return np.concatenate([[1.0], -self.coef_])
 
     def transform(self, X: Array) -> Array:
-        """``X`` through the whitening filter along its first axis, the first ``q`` rows
-        (which have no full history) left out: shape (n - q, ...)."""
+        """``X`` through the whitening filter along its first axis, the first ``q step``
+        rows (which have no full history) left out: shape (n - q step, ...)."""
         X = np.asarray(X, dtype=float)
-        q = self.order_
+        q = self.order_ * max(int(self.step), 1)
         out = X[q:].copy()
         for k, a in enumerate(self.coef_, start=1):
-            out -= a * X[q - k : X.shape[0] - k]
+            lag = k * max(int(self.step), 1)
+            out -= a * X[q - lag : X.shape[0] - lag]
         return out
+
+    @property
+    def span(self) -> int:
+        """Rows the filter leaves out at the start: ``q step``."""
+        return self.order_ * max(int(self.step), 1)
 
     def kernels(self, K: Array, stride: int = 1) -> Array:
         """Noise kernels (one a row, on the raw grid) as the filtered columns see them:
-        each convolved with the filter's taps ``stride`` raw samples apart (the filter
-        runs on every ``stride``-th sample), shape (p, w + q stride)."""
+        each convolved with the filter's taps ``step stride`` raw samples apart (the
+        filter runs on every ``stride``-th sample), shape (p, w + q step stride)."""
         K = np.atleast_2d(np.asarray(K, dtype=float))
-        taps = np.zeros(self.order_ * stride + 1)
-        taps[::stride] = self.phi
+        spacing = max(int(self.step), 1) * stride
+        taps = np.zeros(self.order_ * spacing + 1)
+        taps[::spacing] = self.phi
         return np.array([np.convolve(k, taps) for k in K]).reshape(K.shape[0], -1)
 
     @property
@@ -182,9 +199,9 @@ class Prewhitened(Likelihood):
     def get_params(self) -> dict[str, object]:
         return {"max_order": self.max_order}
 
-    def filter_for(self, r: Array) -> ARFilter:
-        """The whitening filter fitted to residuals ``r``."""
-        return ARFilter(self.max_order).fit(r)
+    def filter_for(self, r: Array, step: int = 1) -> ARFilter:
+        """The whitening filter fitted to residuals ``r``, lags ``step`` rows apart."""
+        return ARFilter(self.max_order, step).fit(r)
 
 
 #: the likelihood strategies by name
