@@ -135,7 +135,10 @@ class ARFilter:
         spacing = max(int(self.step), 1) * stride
         taps = np.zeros(self.order_ * spacing + 1)
         taps[::spacing] = self.phi
-        return np.array([np.convolve(k, taps) for k in K]).reshape(K.shape[0], -1)
+        out = np.zeros((K.shape[0], K.shape[1] + taps.size - 1))
+        for i, k in enumerate(K):
+            out[i] = np.convolve(k, taps)
+        return out
 
     @property
     def tau(self) -> float:
