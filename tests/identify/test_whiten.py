@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from tissuecli.core.errors import FitError
+from tissuecli.identify import BayesianFit
 from tissuecli.identify.whiten import (
     ARFilter,
     Prewhitened,
@@ -17,6 +18,8 @@ from tissuecli.identify.whiten import (
     likelihood_strategy,
     precision_ratio,
 )
+from tissuecli.sim.families import FAMILIES
+from tissuecli.sim.synth import random_session
 
 
 def _ar1(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
@@ -110,3 +113,32 @@ def test_strategies_by_name():
     assert isinstance(likelihood_strategy("tempered"), Tempered)
     with pytest.raises(FitError, match="unknown likelihood"):
         likelihood_strategy("robust")
+
+
+def _misfit_fit(duration_s: float, likelihood: str) -> BayesianFit:
+    """A two-branch relaxing tissue fitted with a law that has no relaxation."""
+    s, _ = random_session(FAMILIES["two branches"], rate_hz=1000.0, duration_s=duration_s, seed=3)
+    return BayesianFit("x+xdot+xddot", grasps="none", likelihood=likelihood).fit(s)
+
+
+@pytest.mark.slow
+def test_a_misfitting_law_keeps_its_effective_samples_as_the_session_grows():
+    """The law's misfit correlates the residuals over seconds: the batch-means weight
+    counts 0.4 % of the samples; the prewhitened likelihood models that misfit and
+    counts at least 2 % of them, growing at least half as fast as the session (4 times
+    longer: at least twice as many; a stationary residual gives 4 times)."""
+    short, long = _misfit_fit(5.0, "prewhitened"), _misfit_fit(20.0, "prewhitened")
+    for est in (short, long):
+        assert est.n_eff_ >= 0.02 * est.kinematics_.time.size
+    assert long.n_eff_ >= 2.0 * short.n_eff_
+
+
+def test_the_prewhitened_likelihood_agrees_with_the_tempered_one_on_a_law_that_fits():
+    """A paper-form session fitted with its own law: residuals are the smoothed sensor
+    noise alone, which the filter's weight already counts exactly, so the two
+    likelihoods choose alike and give SDs within 25 % of each other."""
+    s, _ = random_session(FAMILIES["paper x+xdot"], rate_hz=1000.0, duration_s=5.0, seed=4)
+    fits = [BayesianFit("paper", likelihood=lk).fit(s) for lk in ("tempered", "prewhitened")]
+    assert fits[0].best_.name == fits[1].best_.name == "x+xdot+xddot"
+    ratio = fits[1].best_.posterior.sd / fits[0].best_.posterior.sd
+    assert np.all((ratio > 0.75) & (ratio < 1.25))
