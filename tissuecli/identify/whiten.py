@@ -211,8 +211,8 @@ class Prewhitened(Likelihood):
 LIKELIHOODS: dict[str, type[Likelihood]] = {"tempered": Tempered, "prewhitened": Prewhitened}
 
 
-#: the strategy of a fit that names none
-DEFAULT_LIKELIHOOD = "tempered"
+#: the strategy of a fit that names none (a name or an instance)
+DEFAULT_LIKELIHOOD: str | Likelihood = "tempered"
 
 
 def likelihood_strategy(spec: str | Likelihood | None) -> Likelihood:
@@ -223,10 +223,10 @@ def likelihood_strategy(spec: str | Likelihood | None) -> Likelihood:
     FitError
         For an unknown name.
     """
-    if isinstance(spec, Likelihood):
-        return spec
     if spec is None:
         spec = DEFAULT_LIKELIHOOD
+    if isinstance(spec, Likelihood):
+        return spec
     if spec not in LIKELIHOODS:
         from ..core.errors import FitError
 
