@@ -10,7 +10,10 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from tissuecli.core.errors import FitError
+from tissuecli.core.terms import Law
 from tissuecli.identify import BayesianFit
+from tissuecli.identify.scoring import Context, first_pass
+from tissuecli.identify.shaped import ShapedPass
 from tissuecli.identify.whiten import (
     ARFilter,
     Prewhitened,
@@ -92,11 +95,7 @@ def test_the_filter_keeps_rows_and_kernels_consistent():
 
 
 @settings(max_examples=30, deadline=None)
-@given(
-    st.lists(
-        st.floats(min_value=-1e6, max_value=1e6, allow_nan=False), min_size=0, max_size=60
-    )
-)
+@given(st.lists(st.floats(min_value=-1e6, max_value=1e6, allow_nan=False), min_size=0, max_size=60))
 def test_any_residuals_give_a_stable_filter(values):
     """Short, constant or wild residuals: a filter of order at most n / 20, finite, whose
     innovation variance does not exceed the residuals' own."""
@@ -142,3 +141,35 @@ def test_the_prewhitened_likelihood_agrees_with_the_tempered_one_on_a_law_that_f
     assert fits[0].best_.name == fits[1].best_.name == "x+xdot+xddot"
     ratio = fits[1].best_.posterior.sd / fits[0].best_.posterior.sd
     assert np.all((ratio > 0.75) & (ratio < 1.25))
+
+
+def test_a_law_with_shape_parameters_is_scored_through_the_filter():
+    """Laws whose columns hang on a shape (a relaxation time, a contact exponent) take
+    the filter in the shape's batched first passes too, and have a finite evidence."""
+    s, _ = random_session(FAMILIES["one branch"], rate_hz=500.0, duration_s=4.0, seed=5)
+    est = BayesianFit(["x+maxwell+xdot+xddot", "contact+xddot"], grasps="none",
+                      likelihood="prewhitened").fit(s)  # fmt: skip
+    assert np.isfinite(est.best_.ln_evidence)
+    assert est.best_.name == "x+maxwell+xdot+xddot"
+    assert 0 < est.n_eff_ < 10 * s.time.size
+
+
+def test_the_shapes_first_passes_equal_a_pass_over_the_filtered_design():
+    """:class:`ShapedPass` (one node, and nodes in a batch) forms the filtered Gram
+    matrix, products and position-noise correction as :func:`first_pass` does over
+    the filtered design: equal to rounding."""
+    s, _ = random_session(FAMILIES["one branch"], rate_hz=500.0, duration_s=4.0, seed=5)
+    est = BayesianFit("x+xdot+xddot", grasps="none").fit(s)
+    kin, x, sx = est.kinematics_, est.session_.position, max(est.sigma_x_, 1e-6)
+    y = kin.force
+    w = ARFilter(step=3).fit(y - np.convolve(y, np.ones(50) / 50, "same"))
+    assert w.order_ >= 1
+    fit = Context(kin, x, y, sx, 0.5, est.scales_, {}, {}, np.random.default_rng(0), whiten=w)
+    law = Law.of(["x", "maxwell", "xdot", "xddot"])
+    bound = law.bind({law.shape_names[0]: 0.7})
+    want = first_pass(bound, kin, x, y, sx, None, None, w)
+    light = ShapedPass(law, fit)
+    for got in (light({law.shape_names[0]: 0.7}), light.many([bound])[0]):
+        for name in ("gram", "b", "yy", "rss", "correction"):
+            a, b = np.asarray(getattr(got, name)), np.asarray(getattr(want, name))
+            assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(b)), name
