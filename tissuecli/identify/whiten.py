@@ -18,10 +18,14 @@ took them as independent would be sure of everything. Two ways to count them:
   frequency counts by its signal-to-residual ratio, not all by the lowest's. Every
   law compared passes through the one filter, so their evidences stay comparable.
 
-What either strategy reports as effective samples is the evidence's own count: the
-sample count at which a white-noise likelihood would give the law's coefficients the
-precision this one does (the geometric mean of the precisions' ratios); for AR(1)
-noise of coefficient ``phi`` and a constant, ``n (1 - phi) / (1 + phi)``.
+The tempered strategy reports ``n w`` as its effective samples. The prewhitened one
+reports the evidence's own count: the sample count at which a white-noise likelihood
+would give the chosen law's coefficients the precision this one does (the geometric
+mean of the precisions' ratios); for AR(1) noise of coefficient ``phi`` and a
+constant, ``n (1 - phi) / (1 + phi)``. It is not the default: on a recording no law
+follows its generalised least-squares coefficients fit the force's changes rather
+than its level, and predicted held-out data worse (docs/benchmarks.md, "The
+prewhitened likelihood, measured").
 """
 
 from __future__ import annotations
