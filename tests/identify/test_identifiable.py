@@ -14,6 +14,7 @@ from tissuecli.core.terms import Law
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.bayes import linear_laws, session_scales
 from tissuecli.identify.identifiable import Design, examine
+from tissuecli.sim.protocols import random_protocol
 from tissuecli.sim.scenes import FAMILIES, Scene, random_scene
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
 
@@ -82,14 +83,15 @@ def test_a_slow_8_bit_squeeze_keeps_both_dampings_apart():
                    for law in d.reduce(linear_laws()))  # fmt: skip
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1))
-def test_a_merged_term_is_one_column_with_the_term_that_stands_for_it(seed: int):
-    """On any scene: a term replaced by another is one column with that term alone (not
-    with a combination of others, which would merge terms plainly apart), the terms that
-    stand for groups are apart from each other, and a term only a combination carries
-    is one with that combination and with none of it alone."""
-    d = _scene_design(random_scene(seed, max_samples=3000))
+@settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), protocol=st.booleans())
+def test_a_merged_term_is_one_column_with_the_term_that_stands_for_it(seed: int, protocol: bool):
+    """On any scene or lab protocol: a term replaced by another is one column with that
+    term alone (not with a combination of others, which would merge terms plainly
+    apart), the terms that stand for groups are apart from each other, and a term only
+    a combination carries is one with that combination and with none of it alone."""
+    draw = random_protocol if protocol else random_scene
+    d = _scene_design(draw(seed, max_samples=3000))
     index = {n: i for i, n in enumerate(d.names)}
     heads = [g[0] for g in d.groups]
     for group in d.groups:

@@ -225,7 +225,10 @@ def examine(
             continue
         single = [p for p in kept if design.merged(j, [p])]
         if not single:
-            design.combined[names[j]] = [names[p] for p in _partners(gram, j, kept)]
+            partners = _partners(gram, j, kept)
+            if not design.merged(j, partners):  # the small coefficients mattered
+                partners = list(kept)
+            design.combined[names[j]] = [names[p] for p in partners]
             continue
         partner = names[single[0]]
         group = next((g for g in design.groups if partner in g), None)
