@@ -10,7 +10,8 @@ and until it comes within 3 (leaving): SDs of the smoothed force's own noise, me
 on the free stretches, where the raw noise dithers the force's quantisation (else of the
 raw force's noise). Each edge then goes where the raw force steps most within half a
 smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
-grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
+grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one, unless the jaws are
+seen resting open in them (below). When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
 
 Free jaws read the sensor's offset whatever the jaws do; tissue answers the closure
@@ -35,7 +36,9 @@ Where the force alone finds no free level (a damped tissue pulling below it at e
 release on a closure quantised coarser than its noise, a soft law resting at its force),
 the closure tells: free jaws rest at the session's most open closure, held there with
 one force level, in :data:`MIN_REST_STRETCHES` stretches or more; a squeeze in contact
-throughout only passes its most open closure at a turn.
+throughout only passes its most open closure at a turn. Jaws seen resting so are free
+however the force reads, and end the grasp before them: a damped tissue's pull on
+release keeps the smoothed force off the free level for most of a short break.
 The regressions run on the smoothed force taken every smoothing width, whose noise is
 then nearly independent.
 """
