@@ -143,6 +143,20 @@ def test_a_fast_grasp_session_with_short_rests_is_fitted_on_its_grasps(seed):
     assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
 
 
+def test_a_slow_8_bit_squeeze_keeps_its_quadratic_damping():
+    """A 2.3 s slow squeeze of x+xdot|xdot|+xddot in contact throughout (8 bits, 4.4
+    kHz): friction's column is xdot and xdot|xdot| together there, and that once made K,
+    the offset and the three speed terms one column, so no law with xdot|xdot| was
+    scored and x+maxwell was chosen (P 1.00, held-out error 160-180 times the noise
+    floor). Each term is now merged only with a term it is one column with on its own."""
+    seed = 2520607
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+    assert "xdot|xdot|" in gen.chosen_law(est).name
+
+
 @pytest.mark.slow
 def test_the_law_standing_for_one_with_unidentified_terms_is_followed_to_a_clean_one():
     """A 2.9 s slow squeeze of x^3+xdot+xddot in contact throughout, 5.8 % noise: two
