@@ -38,7 +38,8 @@ from tissuecli.core.errors import TissueError
 from tissuecli.core.session import Session
 from tissuecli.core.terms import Law
 from tissuecli.core.tissue import Tissue
-from tissuecli.identify import BayesianFit
+from tissuecli.identify import BayesianFit, whiten
+from tissuecli.identify.whiten import LIKELIHOODS
 from tissuecli.sim.protocols import random_protocol
 from tissuecli.sim.scenes import FAMILIES, random_scene
 from tissuecli.sim.synth import ForcepsModel, Sensors, synthesize
@@ -165,7 +166,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, help="first seed of the random sessions (fresh if unset)")
     ap.add_argument("--only", choices=["paper", "protocols", "random"],
                     help="one part of the table")  # fmt: skip
+    ap.add_argument("--likelihood", choices=sorted(LIKELIHOODS), help="the fits' likelihood")
     args = ap.parse_args(argv)
+    if args.likelihood:
+        whiten.DEFAULT_LIKELIHOOD = args.likelihood
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % 2**31)
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; coverage of each "
           "coefficient's 95 % interval (RMS z); [binomial 95 % range]", flush=True)  # fmt: skip

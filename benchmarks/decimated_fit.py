@@ -5,12 +5,17 @@ posterior mean in posterior SDs, the SDs' ratio and the effective samples.
 
 Usage::
 
-    python benchmarks/decimated_fit.py [SECONDS ...]
-    python benchmarks/decimated_fit.py --against CHECKOUT [--repeats R] [SECONDS ...]
+    python benchmarks/decimated_fit.py [--scene SCENE] [SECONDS ...]
+    python benchmarks/decimated_fit.py --against CHECKOUT [--repeats R] [--scene SCENE]
+        [SECONDS ...]
 
 The simulated forceps at 10 kHz (default 20, 60 and 100 s: 200,000, 600,000 and
 1,000,000 samples), each fitted once each way in this process (``time.process_time``);
-the load average is printed before each session.
+the load average is printed before each session. ``--scene hunt-crossley-12bit``
+fits instead a random operator's noisy 12-bit Hunt-Crossley session at 10 kHz in
+continuous contact (``random_session(FAMILIES["Hunt-Crossley"], rate_hz=10000.0,
+seed=300, duration_s=SECONDS, bits=12)``), whose closure flickers over about a dozen
+of its 1,800 ADC levels in every stride of the coarse grid.
 
 ``--against CHECKOUT`` times the default fit alone (decimated, as ``tissuecli fit``
 runs it) of this checkout and of another, side by side: two worker processes, each
@@ -32,7 +37,16 @@ import numpy as np
 
 from tissuecli.identify import BayesianFit, decimate
 from tissuecli.identify.decimate import fit_stride
-from tissuecli.sim.synth import ForcepsModel, synthesize
+from tissuecli.sim.families import FAMILIES
+from tissuecli.sim.synth import ForcepsModel, random_session, synthesize
+
+#: the sessions ``--scene`` names: SECONDS in, the session out
+SCENES = {
+    "forceps": lambda s: synthesize(ForcepsModel(seed=1, rate_hz=10000.0), s)[0],
+    "hunt-crossley-12bit": lambda s: random_session(
+        FAMILIES["Hunt-Crossley"], rate_hz=10000.0, seed=300, duration_s=s, bits=12
+    )[0],
+}
 
 
 def fit(session: object, above: int) -> tuple[BayesianFit, float]:
@@ -48,9 +62,9 @@ def load() -> str:
     return ", ".join(f"{v:.1f}" for v in os.getloadavg())
 
 
-def worker() -> None:
-    """Fit the session of each length (s) read from stdin by default; print the CPU
-    seconds, the chosen law and its ln evidence."""
+def worker(scene: str) -> None:
+    """Fit the ``scene``'s session of each length (s) read from stdin by default; print
+    the CPU seconds, the chosen law and its ln evidence."""
     BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
     made: dict[float, object] = {}
     import tissuecli
@@ -59,21 +73,21 @@ def worker() -> None:
     for line in sys.stdin:
         s = float(line)
         if s not in made:
-            made[s] = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), s)[0]
+            made[s] = SCENES[scene](s)
         c0 = time.process_time()
         est = BayesianFit().fit(made[s])  # type: ignore[arg-type]
         cpu = time.process_time() - c0
         print(f"{cpu!r}\t{est.best_.name}\t{est.best_.ln_evidence:.6f}", flush=True)
 
 
-def against(checkout: str, repeats: int, seconds: list[float]) -> None:
+def against(checkout: str, repeats: int, seconds: list[float], scene: str) -> None:
     """This checkout and ``checkout`` by turns (see the module's docstring)."""
     here = str(Path(__file__).resolve().parents[1])
     workers = {}
     for name, root in (("this checkout", here), (checkout, checkout)):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]))
         workers[name] = subprocess.Popen(
-            [sys.executable, __file__, "--worker"],
+            [sys.executable, __file__, "--worker", scene],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
         )  # fmt: skip
     for name, p in workers.items():
@@ -107,10 +121,19 @@ def against(checkout: str, repeats: int, seconds: list[float]) -> None:
 
 def main() -> None:
     if "--worker" in sys.argv:
-        worker()
+        worker(sys.argv[sys.argv.index("--worker") + 1])
         return
     args = sys.argv[1:]
-    checkout, repeats = None, 3
+    if "-h" in args or "--help" in args:
+        print(__doc__)
+        return
+    checkout, repeats, scene = None, 3, "forceps"
+    if "--scene" in args:
+        i = args.index("--scene")
+        scene = args[i + 1]
+        del args[i : i + 2]
+        if scene not in SCENES:
+            sys.exit(f"unknown scene {scene!r}; choose {', '.join(SCENES)}")
     if "--against" in args:
         i = args.index("--against")
         checkout = args[i + 1]
@@ -121,12 +144,12 @@ def main() -> None:
         del args[i : i + 2]
     seconds = [float(a) for a in args] or [20.0, 60.0, 100.0]
     if checkout is not None:
-        against(checkout, repeats, seconds)
+        against(checkout, repeats, seconds, scene)
         return
     default = decimate.DECIMATE_ABOVE
     BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
     for s in seconds:
-        session = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), s)[0]
+        session = SCENES[scene](s)
         print(f"load average {load()}", flush=True)
         full, t_full = fit(session, 10**15)
         coarse, t_coarse = fit(session, default)

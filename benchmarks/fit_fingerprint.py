@@ -7,8 +7,8 @@ Usage::
     python benchmarks/fit_fingerprint.py write OUT.json      # fit the sessions
     python benchmarks/fit_fingerprint.py compare A.json B.json
 
-``write`` fits eleven sessions (the paper form of ``search_timing.py`` with grasp
-detection, each family of :mod:`tissuecli.sim.families` as recorded by a random
+``write`` fits twelve sessions (the paper form of ``search_timing.py`` with grasp
+detection at 16 and at 8 bits, each family of :mod:`tissuecli.sim.families` as recorded by a random
 operator, a constant-speed pull and a ramp-and-hold test) and keeps of each the chosen
 law, the warnings, and per law its status, probability, ln evidence, reason, flags,
 posterior means, SDs and 95 % intervals (coefficients, noise and shape). ``compare``
@@ -47,7 +47,11 @@ def sessions() -> dict[str, tuple[Session, str]]:
         "paper form (search_timing)": (
             synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=16)), 10.0)[0],
             "all",
-        )
+        ),
+        "paper form at 8 bits (search_timing)": (
+            synthesize(ForcepsModel(seed=1, sensors=Sensors(bits=8)), 10.0)[0],
+            "all",
+        ),
     }
     for label, tissue in FAMILIES.items():
         s = random_session(tissue, rate_hz=1000.0, seed=300, duration_s=10.0, bits=12)[0]

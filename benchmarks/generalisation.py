@@ -62,7 +62,8 @@ import numpy as np
 from tissuecli.core.errors import TissueError
 from tissuecli.core.session import Session
 from tissuecli.core.terms import Law
-from tissuecli.identify import BayesianFit
+from tissuecli.identify import BayesianFit, whiten
+from tissuecli.identify.whiten import LIKELIHOODS
 from tissuecli.sim.scenes import FAMILIES, Scene, random_scene
 
 HOLD_OUT = 0.3
@@ -323,7 +324,10 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
         help="also this many noisy paper-form sessions in contact throughout",
     )
     ap.add_argument("--quiet", action="store_true", help="the summary alone")
+    ap.add_argument("--likelihood", choices=sorted(LIKELIHOODS), help="the fits' likelihood")
     args = ap.parse_args(argv)
+    if args.likelihood:
+        whiten.DEFAULT_LIKELIHOOD = args.likelihood
     seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(3), "little")
     families = [f.strip() for f in args.families.split(",") if f.strip()] or None
     if families and "paper" in families:

@@ -11,10 +11,14 @@ from the ADC's staircase rather than from white noise of the step's variance: th
 energy of ``k_a * (Q(x_s + u + n) - x_s)`` over 16 draws of the grid's phase ``u`` and
 of the analog noise ``n`` left beside the step (``x_s`` a cubic Savitzky-Golay smoothing
 of the closure, ``k_a`` the acceleration kernel), its interval from the corrected
-sandwich (a diagnostic, not the fit's method).
+sandwich (a diagnostic, not the fit's method). ``--parts`` parts M's error by source:
+each scene fitted again with the true closure (no ADC, no position noise; the measured
+force), and with the true force (the measured closure), each against the truth in the
+first fit's SDs, and the first with the true closure in its own SDs.
 
     python benchmarks/grasp_coverage.py --scenes 200
     python benchmarks/grasp_coverage.py --scenes 200 --bits 16
+    python benchmarks/grasp_coverage.py --scenes 200 --parts
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 from scipy.stats import binom
 
+from tissuecli.core.session import Session
 from tissuecli.identify import BayesianFit
 from tissuecli.identify.derivatives.base import convolve_valid
 from tissuecli.identify.design import design, eiv_correction, position_noise_sd
@@ -81,6 +86,18 @@ def staircase_z(est: BayesianFit, truth: np.ndarray) -> float:
     return float((post.mean[2] + shift - truth[2]) / sd)
 
 
+def error_parts(scene, est: BayesianFit, truth: np.ndarray) -> tuple[float, float, float]:
+    """M's z fitted with the true closure (no ADC, no position noise) in its own SD and
+    in the first fit's, and fitted with the true force (the measured closure) in the
+    first fit's SD: the force noise's share of the error, and the closure's."""
+    s, law, sd = scene.session, scene.tissue.law.name, est.best_.posterior.sd[2]
+    closure = BayesianFit(forms=law, seed=0).fit(Session(s.time, s.force, scene.x)).best_
+    force = BayesianFit(forms=law, seed=0).fit(s.replace(s.time, scene.force, s.position))
+    m = closure.posterior.mean[2] - truth[2]
+    return (m / closure.posterior.sd[2], m / sd,
+            (force.best_.posterior.mean[2] - truth[2]) / sd)  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=200, help="grasp scenes drawn")
@@ -88,6 +105,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--bits", type=int, help="impose this ADC resolution")
     ap.add_argument("--staircase", action="store_true",
                     help="also M with the staircase's correction")  # fmt: skip
+    ap.add_argument("--parts", action="store_true",
+                    help="also M with the true closure, and with the true force")  # fmt: skip
     args = ap.parse_args(argv)
     fixed = {"bits": args.bits} if args.bits else {}
     imposed = f"; {args.bits} bits" if fixed else ""
@@ -105,7 +124,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         z = (post.mean - truth) / post.sd
         st = scene.settings
         zs = staircase_z(est, truth) if args.staircase else np.nan
-        rows.append((*z, st["bits"], st["rate_hz"], st["tempo"], zs))
+        parts = error_parts(scene, est, truth) if args.parts else (np.nan,) * 3
+        rows.append((*z, st["bits"], st["rate_hz"], st["tempo"], zs, *parts))
     d = np.array(rows)
     z, bits, rate, tempo = d[:, :3], d[:, 3], d[:, 4], d[:, 5]
     print(line("grasps found", z) + f"  cpu {time.process_time() - c0:.1f} s")
@@ -119,6 +139,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("M with the staircase's correction (K and S as above):")
         for label, m in [("grasps found", bits > 0), *groups]:
             print(line(label, zs[m]))
+    if args.parts:
+        for k, what in enumerate(("the true closure, in its own SDs",
+                                  "the true closure, in the first fit's SDs",
+                                  "the true force, in the first fit's SDs")):  # fmt: skip
+            zp = np.column_stack([z[:, :2], d[:, 7 + k]])
+            print(f"M with {what} (K and S as above):")
+            for label, m in [("grasps found", bits > 0), *groups]:
+                print(line(label, zp[m]))
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -23,6 +23,8 @@ from typing import Any
 from click.testing import CliRunner
 
 from tissuecli.cli import cli
+from tissuecli.identify import whiten
+from tissuecli.identify.whiten import LIKELIHOODS
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -78,7 +80,10 @@ def row(entry: dict[str, Any], doc: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default=None, help="Run the recordings whose file name has this.")
+    parser.add_argument("--likelihood", choices=sorted(LIKELIHOODS), help="the fits' likelihood")
     args = parser.parse_args(argv)
+    if args.likelihood:
+        whiten.DEFAULT_LIKELIHOOD = args.likelihood
     print(
         "| recording | law | coefficients (posterior mean ± SD) | R² fitted | R² held out | "
         "held-out RMS error of force SD | import + fit |"
@@ -91,6 +96,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                 continue
             doc = run(entry, Path(tmp))
             print(row(entry, doc), flush=True)
+            print(f"{entry['file']}: {doc['data']['effective_samples']:.0f} effective samples of "
+                  f"{doc['data']['samples_used']}",
+                  file=sys.stderr, flush=True)  # fmt: skip
             docs.append(doc)
     return docs
 

@@ -39,7 +39,8 @@ from lab_protocols import constant_speed, relaxation  # noqa: E402
 
 from tissuecli.core.terms import Law  # noqa: E402
 from tissuecli.core.tissue import Tissue  # noqa: E402
-from tissuecli.identify import BayesianFit  # noqa: E402
+from tissuecli.identify import BayesianFit, whiten  # noqa: E402
+from tissuecli.identify.whiten import LIKELIHOODS  # noqa: E402
 from tissuecli.sim.families import FAMILIES as LAWS  # noqa: E402
 from tissuecli.sim.synth import ForcepsModel, Sensors, random_session, synthesize  # noqa: E402
 
@@ -189,7 +190,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("seeds", nargs="?", type=int, default=4, help="seeds per protocol or law")
     ap.add_argument("--parts", default="protocols,paper,families")
+    ap.add_argument("--likelihood", choices=sorted(LIKELIHOODS), help="the fits' likelihood")
     args = ap.parse_args()
+    if args.likelihood:
+        whiten.DEFAULT_LIKELIHOOD = args.likelihood
     parts = {p.strip() for p in args.parts.split(",")}
     seeds = args.seeds
     print(f"load average {os.getloadavg()[0]:.1f}; {seeds} seeds per protocol; "

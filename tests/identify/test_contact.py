@@ -12,7 +12,9 @@ import pytest
 
 from tissuecli.core.session import Session
 from tissuecli.identify.contact import _flat, _min_free, _noise_sd, find_contact
-from tissuecli.sim.scenes import random_scene
+from tissuecli.sim.scenes import FAMILIES, random_scene
+
+PAPER = [f for f in FAMILIES if f.startswith("paper")]
 
 
 def _read(seed: int) -> tuple[bool, float, float]:
@@ -54,6 +56,36 @@ def test_weak_grasps_of_noisy_sessions_are_found(seed: int) -> None:
     assert contact_as_free < 0.7
 
 
+def _read_fitted(seed: int) -> tuple[bool, float, float]:
+    """:func:`_read` on the first 70 % of a paper-form scene of at most 10,000 samples,
+    the part the generalisation benchmark fits."""
+    scene = random_scene(seed, families=PAPER, max_samples=10_000)
+    i = int(np.searchsorted(scene.session.time, scene.session.time[0] + 0.7 * np.ptp(
+        scene.session.time)))  # fmt: skip
+    found = find_contact(scene.session.replace(scene.session.time[:i],
+                                               scene.session.force[:i],
+                                               scene.session.position[:i]))  # fmt: skip
+    true = scene.x[:i] > 0
+    return (
+        found.all_contact,
+        float(np.mean(found.mask[~true])),
+        float(np.mean(~found.mask[true])),
+    )
+
+
+@pytest.mark.parametrize("seed", [11768711, 11768714])
+def test_rests_shorter_than_two_smoothing_widths_are_found(seed: int) -> None:
+    """1 s sessions at 9-10 kHz whose jaws rest open for 20-40 ms between grasps (one
+    to two smoothing widths of 20 ms), read as one contact when a rest had to last two
+    widths; and where the damped tissue's pull on release kept the smoothed force off
+    the free level for most of the break, the break was closed as shorter than
+    MIN_GAP_S, merging the grasps (44 % of the free samples read in contact). A rest
+    seen on the closure now ends a grasp."""
+    whole, free_as_contact, _ = _read_fitted(seed)
+    assert not whole
+    assert free_as_contact < 0.05
+
+
 def test_grasp_edges_are_placed_within_the_smoothing() -> None:
     """Over 40 grasp scenes of every family: none read as one contact (1 before), at
     most 2 % of the free samples read in contact in any (4.1 % before: the moving mean
@@ -66,10 +98,10 @@ def test_grasp_edges_are_placed_within_the_smoothing() -> None:
 
 
 def test_a_free_stretch_is_a_few_smoothing_widths_and_samples() -> None:
-    """Two smoothing widths at a fast rate, never fewer than 32 samples, never more
+    """One smoothing width at a fast rate, never fewer than 32 samples, never more
     than 0.1 s."""
-    assert _min_free(1 / 8000, 160) == 320
-    assert _min_free(1 / 1000, 20) == 40
+    assert _min_free(1 / 8000, 160) == 160
+    assert _min_free(1 / 1000, 20) == 32
     assert _min_free(1 / 400, 8) == 32
     assert _min_free(1 / 250, 5) == 25
     assert _min_free(1 / 100, 2) == 10

@@ -15,7 +15,7 @@ from tissuecli.core.terms import Law, Maxwell
 from tissuecli.identify import BayesianFit, decimate
 from tissuecli.identify.decimate import fit_stride
 from tissuecli.identify.derivatives import Gaussian
-from tissuecli.identify.derivatives.base import first_order, level_basis
+from tissuecli.identify.derivatives.base import first_order, level_basis, padded_levels
 from tissuecli.identify.design import design, noise_path
 from tissuecli.identify.noise import filter_tau
 from tissuecli.identify.spectrum import convolve_valid, convolve_valid_every
@@ -196,6 +196,29 @@ def test_contact_and_speed_columns_on_the_coarse_grid() -> None:
         rtol=1e-9,
         atol=1e-12 * np.abs(full).max(),
     )
+
+
+@pytest.mark.parametrize("stride", [2, 7, 40, 41])
+def test_closure_columns_read_into_the_padded_input_are_the_filtered_ones(stride: int) -> None:
+    # a closure on many ADC levels, each flickering within a stride (no level basis
+    # pays): the function's values at the levels are read straight into the strided
+    # filter's padded input, bit for bit the sums of filtering them at every sample
+    rng = np.random.default_rng(3)
+    n = 20_000
+    x = np.round((np.sin(np.linspace(0, 9, n)) + 0.05 * rng.standard_normal(n)) * 600) / 6e5
+    force = rng.standard_normal(n)
+    kin = Gaussian()(np.arange(n) * 1e-4, x, force).every(stride)
+    assert padded_levels(x, kin.window, stride) is not None
+    assert level_basis(kin, x) is None and level_basis(kin, x, speed=True) is None
+    speed = np.gradient(x, kin.dt)
+    for fn in (lambda z: np.abs(z) ** 1.7, lambda z: np.where(z > 0, z, 0.0)):
+        assert np.array_equal(kin.smooth_pointwise(fn, x), kin.smooth(kin.pointwise(fn, x)))
+        assert np.array_equal(
+            kin.smooth_pointwise(fn, x, speed), kin.smooth(kin.pointwise(fn, x) * speed)
+        )
+    # a closure on as many levels as samples is filtered as before
+    smooth = x + 1e-12 * rng.standard_normal(n)
+    assert padded_levels(smooth, kin.window, stride) is None
 
 
 def _both(session, monkeypatch, above: int):  # type: ignore[no-untyped-def]

@@ -130,6 +130,33 @@ def test_a_slow_cubic_squeeze_in_contact_is_not_handed_to_a_law_far_behind():
     assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
 
 
+@pytest.mark.parametrize("seed", [11768711, 11768714])
+def test_a_fast_grasp_session_with_short_rests_is_fitted_on_its_grasps(seed):
+    """1 s grasp sessions of x+xdot+xddot at 9-10 kHz whose jaws rest open for 20-40 ms
+    between grasps: read as one contact (or their grasps merged across a break), the law
+    misfitted the open jaws and the default chose contact+contact*xdot (P 0.99) or
+    contact+xddot (P 0.41). With the rests found the truth is chosen."""
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert not est.contact_.all_contact
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+
+
+def test_a_slow_8_bit_squeeze_keeps_its_quadratic_damping():
+    """A 2.3 s slow squeeze of x+xdot|xdot|+xddot in contact throughout (8 bits, 4.4
+    kHz): friction's column is xdot and xdot|xdot| together there, and that once made K,
+    the offset and the three speed terms one column, so no law with xdot|xdot| was
+    scored and x+maxwell was chosen (P 1.00, held-out error 160-180 times the noise
+    floor). Each term is now merged only with a term it is one column with on its own."""
+    seed = 2520607
+    scene = random_scene(seed, families=PAPER, max_samples=10000)
+    fitted, _, _ = gen.split(scene.session)
+    est = BayesianFit("all", seed=seed).fit(fitted)
+    assert scene.right(gen.chosen_law(est)), gen.chosen_law(est).name
+    assert "xdot|xdot|" in gen.chosen_law(est).name
+
+
 @pytest.mark.slow
 def test_the_law_standing_for_one_with_unidentified_terms_is_followed_to_a_clean_one():
     """A 2.9 s slow squeeze of x^3+xdot+xddot in contact throughout, 5.8 % noise: two

@@ -62,6 +62,7 @@ from .scoring import (
 from .search import Scope, Search, search_strategy
 from .shaped import exact_shaped
 from .shapes import shape_grid
+from .whiten import ARFilter, Likelihood, Prewhitened, likelihood_strategy, precision_ratio
 
 Array = NDArray[np.float64]
 
@@ -124,6 +125,11 @@ class BayesianFit(Estimator):
     search : {"greedy", "exhaustive"} or Search
         The structure search of ``forms="all"`` (:mod:`~tissuecli.identify.search`): by
         name (a registered :class:`~tissuecli.identify.search.Search`) or an instance.
+    likelihood : {"tempered", "prewhitened"} or Likelihood, optional
+        How the evidence counts correlated residuals (:mod:`~tissuecli.identify.whiten`):
+        a likelihood tempered by the data weight, or the exact likelihood of
+        autoregressive residuals (force and design through its whitening filter). By
+        default :data:`~tissuecli.identify.whiten.DEFAULT_LIKELIHOOD`.
 
     Attributes
     ----------
@@ -166,6 +172,7 @@ class BayesianFit(Estimator):
         grasps: str | Sequence[int] = "all",
         progress: Progress | Callable[[str, int, float], None] | None = None,
         search: str | Search = "greedy",
+        likelihood: str | Likelihood | None = None,
     ) -> None:
         self.forms = forms
         self.grasps = grasps
@@ -177,6 +184,7 @@ class BayesianFit(Estimator):
         self.seed = seed
         self.progress = progress
         self.search = search
+        self.likelihood = likelihood
 
     def fit(self, session: Session) -> BayesianFit:
         """Fit every candidate law to ``session``; returns self with the fitted
@@ -196,6 +204,7 @@ class BayesianFit(Estimator):
         if self.sampler not in ("auto", "emcee"):
             raise FitError(f"unknown sampler {self.sampler!r}; choose auto or emcee")
         self._strategy = search_strategy(self.search)
+        likelihood = likelihood_strategy(self.likelihood)
         models = parse_forms(self.forms)
         self._progress = as_progress(self.progress)
         self._progress.stage("filtering and finding grasps")
@@ -278,9 +287,20 @@ class BayesianFit(Estimator):
                 tau, weight = tau_ls, weight_ls
         del A
         collapsed = weight == weight_filter
+        # the prewhitened likelihood: the best linear law's residuals set the filter, its
+        # lags one smoothing-filter correlation time apart, and the rows keep the
+        # filter's weight (what it says of the smoothed sensor noise, exact for it)
+        whiten: ARFilter | None = None
+        step = max(1, round(tau_filter))
+        if isinstance(likelihood, Prewhitened) and best_ls is not None:
+            whiten = likelihood.filter_for(residual, step)
+            tau, weight = tau_filter, weight_filter
+            firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths, whiten)
+                      for m in linear}  # fmt: skip
 
         fit = Context(kin, x_full, y, sigma_x, weight, scales, columns, paths, rng,
-                      scored=self._tick, chain_progress=self._progress_for)  # fmt: skip
+                      scored=self._tick, chain_progress=self._progress_for,
+                      whiten=whiten)  # fmt: skip
         self._scored = 0
         self._known = len(linear) + len(shaped)
         self._progress.stage("structure search", self._known)
@@ -289,7 +309,22 @@ class BayesianFit(Estimator):
         # sensor noise, or no candidate fits), or coefficients more variable across
         # blocks than the tempered likelihood says (noise in the regressors), the data
         # count for less, and every law is scored again at that weight.
-        tau_best, weight_best = self._residual_weight(results, fit, measured)
+        if whiten is not None:
+            # prewhitened: the filter is refitted to the residuals of the law with the
+            # most evidence, and every law scored again through it if that law is not
+            # the one that set it
+            top, residual_top = self._top_residual(results, fit)
+            if top != best_name:
+                whiten = likelihood.filter_for(residual_top, step)
+                firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths, whiten)
+                          for m in linear}  # fmt: skip
+                fit = replace(fit, whiten=whiten, lead=-math.inf, shaped_passes={})
+                self._progress.stage("structure search, scored again", self._known)
+                self._scored = 0
+                results, found = self._candidates(linear, shaped, firsts, fit)
+            tau_best, weight_best = tau, weight
+        else:
+            tau_best, weight_best = self._residual_weight(results, fit, measured)
         if weight_best < weight / WEIGHT_SLACK or (collapsed and weight_best < weight):
             tau, weight = tau_best, weight_best
             fit = replace(fit, weight=weight, lead=-math.inf)
@@ -337,6 +372,10 @@ class BayesianFit(Estimator):
                 f"of the force range ({span:.3g} N): the session looks noise-free "
                 "(synthetic?), so its intervals reflect rounding, not measurement noise"
             )
+        if whiten is not None:
+            ratio = self._whitened_ratio(best, fit)
+            weight *= ratio
+            tau = measured / weight
         kin = full_kin
         fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(outlier_warnings(kin, fitted))
@@ -505,6 +544,31 @@ class BayesianFit(Estimator):
                 f"for {rival.name}"
             )
 
+    def _top_residual(self, results: list[ModelResult], fit: Context) -> tuple[str, Array]:
+        """The name of the law with the most evidence and its least-squares residuals
+        (N) at the fitted rows, unfiltered."""
+        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
+        top = max(ranked, key=lambda r: r.ln_evidence)
+        law = top.least_squares[0] if top.least_squares is not None else top.model
+        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        beta = lstsq_scaled_cond(A, fit.y)[0]
+        return top.name, fit.y - A @ beta
+
+    def _whitened_ratio(self, best: ModelResult, fit: Context) -> float:
+        """Effective samples per sample of the prewhitened evidence for the chosen law
+        (:func:`~tissuecli.identify.whiten.precision_ratio`): its coefficients' precision
+        through the filter against a white likelihood's on the raw rows."""
+        assert fit.whiten is not None
+        law = best.least_squares[0] if best.least_squares is not None else best.model
+        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        beta = lstsq_scaled_cond(A, fit.y)[0]
+        r = fit.y - A @ beta
+        Aw, yw = fit.whiten.transform(A), fit.target
+        rw = yw - Aw @ lstsq_scaled_cond(Aw, yw)[0]
+        ratio = precision_ratio(Aw.T @ Aw, float(rw @ rw) / max(yw.size, 1), A.T @ A,
+                                float(r @ r) / max(fit.y.size, 1))  # fmt: skip
+        return float(np.clip(ratio, 1.0 / fit.y.size, 1.0e3))
+
     def _residual_weight(
         self, results: list[ModelResult], fit: Context, measured: float
     ) -> tuple[float, float]:
@@ -564,7 +628,8 @@ class BayesianFit(Estimator):
         """One law scored at ``fit``'s weight: its shape marginalised if it has one."""
         if law.shape_names:
             return exact_shaped(law, fit)
-        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths)
+        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths,
+                        fit.whiten)  # fmt: skip
         return exact_result(law, fp, fit)
 
     def _candidates(

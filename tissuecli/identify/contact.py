@@ -10,7 +10,8 @@ and until it comes within 3 (leaving): SDs of the smoothed force's own noise, me
 on the free stretches, where the raw noise dithers the force's quantisation (else of the
 raw force's noise). Each edge then goes where the raw force steps most within half a
 smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
-grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one. When no free stretch
+grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one, unless the jaws are
+seen resting open in them (below). When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
 
 Free jaws read the sensor's offset whatever the jaws do; tissue answers the closure
@@ -35,7 +36,9 @@ Where the force alone finds no free level (a damped tissue pulling below it at e
 release on a closure quantised coarser than its noise, a soft law resting at its force),
 the closure tells: free jaws rest at the session's most open closure, held there with
 one force level, in :data:`MIN_REST_STRETCHES` stretches or more; a squeeze in contact
-throughout only passes its most open closure at a turn.
+throughout only passes its most open closure at a turn. Jaws seen resting so are free
+however the force reads, and end the grasp before them: a damped tissue's pull on
+release keeps the smoothed force off the free level for most of a short break.
 The regressions run on the smoothed force taken every smoothing width, whose noise is
 then nearly independent.
 """
@@ -82,11 +85,15 @@ MAX_BINS = 4096
 MIN_REST_STRETCHES = 3
 #: t statistic above which a stretch's force follows the closure or its speed
 FOLLOW_T = 4.0
-#: jaws resting open last at least this many smoothing widths (the smoothed closure and
-#: force of their middle half then reach no further than the rest) and this many samples
+#: jaws resting open last at least this many smoothing widths and this many samples
 #: (each half of its middle then holds eight: a few at a slow rate and a quantised force
-#: rest flat by chance); no more than :data:`MIN_GRASP_S`
-MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 2, 32
+#: rest flat by chance); no more than :data:`MIN_GRASP_S`. One width suffices: the
+#: stretch is read on the smoothed closure, which leaves the most open closure as soon
+#: as its window takes in jaws that move, so the jaws rest half a width beyond each
+#: end, and the smoothed force of its middle half reads resting jaws alone (two widths
+#: cut the rests of a fast session short, 40-60 ms at 9-10 kHz, and read it as one
+#: contact)
+MIN_FREE_WIDTHS, MIN_FREE_SAMPLES = 1, 32
 #: a force whose noise SD is at least this many quantisation steps is dithered: its
 #: moving mean averages the noise down
 DITHER_STEPS = 2.0
@@ -165,12 +172,13 @@ def find_contact(session: Session) -> Contact:
     resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
     still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
     baseline, free = _baseline(smooth, closure, noise, dt, width, still)
+    rests = np.zeros(n, bool)  # jaws seen resting open: free, whatever the force does
     if free < MIN_FREE_FRACTION:
         # the force alone found no free level: jaws resting open between grasps, told by
         # the closure (a damped tissue pulls the force below the free level on release,
         # and a soft law rests at the free level's force at small closure)
         q = _step(session.position) if not resolved else 0.0
-        baseline, free = _open_rest(smooth, closure, noise, dt, width, max(still, q))
+        baseline, free, rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -192,9 +200,13 @@ def find_contact(session: Session) -> Contact:
     level_sd = _free_sd(above, mask, noise, width) if dithered else noise
     if level_sd < noise:
         mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
-    mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)))
+    # a break shorter than MIN_GAP_S ends no grasp, unless the jaws are seen resting open
+    # in it (a fast session's rests last 20-60 ms, and a damped tissue's pull on release
+    # keeps the smoothed force off the free level for part of its break)
+    mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
     if dithered:
         mask = _sharpen(mask, f - baseline, width)
+    mask &= ~rests
     grasps = []
     for start, stop in _runs(mask):
         if (stop - start) * dt < MIN_GRASP_S:
@@ -331,9 +343,10 @@ def _baseline(
 
 def _open_rest(
     smooth: Array, closure: Array, noise: float, dt: float, width: int, tol: float
-) -> tuple[float, float]:
+) -> tuple[float, float, NDArray[np.bool_]]:
     """The free-jaw level from jaws resting at their most open closure between grasps,
-    and the fraction of the session they rest there (0 when they do not).
+    the fraction of the session they rest there (0 when they do not), and where they
+    rest (True on those samples; none when they do not).
 
     Free jaws rest open, at the session's smallest closure, in stretches of one force
     level, again and again; a squeeze in contact throughout passes its smallest closure
@@ -343,8 +356,9 @@ def _open_rest(
     of them at one level (within :data:`ENTER_SD` noise SDs), covering
     :data:`MIN_FREE_FRACTION` of the session.
     """
+    none = np.zeros(smooth.size, bool)
     if not tol > 0 or smooth.size < 2:
-        return float("nan"), 0.0
+        return float("nan"), 0.0, none
     step = max(width, 1)
     low = float(np.percentile(closure, 1))
     at_open = closure <= low + 2 * tol
@@ -360,11 +374,11 @@ def _open_rest(
         levels.append(float(np.median(smooth[middle])))
         rest[start:stop] = True
     if len(levels) < MIN_REST_STRETCHES:
-        return float("nan"), 0.0
+        return float("nan"), 0.0, none
     level = float(np.median(levels))
     if np.max(np.abs(np.array(levels) - level)) > ENTER_SD * noise:
-        return float("nan"), 0.0  # the force rests at different levels: tissue's
-    return level, float(np.mean(rest))
+        return float("nan"), 0.0, none  # the force rests at different levels: tissue's
+    return level, float(np.mean(rest)), rest
 
 
 def _step(x: Array) -> float:
@@ -512,12 +526,17 @@ def _hysteresis(signal: Array, enter: float, leave: float) -> NDArray[np.bool_]:
     return mask
 
 
-def _close_gaps(mask: NDArray[np.bool_], width: int) -> NDArray[np.bool_]:
+def _close_gaps(
+    mask: NDArray[np.bool_], width: int, keep: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
+    """``mask`` with its inner gaps of at most ``width`` samples filled, but for those
+    holding a True sample of ``keep``."""
     out = mask.copy()
     runs = _runs(~mask)
     for start, stop in runs:
         if 0 < start and stop < mask.size and stop - start <= width:
-            out[start:stop] = True
+            if keep is None or not keep[start:stop].any():
+                out[start:stop] = True
     return out
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,6 +14,9 @@ from numpy.typing import NDArray
 from ..core.terms import Law, Term
 from .derivatives import Kinematics
 from .spectrum import valid_spectrum
+
+if TYPE_CHECKING:
+    from .whiten import ARFilter
 
 Array = NDArray[np.float64]
 
@@ -154,6 +157,7 @@ def eiv_correction(
     x_full: Array,
     sigma_x: float,
     paths: dict[str, tuple[Array, Array]] | None = None,
+    whiten: ARFilter | None = None,
 ) -> Array:
     """Expected contribution of position noise to A^T A (errors in variables).
 
@@ -162,11 +166,15 @@ def eiv_correction(
     ``E[noise_i . noise_j] = sigma_x^2 (k_i . k_j) sum_n d_i d_j``. Subtracting it
     removes the attenuation bias that noisy derivatives put on M. ``paths``, if
     given, keeps each term's :func:`noise_path` by name, as ``columns`` does in
-    :func:`design`.
+    :func:`design`. ``whiten``: the correction of the columns passed through that
+    filter (each kernel convolved with its taps; the slopes, slow beside the noise,
+    taken as constant over its span).
     """
     parts = [term_noise_path(t, kin, x_full, paths, sigma_x) for t in law.terms]
     K = np.array([k for k, _ in parts])
     d = np.column_stack([slope for _, slope in parts])
+    if whiten is not None:
+        K, d = whiten.kernels(K, kin.stride), d[whiten.span :]
     return sigma_x**2 * (K @ K.T) * (d.T @ d)
 
 

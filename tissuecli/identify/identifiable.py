@@ -70,6 +70,10 @@ class Design:
         Terms whose column is noise or rounding on this recording.
     groups : list of list of str
         Terms whose columns are one column here (two or more each; the first is kept).
+    combined : dict of str to list of str
+        Terms whose column is, here, a combination of two or more other terms' columns
+        (and no one of them alone), with those terms: all are kept, and a law holding
+        all of them is collinear.
     summary : str
         One line saying so, or "" when every term is its own column.
     """
@@ -82,6 +86,9 @@ class Design:
     floor: Array = field(default_factory=lambda: np.zeros(0), repr=False)
     unexcited: list[str] = field(default_factory=list)
     groups: list[list[str]] = field(default_factory=list)
+    #: terms whose column is a combination of two or more kept columns and of none
+    #: alone, with those columns (every term stays; a law with all of them is collinear)
+    combined: dict[str, list[str]] = field(default_factory=dict)
     summary: str = ""
 
     def representative(self, name: str) -> str:
@@ -206,20 +213,29 @@ def examine(
         if ms <= NOISE_RATIO * noise[j] or rounding or not ms > 0:
             design.unexcited.append(t.name)
     live = [j for j in range(len(terms)) if terms[j].name not in design.unexcited]
-    # groups: each column tested against the ones kept before it; merged with those of
-    # them that carry it
+    # groups: each column tested against the ones kept before it. It is one column with
+    # a kept column it cannot be told from on its own; a column that only a combination
+    # of kept columns carries makes no two of them one (friction at speeds about its
+    # smoothing speed is S and S2 together, and S and S2 stay apart): it stays, and
+    # only the laws that hold it beside all of its partners are collinear
     kept: list[int] = []
     for j in live:
-        if kept and design.merged(j, kept):
-            partners = _partners(gram, j, kept)
-            group = next((g for g in design.groups if names[partners[0]] in g), None)
-            if group is None:
-                design.groups.append([names[p] for p in partners] + [names[j]])
-            else:
-                group.extend(names[p] for p in partners if names[p] not in group)
-                group.append(names[j])
-        else:
+        if not kept or not design.merged(j, kept):
             kept.append(j)
+            continue
+        single = [p for p in kept if design.merged(j, [p])]
+        if not single:
+            partners = _partners(gram, j, kept)
+            if not design.merged(j, partners):  # the small coefficients mattered
+                partners = list(kept)
+            design.combined[names[j]] = [names[p] for p in partners]
+            continue
+        partner = names[single[0]]
+        group = next((g for g in design.groups if partner in g), None)
+        if group is None:
+            design.groups.append([partner, names[j]])
+        else:
+            group.append(names[j])
     design.summary = _summary(design)
     return design
 
@@ -256,6 +272,10 @@ def _summary(design: Design) -> str:
                                                   if n in order else len(order))]  # fmt: skip
         listed = ", ".join(words[:-1]) + " and " + words[-1]
         parts.append(f"{listed} are one column")
+    for name, partners in design.combined.items():
+        words = [WORDS.get(n, n) for n in partners]
+        parts.append(f"{WORDS.get(name, name)} is {', '.join(words[:-1])} and {words[-1]} "
+                     "together")  # fmt: skip
     if design.unexcited:
         words = [WORDS.get(n, n) for n in design.unexcited]
         listed = ", ".join(words[:-1]) + " and " + words[-1] if len(words) > 1 else words[0]

@@ -19,6 +19,7 @@ from .design import design, eiv_correction, lstsq_scaled_cond
 from .noise import corrected_curvature
 from .posterior import ExactPosterior, Posterior, Prior, SufficientStats, gram_lstsq
 from .priors import law_prior
+from .whiten import ARFilter
 
 Array = NDArray[np.float64]
 
@@ -117,6 +118,25 @@ class Context:
     #: the best evidence of a trusted law scored at this weight so far (a law that
     #: cannot come near it needs its bounds' mass only roughly: ExactPosterior.rough)
     lead: float = -math.inf
+    #: the prewhitened likelihood's filter (:mod:`~tissuecli.identify.whiten`): force
+    #: and columns pass through it before their statistics are taken; None: tempered
+    whiten: ARFilter | None = None
+
+    @property
+    def target(self) -> Array:
+        """The force the statistics are taken of: ``y``, through the filter if any."""
+        if self.whiten is None:
+            return self.y
+        cached = getattr(self, "_target", None)
+        if cached is None or cached[0] is not self.whiten:
+            cached = (self.whiten, self.whiten.transform(self.y))
+            self._target = cached
+        return cached[1]
+
+    @property
+    def rows(self) -> int:
+        """Rows of the statistics: ``y``'s, less the filter's order."""
+        return self.y.size - (self.whiten.span if self.whiten is not None else 0)
 
 
 def first_pass(
@@ -127,13 +147,17 @@ def first_pass(
     sigma_x: float,
     columns: dict[str, Array] | None = None,
     paths: dict[str, tuple[Array, Array]] | None = None,
+    whiten: ARFilter | None = None,
 ) -> FirstPass:
     """One pass over ``model``'s design matrix at the fitted samples (shape (m, p)):
     its Gram matrix and products with the force ``y`` (N), the least-squares fit and its
     residual, the condition numbers, and the errors-in-variables correction for position
     noise of SD ``sigma_x`` (m). ``columns`` and ``paths`` share the terms' columns and
-    noise paths between laws."""
+    noise paths between laws. ``whiten``: the statistics of force and columns passed
+    through that filter (the prewhitened likelihood)."""
     A = design(model, kin, x_full, sigma_x, columns)
+    if whiten is not None:
+        A, y = whiten.transform(A), whiten.transform(y)
     gram = A.T @ A
     b = A.T @ y
     # least squares on unit-norm columns through the Gram matrix (one O(n p^2) product
@@ -158,7 +182,9 @@ def first_pass(
         rss=float(r @ r),
         cond=cond,
         cond_scaled=cond_scaled,
-        correction=eiv_correction(model, kin, x_full, sigma_x, paths) if sigma_x > 0 else None,
+        correction=(
+            eiv_correction(model, kin, x_full, sigma_x, paths, whiten) if sigma_x > 0 else None
+        ),
     )
 
 
@@ -176,7 +202,7 @@ def law_stats(
     if corr is not None and rss_c is not None:  # centred on the corrected fit
         rss = max(rss_c, 0.0)
         G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, rss)
-    w, n = fit.weight, fit.y.size
+    w, n = fit.weight, fit.rows
     st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
     prior = law_prior(model, fit.scales)
     flags = []
@@ -252,7 +278,7 @@ def result_of(
         posterior=post,
         cond=fp.cond,
         cond_scaled=fp.cond_scaled,
-        residual_rms=float(np.sqrt(fp.rss / fit.y.size)),
+        residual_rms=float(np.sqrt(fp.rss / fit.rows)),
         gram=fp.gram,
         correction=corr,
         stats=st,

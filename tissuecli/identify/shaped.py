@@ -220,7 +220,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     post.ln_evidence = float(ln_evidence)
     ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
     ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
-    ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.y.size))
+    ls_rms = float(np.sqrt(ls_value[1][0].rss / fit.rows))
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in grid.ranges.items())
     res = shaped_result(law, point, post, evaluate_fine, fit)
     res.reason = f"{how} ({ranges})"
@@ -471,52 +471,69 @@ class ShapedPass:
                         np.ix_(moving, moving))  # fmt: skip
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         cols = [term_column(terms[j], kin, x, sx, fit.columns) for j in self.fixed]
-        self.F = np.column_stack(cols) if cols else np.zeros((fit.y.size, 0))
+        self.F = self._white(np.column_stack(cols) if cols else np.zeros((fit.y.size, 0)))
+        y = fit.target
         self.G_ff = self.F.T @ self.F
-        self.b_f = self.F.T @ fit.y
-        self.yy = float(fit.y @ fit.y)
+        self.b_f = self.F.T @ y
+        self.yy = float(y @ y)
         self.speed = raw_speed(kin, x)
         if sx > 0:
             paths = [term_noise_path(terms[j], kin, x, fit.paths, sx) for j in self.fixed]
             width = kin.kernels[0].size
-            self.K_f = np.array([k for k, _ in paths]).reshape(len(paths), width)
-            self.D_f = np.column_stack([d for _, d in paths]) if paths else self.F[:, :0]
+            self.K_f = self._kernels(np.array([k for k, _ in paths]).reshape(len(paths), width))
+            D_f = np.column_stack([d for _, d in paths]) if paths else np.zeros((fit.y.size, 0))
+            self.D_f = self._white_rows(D_f)
             self.DtD_f = self.D_f.T @ self.D_f
+
+    def _white(self, X: Array) -> Array:
+        """Columns (first axis: rows) through the prewhitening filter, if the fit has one."""
+        w = self.fit.whiten
+        return X if w is None else w.transform(X)
+
+    def _white_rows(self, D: Array) -> Array:
+        """Slopes at the rows the filter keeps (slow beside the noise: not filtered)."""
+        w = self.fit.whiten
+        return D if w is None else D[w.span :]
+
+    def _kernels(self, K: Array) -> Array:
+        """Noise kernels as the filtered columns see them."""
+        w = self.fit.whiten
+        return K if w is None else w.kernels(K, self.fit.kin.stride)
 
     def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
         """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
         fit, bound = self.fit, bound if bound is not None else self.law.bind(node)
         p, fixed, moving = len(bound.terms), self.fixed, self.moving
-        S = np.column_stack(
+        S = self._white(np.column_stack(
             [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,
                          raw_speed=self.speed) for j in moving]
-        )  # fmt: skip
+        ))  # fmt: skip
+        y = fit.target
         gram = self._assemble(self.G_ff, S.T @ self.F, S.T @ S)
         b = np.empty(p)
         b[fixed] = self.b_f
-        b[moving] = S.T @ fit.y
+        b[moving] = S.T @ y
         d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
         lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
         cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
         if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
-            return first_pass(
-                bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths
-            )
+            return first_pass(bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns,
+                              fit.paths, fit.whiten)  # fmt: skip
         beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
         # from the residuals themselves: yy - 2 beta.b + beta.G.beta cancels to zero (or
         # below) when the law explains all but a millionth of yy, and a zero residual
         # lets the evidence grow without bound as the noise level goes to zero
-        r = fit.y - self.F @ beta[fixed] - S @ beta[moving]
+        r = y - self.F @ beta[fixed] - S @ beta[moving]
         rss = float(r @ r)
         lam = np.linalg.eigvalsh(gram)
         cond = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
         correction = None
         if fit.sigma_x > 0:
             paths = [noise_path(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x) for j in moving]
-            K = np.empty((p, fit.kin.kernels[0].size))
+            K = np.empty((p, self.K_f.shape[1]))
             K[fixed] = self.K_f
-            K[moving] = [k for k, _ in paths]
-            D = np.column_stack([dd for _, dd in paths])
+            K[moving] = self._kernels(np.array([k for k, _ in paths]))
+            D = self._white_rows(np.column_stack([dd for _, dd in paths]))
             DtD = self._assemble(self.DtD_f, D.T @ self.D_f, D.T @ D)
             correction = fit.sigma_x**2 * (K @ K.T) * DtD
         return FirstPass(gram, b, self.yy, beta, rss, cond, cond_scaled, correction)
@@ -529,7 +546,7 @@ class ShapedPass:
         columns out of the recent ones (:data:`~tissuecli.identify.design.RECENT`): a
         chain's shapes never come back, and keeping each cost as much as a filter pass
         on a short session."""
-        m = self.fit.y.size
+        m = self.fit.rows
         per = max(1, BATCH_BYTES // max(8 * m * len(self.moving), 1))
         out: list[FirstPass] = []
         for start in range(0, len(bounds), per):
@@ -540,16 +557,19 @@ class ShapedPass:
         fit, fixed, moving = self.fit, self.fixed, self.moving
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         n, p = len(bounds), len(fixed) + len(moving)
-        S = np.empty((n, fit.y.size, len(moving)))
+        S = np.empty((n, fit.rows, len(moving)))
         for i, bound in enumerate(bounds):
             for c, j in enumerate(moving):
                 t = bound.terms[j]
-                S[i, :, c] = term_column(t, kin, x, sx, raw_speed=self.speed, keep=keep)
+                S[i, :, c] = self._white(
+                    term_column(t, kin, x, sx, raw_speed=self.speed, keep=keep)
+                )
+        y = fit.target
         St = S.transpose(0, 2, 1)
         gram = self._assemble_many(self.G_ff, St @ self.F, St @ S)
         b = np.empty((n, p))
         b[:, fixed] = self.b_f
-        b[:, moving] = St @ fit.y
+        b[:, moving] = St @ y
         d = np.sqrt(np.clip(np.diagonal(gram, axis1=1, axis2=2), 1e-300, None))
         scaled = gram / (d[:, :, None] * d[:, None, :])
         lam_s = np.linalg.eigvalsh(scaled)
@@ -560,7 +580,7 @@ class ShapedPass:
         if good.size:
             beta[good] = np.linalg.solve(scaled[good], (b[good] / d[good])[..., None])[..., 0]
             beta[good] /= d[good]
-        r = (fit.y - (self.F @ beta[:, fixed, None])[..., 0]
+        r = (y - (self.F @ beta[:, fixed, None])[..., 0]
              - (S @ beta[:, moving, None])[..., 0])  # fmt: skip
         rss = (r[:, None, :] @ r[:, :, None])[:, 0, 0]
         lam = np.linalg.eigvalsh(gram)
@@ -569,19 +589,21 @@ class ShapedPass:
         corrections: Array | None = None
         if sx > 0:
             D = S  # the columns are done with: their slopes take their place
-            K = np.empty((n, p, kin.kernels[0].size))
+            K = np.empty((n, p, self.K_f.shape[1]))
             K[:, fixed] = self.K_f
             for i, bound in enumerate(bounds):
                 for c, j in enumerate(moving):
                     t = bound.terms[j]
-                    K[i, j], D[i, :, c] = noise_path(t, kin, x, sx, keep=keep)
+                    k, slope = noise_path(t, kin, x, sx, keep=keep)
+                    K[i, j], D[i, :, c] = self._kernels(k[None])[0], self._white_rows(slope)
             Dt = D.transpose(0, 2, 1)
             DtD = self._assemble_many(self.DtD_f, Dt @ self.D_f, Dt @ D)
             corrections = sx**2 * (K @ K.transpose(0, 2, 1)) * DtD
         out = []
         for i, bound in enumerate(bounds):
             if cond_s[i] >= 1e5:
-                out.append(first_pass(bound, kin, x, fit.y, sx, fit.columns, fit.paths))
+                out.append(first_pass(bound, kin, x, fit.y, sx, fit.columns, fit.paths,
+                                      fit.whiten))  # fmt: skip
                 continue
             out.append(FirstPass(gram[i], b[i], self.yy, beta[i], float(rss[i]), float(cond[i]),
                                  float(cond_s[i]),

@@ -181,16 +181,36 @@ def convolve_valid_every(u: Array, kernel: Array, step: int) -> Array:
         return convolve_valid(u, k)
     if m > n:
         raise ValueError(f"kernel of {m} taps is longer than the {n} samples")
+    out, rows = every_layout(n, m, step)
+    padded = np.zeros(rows * step)
+    used = min(n, padded.size)
+    padded[:used] = u[:used]
+    return convolve_padded_every(padded, k, step, out)
+
+
+def every_layout(n: int, m: int, step: int) -> tuple[int, int]:
+    """The outputs of :func:`convolve_valid_every` of ``n`` samples through ``m`` taps
+    at ``step``, and the rows of ``step`` samples its padded input is cut into (the
+    record, then zeros: ``rows * step`` samples)."""
     out = (n - m) // step + 1
+    return out, out - 1 + -(-m // step)
+
+
+def convolve_padded_every(padded: Array, kernel: Array, step: int, out: int) -> Array:
+    """:func:`convolve_valid_every` of a record already laid out as its padded input
+    (:func:`every_layout`: the record, then zeros to ``rows * step`` samples), ``out``
+    outputs: the same numbers, for a caller that writes the record there directly."""
+    k = np.asarray(kernel, dtype=float)
+    m = k.size
     q = -(-m // step)  # the kernel's blocks
     kr = np.zeros(q * step)
     kr[:m] = k[::-1]  # output i is sum_j kr[j] u[i + j]
     rows = out - 1 + q
-    padded = np.zeros(rows * step)
-    used = min(n, padded.size)
-    padded[:used] = u[:used]
-    blocks = padded.reshape(rows, step) @ kr.reshape(q, step).T  # (rows, q)
+    # (q, rows): each block of taps against every row, a row of the product apiece, so
+    # that the sums below read contiguous memory (each entry the same dot product of
+    # ``step`` terms as in the product's transpose)
+    blocks = kr.reshape(q, step) @ padded.reshape(rows, step).T
     y = np.zeros(out)
     for j in range(q):
-        y += blocks[j : j + out, j]
+        y += blocks[j, j : j + out]
     return y

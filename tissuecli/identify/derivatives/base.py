@@ -25,7 +25,13 @@ from numpy.typing import NDArray
 
 from ...core.errors import FitError
 from ...core.terms import Term
-from ..spectrum import convolve_valid, convolve_valid_every, valid_spectrum
+from ..spectrum import (
+    convolve_padded_every,
+    convolve_valid,
+    convolve_valid_every,
+    every_layout,
+    valid_spectrum,
+)
 
 Array = NDArray[np.float64]
 
@@ -146,6 +152,17 @@ class Kinematics:
             values = fn(basis.levels)
             if np.all(np.isfinite(values)):
                 return basis.weigh(values)
+        if self.stride > 1 and x_full.size >= self.window:
+            laid = padded_levels(x_full, self.window, self.stride)
+            if laid is not None:  # read straight into the strided filter's input
+                levels, index, out = laid
+                u = np.append(np.asarray(fn(levels), dtype=float), 0.0)[index]
+                if speed is not None:
+                    used = min(speed.size, u.size)  # beyond: the padding's zeros
+                    np.multiply(u[:used], speed[:used], out=u[:used])
+                assert self.rows is not None
+                kept = convolve_padded_every(u, self.kernels[0], self.stride, out)
+                return kept[self.rows // self.stride]
         u = self.pointwise(fn, x_full)
         return self.smooth(u if speed is None else u * speed)
 
@@ -432,6 +449,37 @@ def _level_basis(kin: Kinematics, x: Array, speed: bool) -> LevelBasis | None:
 
 
 _EMPTY = (np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp), np.zeros(0))
+
+
+_padded_lock = threading.Lock()
+_padded_of: list[tuple[weakref.ref[Array], int, int, tuple[Array, NDArray[np.intp], int]]] = []
+
+
+def padded_levels(x: Array, m: int, stride: int) -> tuple[Array, NDArray[np.intp], int] | None:
+    """The closure's levels (:func:`_levels`), each sample's level laid out as the padded
+    input of the strided filter (:func:`~tissuecli.identify.spectrum.every_layout`: the
+    record's samples, then the index one past the last level, whose value is 0), and
+    the filter's outputs; None where the closure is not on few levels. A function's
+    values at the levels, with a 0 appended, read at that index are the padded input
+    itself: a long session's closure columns skip the record-long function values and
+    their copy into the padded input. Kept for the last closure, window and stride."""
+    with _padded_lock:
+        if _padded_of:
+            xr, mm, ss, found = _padded_of[0]
+            if xr() is x and mm == m and ss == stride:
+                return found
+    levelled = _levels(x)
+    if levelled is None:
+        return None
+    levels, index = levelled
+    out, rows = every_layout(x.size, m, stride)
+    used = min(x.size, rows * stride)
+    laid = np.full(rows * stride, levels.size, dtype=np.intp)
+    laid[:used] = index[:used]
+    found = (levels, laid, out)
+    with _padded_lock:
+        _padded_of[:] = [(weakref.ref(x), m, stride, found)]
+    return found
 
 
 #: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
