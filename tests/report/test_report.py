@@ -152,10 +152,16 @@ def test_report_has_diagnostics_and_provenance(both: tuple[FitOutcome, str]) -> 
     assert f"tissuecli {__version__}" in footer
 
 
-def test_pinv_only_report(tmp_path: Path) -> None:
-    outcome = fit_session(_session(), method="pinv", forms="x,xdot")
+@pytest.fixture(scope="module")
+def pinv_only(tmp_path_factory: pytest.TempPathFactory) -> tuple[FitOutcome, str]:
+    """The windowed pseudoinverse alone, on a session whose name is markup."""
+    outcome = fit_session(_session(name='<b>liver</b> & "co"'), method="pinv", forms="x,xdot")
+    return outcome, _write(tmp_path_factory.mktemp("pinv"), outcome)
+
+
+def test_pinv_only_report(pinv_only: tuple[FitOutcome, str]) -> None:
+    outcome, text = pinv_only
     assert outcome.bayes is None
-    text = _write(tmp_path, outcome)
     _assert_self_contained(text)
     assert 'id="plot-windows"' in text and 'id="plot-residuals"' in text
     assert 'id="plot-corner"' not in text
@@ -164,9 +170,11 @@ def test_pinv_only_report(tmp_path: Path) -> None:
     assert "no uncertainty" in text
 
 
-def test_bayes_only_report_has_no_windows_chart(tmp_path: Path) -> None:
-    outcome = fit_session(_session(seed=4), method="bayes")
-    text = _write(tmp_path, outcome)
+def test_bayes_only_report_has_no_windows_chart(default_search) -> None:
+    """The report over the default search (below), a Bayesian fit alone."""
+    outcome, path = default_search
+    assert outcome.pinv is None
+    text = path.read_text(encoding="utf-8")
     assert 'id="plot-windows"' not in text
     ids = re.findall(r'<figure id="(plot-[a-z-]+)"', text) or re.findall(
         r'id="(plot-[a-z-]+)"', text
@@ -196,7 +204,9 @@ def test_warnings_are_shown_in_a_box(tmp_path: Path) -> None:
 
 
 def test_emcee_fit_reports_chain_and_sampler_evidence(tmp_path: Path) -> None:
-    outcome = fit_session(_session(seed=6, duration_s=4.0), sampler="emcee")
+    # the paper's four forms, each sampled: a choice among chains, as the default
+    # search's 30 laws give, in 6 s of CPU rather than 14
+    outcome = fit_session(_session(seed=6, duration_s=4.0), sampler="emcee", forms="paper")
     text = _write(tmp_path, outcome)
     assert "ln evidence (stepping-stone)" in text
     assert "Sampler (emcee)" in text
@@ -205,9 +215,8 @@ def test_emcee_fit_reports_chain_and_sampler_evidence(tmp_path: Path) -> None:
     assert "converged (chain &gt; 50 τ)" in text
 
 
-def test_text_is_escaped(tmp_path: Path) -> None:
-    outcome = fit_session(_session(name='<b>liver</b> & "co"'), method="pinv", forms="x,xdot")
-    text = _write(tmp_path, outcome)
+def test_text_is_escaped(pinv_only: tuple[FitOutcome, str]) -> None:
+    _, text = pinv_only
     assert "<b>liver</b>" not in text
     assert "&lt;b&gt;liver&lt;/b&gt; &amp; &quot;co&quot;" in text
 
