@@ -109,6 +109,9 @@ class Context:
     #: first passes of laws with shape parameters, by law and shape: they do not depend
     #: on the data weight, so a fit scored again at another weight reuses them
     shaped_passes: dict[tuple[str, tuple[float, ...]], FirstPass] = field(default_factory=dict)
+    #: the spans of closure functions a long session's shaped laws share
+    #: (:mod:`~tissuecli.identify.reduced`), and their products, by kind
+    spans: dict[Any, Any] = field(default_factory=dict)
     #: told the name of each law scored (the fit's progress)
     scored: Callable[[str], None] = field(default=_nothing, repr=False)
     #: a chain's progress callback for the law of this name, or None

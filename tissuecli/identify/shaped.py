@@ -17,6 +17,7 @@ from ..core.errors import FitError
 from ..core.terms import Law
 from .design import noise_path, raw_speed, term_column, term_noise_path
 from .posterior import CHECK_NATS, ExactPosterior, Posterior, _by_node, _matrix_roots
+from .reduced import ReducedPass
 from .scoring import (
     CUT_THRESHOLD,
     Context,
@@ -484,6 +485,7 @@ class ShapedPass:
             D_f = np.column_stack([d for _, d in paths]) if paths else np.zeros((fit.y.size, 0))
             self.D_f = self._white_rows(D_f)
             self.DtD_f = self.D_f.T @ self.D_f
+        self.reduced = ReducedPass(self)
 
     def _white(self, X: Array) -> Array:
         """Columns (first axis: rows) through the prewhitening filter, if the fit has one."""
@@ -503,6 +505,9 @@ class ShapedPass:
     def __call__(self, node: dict[str, float], bound: Law | None = None) -> FirstPass:
         """The first pass at ``node`` (``bound``: the law bound there, if at hand)."""
         fit, bound = self.fit, bound if bound is not None else self.law.bind(node)
+        fp = self.reduced(bound) if self.reduced.usable else None
+        if fp is not None:
+            return fp
         p, fixed, moving = len(bound.terms), self.fixed, self.moving
         S = self._white(np.column_stack(
             [term_column(bound.terms[j], fit.kin, fit.x_full, fit.sigma_x,
@@ -554,6 +559,18 @@ class ShapedPass:
         return out
 
     def _batch(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
+        if self.reduced.usable:  # each from the spans, the rest as below
+            found = [self.reduced(bound) for bound in bounds]
+            rest = [i for i, fp in enumerate(found) if fp is None]
+            for i, fp in zip(rest, self._filtered([bounds[i] for i in rest], keep), strict=True):
+                found[i] = fp
+            return found  # type: ignore[return-value]
+        return self._filtered(bounds, keep)
+
+    def _filtered(self, bounds: list[Law], keep: bool = True) -> list[FirstPass]:
+        """:meth:`_batch` with every column formed by its filter pass."""
+        if not bounds:
+            return []
         fit, fixed, moving = self.fit, self.fixed, self.moving
         kin, x, sx = fit.kin, fit.x_full, fit.sigma_x
         n, p = len(bounds), len(fixed) + len(moving)
