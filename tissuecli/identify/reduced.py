@@ -121,6 +121,21 @@ class ClosureSpan:
             self._append(q, column)
             return np.append(c, left)
 
+    def coordinates_many(self, values: list[Array]) -> list[Array | None]:
+        """:meth:`coordinates` of several functions, those the basis holds projected
+        together (one read of the basis)."""
+        V = np.asarray(values, dtype=float) * self.weight
+        if not np.all(np.isfinite(V)):
+            return [self.coordinates(v) for v in values]
+        with self._lock:
+            Q = self._Q[: self.size]
+            c = V @ Q.T
+            rest = V - c @ Q
+        left = np.sqrt(np.einsum("ij,ij->i", rest, rest))
+        norm = np.sqrt(np.einsum("ij,ij->i", V, V))
+        return [c[i] if left[i] <= TOLERANCE * norm[i] else self.coordinates(values[i])
+                for i in range(len(values))]  # fmt: skip
+
     def _append(self, q: Array, column: Array) -> None:
         if self.size == self._Q.shape[0]:
             grown = max(16, 2 * self.size)
@@ -141,24 +156,30 @@ class Grown:
     """A product ``A @ B.T`` of two stacks of rows that only grow (basis columns, or a
     fixed matrix's columns), extended by the blocks new rows add.
 
-    ``left`` and ``right`` give the stacks as they stand, shape (r, m) and (s, m).
+    ``left`` and ``right`` give the stacks as they stand, shape (r, m) and (s, m);
+    ``right`` None: the product of ``left`` with itself (symmetric: each new block
+    formed once).
     """
 
-    def __init__(self, left: Callable[[], Array], right: Callable[[], Array]) -> None:
+    def __init__(self, left: Callable[[], Array], right: Callable[[], Array] | None) -> None:
         self.left, self.right = left, right
         self.value = np.zeros((0, 0))
 
     def __call__(self) -> Array:
-        A, B = self.left(), self.right()
+        A = self.left()
+        B = A if self.right is None else self.right()
         r0, s0 = self.value.shape
-        if (A.shape[0], B.shape[0]) == (r0, s0):
+        if A.shape[0] == r0 and B.shape[0] == s0:
             return self.value
         out = np.empty((A.shape[0], B.shape[0]))
         out[:r0, :s0] = self.value
-        if s0 < B.shape[0]:
-            out[:r0, s0:] = A[:r0] @ B[s0:].T
         if r0 < A.shape[0]:
             out[r0:, :] = A[r0:] @ B.T
+        if s0 < B.shape[0]:
+            if self.right is None:
+                out[:r0, s0:] = out[s0:, :r0].T
+            else:
+                out[:r0, s0:] = A[:r0] @ B[s0:].T
         self.value = out
         return out
 
@@ -200,12 +221,16 @@ class SpanProducts:
         self, a: ClosureSpan | RowSpan, b: ClosureSpan | RowSpan, kind: str = "white"
     ) -> Array:
         """``Wa @ Wb.T`` of the two spans' columns (``kind`` "white": through the
-        filter; "slope": at the slopes' rows)."""
+        filter; "slope": at the slopes' rows, the same rows without a filter)."""
+        if kind == "slope" and self.whiten is None:
+            kind = "white"
+        if id(a) > id(b):  # one product of two spans, read either way
+            return self.gram(b, a, kind).T
         key = (id(a), id(b), kind)
         found = self._grams.get(key)
         if found is None:
             get: Callable[[Any], Array] = self.white if kind == "white" else self.sloped
-            found = self._grams[key] = Grown(lambda: get(a), lambda: get(b))
+            found = self._grams[key] = Grown(lambda: get(a), None if a is b else lambda: get(b))
         return found()
 
 
@@ -414,28 +439,31 @@ class ReducedPass:
         o, fit = self.owner, self.owner.fit
         fixed, moving = o.fixed, o.moving
         var = fit.sigma_x**2
-        coords: list[Array] = []
-        slopes: list[Array | None] = []
-        for kind, j, span, slope_span in self.plan:
+        # each function of the closure a span is asked about, by span: (slot, values)
+        asked: dict[int, tuple[ClosureSpan, list[tuple[tuple[str, int], Array]]]] = {}
+        found: dict[tuple[str, int], Array | None] = {}
+        for i, (kind, j, span, slope_span) in enumerate(self.plan):
             t = bound.terms[j]
             if kind == "level":
                 assert isinstance(span, ClosureSpan)
                 how = column_function(t, var)
                 assert how is not None
-                c = span.coordinates(how[0](span.levels))
+                asked.setdefault(id(span), (span, []))[1].append((("c", i), how[0](span.levels)))
             else:
+                assert isinstance(span, RowSpan)
                 column = term_column(t, fit.kin, fit.x_full, fit.sigma_x, raw_speed=o.speed)
-                c = span.coordinates(o._white(column))
-            if c is None:
-                return None
-            coords.append(c)
-            e = None
+                found["c", i] = span.coordinates(o._white(column))
             if slope_span is not None and fit.sigma_x > 0:
-                e = slope_span.coordinates(t.derivative(slope_span.levels))
-                if e is None:
-                    return None
-            slopes.append(e)
-        coords = [pad(c, span.size) for c, (_, _, span, _) in zip(coords, self.plan, strict=True)]
+                values = t.derivative(slope_span.levels)
+                asked.setdefault(id(slope_span), (slope_span, []))[1].append((("e", i), values))
+        for span, items in asked.values():
+            got = span.coordinates_many([v for _, v in items])
+            found.update(zip([key for key, _ in items], got, strict=True))
+        if any(c is None for c in found.values()):
+            return None
+        coords = [pad(found["c", i], span.size)  # type: ignore[arg-type]
+                  for i, (_, _, span, _) in enumerate(self.plan)]  # fmt: skip
+        slopes = [found.get(("e", i)) for i in range(len(self.plan))]
         k = len(moving)
         SF = np.empty((k, len(fixed)))
         Sy = np.empty(k)
