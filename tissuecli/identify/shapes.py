@@ -234,11 +234,16 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
         value = log_z(u) if grid.inside(u) else -math.inf
         return -value if math.isfinite(value) else 1e300
 
+    # the climb runs in grid steps: Nelder-Mead's moves do not depend on the coordinates'
+    # scales, but its stopping rule does (one tolerance for every coordinate), and in
+    # ``u`` it held an exponent to a thousandth of the contact point's grid step
+    scale = grid.spacing
+
     def climb(start: Array, maxfev: int, step: Array) -> Any:
-        simplex = np.vstack([start, start + np.diag(step)])
+        simplex = np.vstack([start, start + np.diag(step)]) / scale
         options = {
             "initial_simplex": simplex,
-            "xatol": 1e-3 * float(np.min(grid.spacing)),
+            "xatol": 1e-3,
             "fatol": 0.01,
             "maxfev": maxfev,
         }
@@ -262,7 +267,9 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
             return c
 
         try:
-            return minimize(watched, start, method="Nelder-Mead", options=options)
+            found = minimize(lambda w: watched(w * scale), start / scale, method="Nelder-Mead",
+                             options=options)  # fmt: skip
+            return SimpleNamespace(x=found.x * scale, fun=found.fun, success=found.success)
         except _OnEdge:
             return SimpleNamespace(x=best[1], fun=best[0], success=False)
 
