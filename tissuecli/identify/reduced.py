@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from ..core.terms import Term
 from .derivatives import Kinematics
-from .derivatives.base import padded_levels
+from .derivatives.base import level_basis, padded_levels
 
 if TYPE_CHECKING:
     from .whiten import ARFilter
@@ -293,12 +293,15 @@ def level_span(
     spans: dict[Any, Any], kin: Kinematics, x_full: Array, speed: Array | None
 ) -> ClosureSpan | None:
     """The fit's span of functions of the closure (times ``speed``, if given), made on
-    first use; None where the session is not on a coarse grid or its closure not on few
-    levels."""
+    first use; None where the session is not on a coarse grid, its closure not on few
+    levels, or a column from the filtered indicators of its levels is cheap
+    (:func:`~tissuecli.identify.derivatives.base.level_basis`: few levels in each
+    filter window, as the simulated forceps' 96)."""
     key = ("levels", speed is not None)
     if key not in spans:
         ok = kin.stride > 1 and x_full.size >= kin.window
         ok = ok and padded_levels(x_full, kin.window, kin.stride) is not None
+        ok = ok and level_basis(kin, x_full, speed is not None) is None
         spans[key] = ClosureSpan(kin, x_full, speed) if ok else None
     found = spans[key]
     return found if found is None or (found.kin is kin and found.x_full is x_full) else None
