@@ -269,9 +269,12 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
         try:
             found = minimize(lambda w: watched(w * scale), start / scale, method="Nelder-Mead",
                              options=options)  # fmt: skip
-            return SimpleNamespace(x=found.x * scale, fun=found.fun, success=found.success)
+            final = found.final_simplex[0] * scale
+            spread = np.max(np.abs(final - final[0]), axis=0)
+            return SimpleNamespace(x=found.x * scale, fun=found.fun, success=found.success,
+                                   spread=spread)  # fmt: skip
         except _OnEdge:
-            return SimpleNamespace(x=best[1], fun=best[0], success=False)
+            return SimpleNamespace(x=best[1], fun=best[0], success=False, spread=None)
 
     for start in starts:  # the next start only if the peak from the last is not one
         # a first short climb: one that ends against the prior's edge has found no
@@ -287,7 +290,11 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
             u = np.asarray(found.x, dtype=float)
             if _at_edge(grid, u):
                 return None
-            peak = _polish(log_z, grid, u)
+            # the first differences as far apart as the climb's last simplex (where the
+            # peak is sharp, a fiftieth of a grid step is tens of its SDs)
+            h = None if found.spread is None else np.clip(found.spread, 1e-6 * grid.spacing,
+                                                          grid.spacing / 50.0)  # fmt: skip
+            peak = _polish(log_z, grid, u, h)
             if peak is not None:
                 return peak
     return None
@@ -333,9 +340,14 @@ def _at_edge(grid: ShapeGrid, u: Array) -> bool:
     return False
 
 
-def _polish(log_z: Callable[[Array], float], grid: ShapeGrid, u: Array) -> Peak | None:
-    """Newton steps to the peak near ``u``, and its curvature; None if not concave."""
-    h = grid.spacing / 50.0
+def _polish(
+    log_z: Callable[[Array], float], grid: ShapeGrid, u: Array, h: Array | None = None
+) -> Peak | None:
+    """Newton steps to the peak near ``u``, and its curvature; None if not concave. The
+    first central differences are ``h`` apart (a fiftieth of a grid step if None), the
+    next the last step's SDs; the peak is taken once they are and the step is under a
+    hundredth of them."""
+    h = grid.spacing / 50.0 if h is None else h
     for _ in range(12):
         f0, g, H = _stencil(log_z, u, h, grid)
         if H is None or not np.all(np.linalg.eigvalsh(H) < 0):
