@@ -43,6 +43,12 @@ Array = NDArray[np.float64]
 #: within about this fraction of the one a filter pass gives (rounding: 1e-16)
 TOLERANCE = 1e-12
 
+#: :data:`TOLERANCE` for a term's slope, which enters only the errors-in-variables
+#: correction ``sigma_x^2 (k . k) sum d d``, a small share of the Gram matrix (1e-4 of
+#: it on the 12-bit Hunt-Crossley session): a slope within 1e-6 of its energy moves it
+#: by less than 1e-6 of that share, and seldom needs a filter pass of its own
+SLOPE_TOLERANCE = 1e-6
+
 #: bytes of basis columns one basis may hold; beyond, a node's column is filtered as before
 MAX_BYTES = 96 << 20
 
@@ -91,11 +97,11 @@ class ClosureSpan:
         """The basis vectors' filtered columns, one a row, shape (r, rows)."""
         return self._C[: self.size]
 
-    def coordinates(self, values: Array) -> Array | None:
+    def coordinates(self, values: Array, tolerance: float = TOLERANCE) -> Array | None:
         """Coordinates ``c`` (shape (r,), the basis's size once it has grown) such that
         ``c @`` :attr:`columns` is the filtered column of the function whose values at
-        the levels are ``values`` (L,); None if they are not all finite or the basis is
-        full."""
+        the levels are ``values`` (L,), within ``tolerance`` of its energy; None if they
+        are not all finite or the basis is full."""
         values = np.asarray(values, dtype=float)
         if not np.all(np.isfinite(values)):
             return None
@@ -105,13 +111,13 @@ class ClosureSpan:
             Q = self._Q[: self.size]
             c = Q @ v
             rest = v - c @ Q
-            if norm == 0.0 or float(np.sqrt(rest @ rest)) <= TOLERANCE * norm:
+            if norm == 0.0 or float(np.sqrt(rest @ rest)) <= tolerance * norm:
                 return c
             again = Q @ rest  # a second pass keeps the basis orthonormal to rounding
             rest -= again @ Q
             c += again
             left = float(np.sqrt(rest @ rest))
-            if left <= TOLERANCE * norm:
+            if left <= tolerance * norm:
                 return c
             if self.size >= self.most:
                 return None
@@ -121,19 +127,22 @@ class ClosureSpan:
             self._append(q, column)
             return np.append(c, left)
 
-    def coordinates_many(self, values: list[Array]) -> list[Array | None]:
+    def coordinates_many(
+        self, values: list[Array], tolerances: list[float]
+    ) -> list[Array | None]:
         """:meth:`coordinates` of several functions, those the basis holds projected
         together (one read of the basis)."""
         V = np.asarray(values, dtype=float) * self.weight
         if not np.all(np.isfinite(V)):
-            return [self.coordinates(v) for v in values]
+            return [self.coordinates(v, t) for v, t in zip(values, tolerances, strict=True)]
         with self._lock:
             Q = self._Q[: self.size]
             c = V @ Q.T
             rest = V - c @ Q
         left = np.sqrt(np.einsum("ij,ij->i", rest, rest))
         norm = np.sqrt(np.einsum("ij,ij->i", V, V))
-        return [c[i] if left[i] <= TOLERANCE * norm[i] else self.coordinates(values[i])
+        return [c[i] if left[i] <= tolerances[i] * norm[i]
+                else self.coordinates(values[i], tolerances[i])
                 for i in range(len(values))]  # fmt: skip
 
     def _append(self, q: Array, column: Array) -> None:
@@ -443,7 +452,7 @@ class ReducedPass:
         fixed, moving = o.fixed, o.moving
         var = fit.sigma_x**2
         # each function of the closure a span is asked about, by span: (slot, values)
-        asked: dict[int, tuple[ClosureSpan, list[tuple[tuple[str, int], Array]]]] = {}
+        asked: dict[int, tuple[ClosureSpan, list[tuple[tuple[str, int], Array, float]]]] = {}
         found: dict[tuple[str, int], Array | None] = {}
         for i, (kind, j, span, slope_span) in enumerate(self.plan):
             t = bound.terms[j]
@@ -451,17 +460,21 @@ class ReducedPass:
                 assert isinstance(span, ClosureSpan)
                 how = column_function(t, var)
                 assert how is not None
-                asked.setdefault(id(span), (span, []))[1].append((("c", i), how[0](span.levels)))
+                asked.setdefault(id(span), (span, []))[1].append(
+                    (("c", i), how[0](span.levels), TOLERANCE)
+                )
             else:
                 assert isinstance(span, RowSpan)
                 column = term_column(t, fit.kin, fit.x_full, fit.sigma_x, raw_speed=o.speed)
                 found["c", i] = span.coordinates(o._white(column))
             if slope_span is not None and fit.sigma_x > 0:
                 values = t.derivative(slope_span.levels)
-                asked.setdefault(id(slope_span), (slope_span, []))[1].append((("e", i), values))
+                asked.setdefault(id(slope_span), (slope_span, []))[1].append(
+                    (("e", i), values, SLOPE_TOLERANCE)
+                )
         for span, items in asked.values():
-            got = span.coordinates_many([v for _, v in items])
-            found.update(zip([key for key, _ in items], got, strict=True))
+            got = span.coordinates_many([v for _, v, _ in items], [t for *_, t in items])
+            found.update(zip([key for key, *_ in items], got, strict=True))
         if any(c is None for c in found.values()):
             return None
         coords = [pad(found["c", i], span.size)  # type: ignore[arg-type]
