@@ -170,11 +170,18 @@ class Grown:
     formed once).
     """
 
-    def __init__(self, left: Callable[[], Array], right: Callable[[], Array] | None) -> None:
-        self.left, self.right = left, right
+    def __init__(
+        self,
+        left: Callable[[], Array],
+        right: Callable[[], Array] | None,
+        sizes: Callable[[], tuple[int, int]] | None = None,
+    ) -> None:
+        self.left, self.right, self.sizes = left, right, sizes
         self.value = np.zeros((0, 0))
 
     def __call__(self) -> Array:
+        if self.sizes is not None and self.sizes() == self.value.shape:
+            return self.value  # nothing new (the stacks not even looked at)
         A = self.left()
         B = A if self.right is None else self.right()
         r0, s0 = self.value.shape
@@ -239,7 +246,8 @@ class SpanProducts:
         found = self._grams.get(key)
         if found is None:
             get: Callable[[Any], Array] = self.white if kind == "white" else self.sloped
-            found = self._grams[key] = Grown(lambda: get(a), None if a is b else lambda: get(b))
+            found = self._grams[key] = Grown(lambda: get(a), None if a is b else lambda: get(b),
+                                             lambda: (a.size, b.size))  # fmt: skip
         return found()
 
 
@@ -437,7 +445,9 @@ class ReducedPass:
             fixed = {"F": o.F.T, "y": o.fit.target[None, :], "D": o.D_f.T if what == "D"
                      else None}[what]  # fmt: skip
             kind = "slope" if what == "D" else "white"
-            found = self._with[key] = Grown(lambda: self._stack(span, kind), lambda: fixed)
+            width = fixed.shape[0]
+            found = self._with[key] = Grown(lambda: self._stack(span, kind), lambda: fixed,
+                                            lambda: (span.size, width))  # fmt: skip
         out = found()
         return out[:, 0] if what == "y" else out
 
@@ -553,7 +563,8 @@ class ReducedPass:
             r = r - za @ self._stack(span)
         r0r0 = float(r @ r)
         here = r[None, :]
-        Wr0 = [Grown(lambda s=span: self._stack(s), lambda: here) for span in self.spans]
+        Wr0 = [Grown(lambda s=span: self._stack(s), lambda: here, lambda s=span: (s.size, 1))
+               for span in self.spans]  # fmt: skip
         self._ref = (beta_f.copy(), [za.copy() for za in z], r0r0, o.F.T @ r, Wr0)
         return r0r0
 

@@ -477,7 +477,9 @@ class ShapedPass:
         self.G_ff = self.F.T @ self.F
         self.b_f = self.F.T @ y
         self.yy = float(y @ y)
-        self.speed = raw_speed(kin, x)
+        if "raw speed" not in fit.spans:  # one pass over the record for every law
+            fit.spans["raw speed"] = raw_speed(kin, x)
+        self.speed = fit.spans["raw speed"]
         if sx > 0:
             paths = [term_noise_path(terms[j], kin, x, fit.paths, sx) for j in self.fixed]
             width = kin.kernels[0].size
