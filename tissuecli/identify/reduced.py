@@ -44,13 +44,14 @@ Array = NDArray[np.float64]
 TOLERANCE = 1e-12
 
 #: :data:`TOLERANCE` for a term's slope, which enters only the errors-in-variables
-#: correction ``sigma_x^2 (k . k) sum d d``, a small share of the Gram matrix (1e-4 of
-#: it on the 12-bit Hunt-Crossley session): a slope within 1e-6 of its energy moves it
-#: by less than 1e-6 of that share, and seldom needs a filter pass of its own
+#: correction ``sigma_x^2 (k . k) sum d d``, a small share of the Gram matrix (9e-9 of
+#: the contact's diagonal on the 12-bit Hunt-Crossley session): a slope within 1e-6 of
+#: its energy moves it by less than 1e-6 of that share, and seldom needs a filter pass
 SLOPE_TOLERANCE = 1e-6
 
-#: bytes of basis columns one basis may hold; beyond, a node's column is filtered as before
-MAX_BYTES = 96 << 20
+#: bytes of basis columns one span may hold (as a level basis, BASIS_BYTES); beyond, a
+#: node's column is filtered as before
+MAX_BYTES = 64 << 20
 
 
 class ClosureSpan:
