@@ -47,7 +47,7 @@ LN_2PI = float(np.log(2 * np.pi))
 def gram_scales(G: Array) -> Array:
     """The column norms behind a Gram matrix ``A^T A``, shape (p,): ``sqrt(diag G)``,
     1 for an empty column."""
-    d = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    d = np.sqrt(np.maximum(G.diagonal(), 0.0))
     d[d == 0] = 1.0
     return d
 
@@ -63,7 +63,7 @@ def gram_lstsq(G: Array, b: Array) -> Array:
     conditioned. Scaled first, only a truly collinear direction is dropped.
     """
     d = gram_scales(G)
-    return np.asarray(np.linalg.lstsq(G / np.outer(d, d), b / d, rcond=None)[0] / d)
+    return np.asarray(np.linalg.lstsq(G / (d[:, None] * d), b / d, rcond=None)[0] / d)
 
 
 def gram_pinv(G: Array) -> Array:
@@ -153,8 +153,10 @@ class SufficientStats:
 
     def scaled(self) -> tuple[SufficientStats, Array]:
         """Statistics of unit-norm columns, and the column norms ``d`` (beta = gamma / d)."""
-        d = np.sqrt(np.clip(np.diag(self.G), 1e-300, None))
-        return SufficientStats(self.G / np.outer(d, d), self.b / d, self.yy, self.n, self.rss), d
+        # np.maximum and a column times a row: np.clip's and np.outer's numbers, without
+        # their wrappers (a shaped law's climb forms thousands of these)
+        d = np.sqrt(np.maximum(self.G.diagonal(), 1e-300))
+        return SufficientStats(self.G / (d[:, None] * d), self.b / d, self.yy, self.n, self.rss), d
 
     def least_squares_rss(self) -> float:
         """The least-squares residual sum of squares (``w`` times), >= 0: the given one,
@@ -233,9 +235,9 @@ class ExactPosterior:
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
-        Gw = s.G * np.outer(self.ws, self.ws)
+        Gw = s.G * (self.ws[:, None] * self.ws)
         lam, self.Q = np.linalg.eigh(Gw)
-        self.lam = np.clip(lam, 0.0, None)
+        self.lam = np.maximum(lam, 0.0)
         # rounding can leave a null direction of G with a sliver of b: the data say
         # nothing there, and c^2 / lam would blow the evidence up as sigma -> 0
         null = self.lam <= 1e-13 * max(float(self.lam.max()), 1e-300)
@@ -284,13 +286,13 @@ class ExactPosterior:
 
     def _ln_z_given_sigma(self, sigma: Array) -> Array:
         s2 = sigma[:, None] ** 2
-        lam, c = self._lam_safe[None, :], self.c[None, :]
+        lam = self._lam_safe
         # yy - c^T (lam + s2)^-1 c = rss0 + sum c^2 s2 / (lam (lam + s2)): every term >= 0
-        quad = self.rss0 + np.sum(c**2 / (lam * (lam + s2)), axis=1) * s2[:, 0]
+        quad = self.rss0 + (self.c**2 / (lam * (lam + s2))).sum(axis=1) * s2[:, 0]
         return (
             -self.s.n * (np.log(sigma) + 0.5 * LN_2PI)
             - 0.5 * quad / sigma**2
-            - 0.5 * np.sum(np.log1p(self.lam[None, :] / s2), axis=1)
+            - 0.5 * np.log1p(self.lam / s2).sum(axis=1)
         )
 
     def conditional(self, sigma: float) -> tuple[Array, Array]:
