@@ -162,11 +162,12 @@ def first_pass(
     b = A.T @ y
     # least squares on unit-norm columns through the Gram matrix (one O(n p^2) product
     # instead of a second factorisation of A), unless it is too ill-conditioned for that
-    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+    d = np.sqrt(np.maximum(gram.diagonal(), 1e-300))
+    scaled = gram / (d[:, None] * d)  # np.outer's numbers, formed once
+    lam_s = np.linalg.eigvalsh(scaled)
     cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
     if cond_scaled < 1e5:
-        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+        beta = np.linalg.solve(scaled, b / d) / d
     else:
         beta, cond_scaled = lstsq_scaled_cond(A, y)
     r = y - A @ beta
