@@ -581,9 +581,12 @@ class ShapedPass:
         if good.size:
             beta[good] = np.linalg.solve(scaled[good], (b[good] / d[good])[..., None])[..., 0]
             beta[good] /= d[good]
-        r = (y - (self.F @ beta[:, fixed, None])[..., 0]
-             - (S @ beta[:, moving, None])[..., 0])  # fmt: skip
-        rss = (r[:, None, :] @ r[:, :, None])[:, 0, 0]
+        # the residuals node by node, as :meth:`__call__` forms them: stacked, their
+        # temporaries (several of nodes by rows) cost three times the products
+        rss = np.empty(n)
+        for i in range(n):
+            r = y - self.F @ beta[i, fixed] - S[i] @ beta[i, moving]
+            rss[i] = r @ r
         lam = np.linalg.eigvalsh(gram)
         with np.errstate(divide="ignore", invalid="ignore"):
             cond = np.where(lam[:, 0] > 0, np.sqrt(lam[:, -1] / lam[:, 0]), np.inf)
