@@ -3,9 +3,13 @@ of the simulated forceps at 10 kHz (default 60 s, 600,000 samples) under cProfil
 its CPU seconds, the laws scored, the shape nodes evaluated and the functions of
 most cumulative time. Run it at two lengths to see how each part scales.
 
+``--scene hunt-crossley-12bit`` profiles instead the noisy 12-bit Hunt-Crossley session
+of ``decimated_fit.py`` (its closure flickers over hundreds of ADC levels in each filter
+window).
+
 Usage::
 
-    python benchmarks/profile_fit.py [SECONDS]
+    python benchmarks/profile_fit.py [--scene SCENE] [SECONDS]
 """
 
 from __future__ import annotations
@@ -21,8 +25,21 @@ from tissuecli.sim.synth import ForcepsModel, synthesize
 
 
 def main() -> None:
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 60.0
-    session = synthesize(ForcepsModel(seed=1, rate_hz=10000.0), seconds)[0]
+    args = sys.argv[1:]
+    if "-h" in args or "--help" in args:
+        print(__doc__)
+        return
+    scene = "forceps"
+    if "--scene" in args:
+        i = args.index("--scene")
+        scene = args[i + 1]
+        del args[i : i + 2]
+    from decimated_fit import SCENES  # the same sessions, beside this file
+
+    if scene not in SCENES:
+        sys.exit(f"unknown scene {scene!r}; choose {', '.join(SCENES)}")
+    seconds = float(args[0]) if args else 60.0
+    session = SCENES[scene](seconds)
     BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
     print("load average " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     profile = cProfile.Profile()
