@@ -13,6 +13,7 @@ import pytest
 from tissuecli.identify import BayesianFit, bayes, decimate, reduced, shaped
 from tissuecli.identify.derivatives import Gaussian
 from tissuecli.identify.shapes import shape_grid
+from tissuecli.identify.whiten import ARFilter
 from tissuecli.sim.families import FAMILIES
 from tissuecli.sim.synth import random_session
 
@@ -102,6 +103,29 @@ def test_statistics_in_the_spans_coordinates_are_the_filtered_ones(
             # the residual's own rounding, about the reference node's
             assert abs(got.rss - want.rss) <= 1e-8 * want.rss, law.name
         assert checked >= len(nodes) // 2, law.name
+
+
+def test_through_a_prewhitening_filter_too(
+    scored: list[tuple[Any, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(reduced, "level_basis", lambda *a, **k: None)
+    law, fit = next((law, fit) for law, fit in scored if law.name == "contact+contact*xdot+xddot")
+    y = fit.y
+    w = ARFilter(step=3).fit(y - np.convolve(y, np.ones(50) / 50, "same"))
+    assert w.order_ >= 1
+    white = replace(fit, whiten=w, spans={})
+    light = shaped.ShapedPass(law, white)
+    assert light.reduced.usable
+    grid = shape_grid(law, fit.kin)
+    for node in grid.nodes[::5]:
+        bound = law.bind(node)
+        got, want = light.reduced(bound), light._filtered([bound])[0]
+        if got is None:
+            continue
+        for name in ("gram", "b", "correction"):
+            a, b = np.asarray(getattr(got, name)), np.asarray(getattr(want, name))
+            assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(b)), name
+        assert abs(got.rss - want.rss) <= 1e-8 * want.rss
 
 
 def test_a_session_on_every_sample_never_uses_the_spans(scored: list[tuple[Any, Any]]) -> None:
