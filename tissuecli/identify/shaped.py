@@ -183,8 +183,11 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     log_post = ln_z + grid.log_weight
     tops = np.argsort(-log_post)[:3]
     starts = [grid.to_u(grid.nodes[i]) for i in tops]
-    peak = laplace(lambda u: evaluate(grid.from_u(u))[0], grid, starts)
+    hint = fit.spans.get(("peak", *grid.names))
+    peak = laplace(lambda u: evaluate(grid.from_u(u))[0], grid, starts, hint)
     sharp = peak is not None and bool(np.all(peak.sd < grid.spacing))
+    if sharp:  # where sibling laws may start (:func:`~tissuecli.identify.shapes.laplace`)
+        fit.spans[("peak", *grid.names)] = peak
     if sharp:
         assert peak is not None
         d = peak.u.size

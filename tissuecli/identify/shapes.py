@@ -217,7 +217,12 @@ class Peak:
         return np.sqrt(np.diag(self.cov))
 
 
-def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array]) -> Peak | None:
+def laplace(
+    log_z: Callable[[Array], float],
+    grid: ShapeGrid,
+    starts: list[Array],
+    hint: Peak | None = None,
+) -> Peak | None:
     """The peak of ``log_z`` (ln evidence given the shape, as a function of ``u``) and
     the Laplace approximation there; None when the surface is not concave at the peak
     (a broad or multimodal posterior, which the grid integrates better).
@@ -276,6 +281,15 @@ def laplace(log_z: Callable[[Array], float], grid: ShapeGrid, starts: list[Array
         except _OnEdge:
             return SimpleNamespace(x=best[1], fun=best[0], success=False, spread=None)
 
+    if hint is not None and hint.u.size == grid.spacing.size and grid.inside(hint.u):
+        # a sibling law's peak (the same shape parameters, one term more or less): where
+        # it stands above every start, Newton steps from it at its own scale find this
+        # law's peak without a climb; else the climbs below
+        if log_z(hint.u) > max(log_z(u) for u in starts) and not _at_edge(grid, hint.u):
+            h = np.clip(hint.sd, 1e-6 * grid.spacing, grid.spacing / 50.0)
+            peak = _polish(log_z, grid, hint.u, h)
+            if peak is not None and not _at_edge(grid, peak.u):
+                return peak
     for start in starts:  # the next start only if the peak from the last is not one
         # a first short climb: one that ends against the prior's edge has found no
         # Gaussian peak, and the grid integrates a posterior piled on an edge. This is
