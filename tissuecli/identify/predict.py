@@ -183,7 +183,7 @@ def predict_band(
         noise = noise_sd
     else:
         grid, usable = _grid(session)
-        free = _free_jaws(grid)
+        free = _free_jaws(grid) & ~_past_contact_point(tissue, grid.position)
         if smoother is not None:
             A = _raw_design(tissue, grid, usable, smoother, free)
         else:
@@ -300,6 +300,21 @@ def _free_jaws(grid: Session) -> NDArray[np.bool_]:
     if contact.all_contact or not contact.grasps:
         return np.zeros(len(grid), bool)
     return ~contact.mask
+
+
+def _past_contact_point(tissue: Tissue, x: Array) -> NDArray[np.bool_]:
+    """Samples whose closure ``x`` (m) is past the contact point of a term that declares
+    one (a Hunt-Crossley contact): the law's own, fitted, statement of where the tissue
+    is touched. The grasp detector reads contact from the force standing clear of the
+    noise, so it misses the first small force past that point (and reads a session in
+    contact throughout as grasps where the closure dips short of it); the law's contact
+    terms are zero short of their point by themselves and need no detector there."""
+    out = np.zeros(x.size, bool)
+    for term in tissue.law.terms:
+        for name, parameter in zip(term.shapes, term.parameters, strict=True):
+            if parameter.kind == "x0" and name in term.shape:
+                out |= x > term.shape[name]
+    return out
 
 
 def _kept_free(tissue: Tissue) -> Array:
