@@ -516,10 +516,10 @@ def _smoothed(
     return out, float(np.linalg.norm(kernel))
 
 
-#: half-width of the intervals, in SDs of the position noise's share, whose intersection
-#: chooses the degree at a session's ends (:func:`_end_values`); two SDs of each of two
-#: estimates: an unbiased lower degree is set aside less than 5 % of the time
-END_KAPPA = 2.0
+#: a lower degree at a session's ends must agree with every higher one within this many
+#: SDs of their difference (:func:`_end_values`): an unbiased one is set aside 0.27 % of
+#: the time by each comparison
+END_SDS = 3.0
 
 
 def _end_values(xw: Array, u: Array, degree: int, k: int, sigma_x: float) -> Array:
@@ -528,18 +528,18 @@ def _end_values(xw: Array, u: Array, degree: int, k: int, sigma_x: float) -> Arr
     ``u``.
 
     A polynomial fit read off-centre amplifies noise far more than at its centre (at the
-    window's edge a degree-7 fit's acceleration has tens of times the centred noise
+    window's edge a degree-7 fit's acceleration has some 30 times the centred noise
     gain), and the ends of a predicted session, a held-out end above all, were dominated
     by it; a lower degree has less noise there but more bias. Each end sample takes the
     lowest degree, from ``k`` up to ``degree`` (the one chosen on centred windows),
-    whose estimate agrees with those of every higher degree within ``END_KAPPA`` SDs of
-    each one's noise (the intersection of confidence intervals rule, Goldenshluger and
-    Nemirovski 1997; Katkovnik 1999): a lower degree is taken only where the data show
-    no bias in it beyond the noise the higher degrees would add. Without position noise
-    the chosen degree is kept."""
+    whose estimate agrees with that of every higher degree within ``END_SDS`` SDs of
+    their difference (Lepski's rule): a lower degree is taken only where the data show
+    no bias in it beyond what the higher degree's extra noise would hide. The fits are
+    nested least squares, so that difference's variance is exactly the difference of
+    their variances. Without position noise the chosen degree is kept."""
     w = xw.size
     top = min(degree, w - 1)
-    values, sds = [], []
+    values, variances = [], []
     for d in range(k, top + 1):
         fit = _fit_matrix(w, d)
         powers = np.arange(k, d + 1)
@@ -547,17 +547,18 @@ def _end_values(xw: Array, u: Array, degree: int, k: int, sigma_x: float) -> Arr
         basis = falling * u[:, None] ** (powers - k)
         values.append(basis @ (fit[k:] @ xw))
         gram = fit[k:] @ fit[k:].T
-        sds.append(sigma_x * np.sqrt(np.einsum("ij,jk,ik->i", basis, gram, basis)))
+        variances.append(sigma_x**2 * np.einsum("ij,jk,ik->i", basis, gram, basis))
     if not values:
         return np.zeros_like(u)
     chosen = values[-1].copy()
-    lo, hi = values[-1] - END_KAPPA * sds[-1], values[-1] + END_KAPPA * sds[-1]
-    alive = np.ones(u.size, bool)
-    for value, sd in zip(values[-2::-1], sds[-2::-1], strict=True):
-        lo = np.maximum(lo, value - END_KAPPA * sd)
-        hi = np.minimum(hi, value + END_KAPPA * sd)
-        alive &= lo <= hi
-        chosen = np.where(alive, value, chosen)
+    done = np.zeros(u.size, bool)
+    for i in range(len(values) - 1):  # the lowest degree first
+        ok = ~done
+        for j in range(i + 1, len(values)):
+            spread = np.sqrt(np.clip(variances[j] - variances[i], 0.0, None))
+            ok &= np.abs(values[i] - values[j]) <= END_SDS * spread
+        chosen[ok] = values[i][ok]
+        done |= ok
     return chosen
 
 
