@@ -183,13 +183,22 @@ def predict_band(
         noise = noise_sd
     else:
         grid, usable = _grid(session)
-        free = _free_jaws(grid) & ~_past_contact_point(tissue, grid.position)
-        if smoother is not None:
-            A = _raw_design(tissue, grid, usable, smoother, free)
-        else:
-            chooses = _on_grid_mask(session, grid, tune) & ~free
-            A = _tuned_design(tissue, grid, usable, free, chooses)
-        A[free] *= _kept_free(tissue)
+        detected = _free_jaws(grid)
+        past = detected & _past_contact_point(tissue, grid.position)
+        free = detected & ~past
+        judged = _on_grid_mask(session, grid, tune)
+
+        def regressors(free: NDArray[np.bool_]) -> Array:
+            if smoother is not None:
+                return _raw_design(tissue, grid, usable, smoother, free)
+            return _tuned_design(tissue, grid, usable, free, judged & ~detected)
+
+        A = regressors(free)
+        kept = _kept_free(tissue)
+        if past.any() and not _law_reads_contact(A, tissue.coef, kept, grid.force, past & judged):
+            free = detected  # terms with memory are held across these samples too
+            A = regressors(free)
+        A[free] *= kept
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
         if noise_sd is not None:
@@ -315,6 +324,24 @@ def _past_contact_point(tissue: Tissue, x: Array) -> NDArray[np.bool_]:
             if parameter.kind == "x0" and name in term.shape:
                 out |= x > term.shape[name]
     return out
+
+
+def _law_reads_contact(
+    A: Array, coef: Array, kept: Array, force: Array, where: NDArray[np.bool_]
+) -> bool:
+    """Whether the law's force at the samples ``where`` (read free by the grasp detector,
+    past the law's contact point) is closer to the measured ``force`` than the free
+    jaws' (the tissue's terms zero, ``kept`` the rest): the test that the law's contact
+    point holds there. A law whose contact point falls short of the true touch (a
+    relaxation session fitted by a contact law, x0 below zero closure) puts a force
+    on free jaws that read the sensor's offset, and is set aside; with no such sample
+    to judge by, the detector stands."""
+    rows = where & np.all(np.isfinite(A), axis=1) & np.isfinite(force)
+    if not rows.any():
+        return False
+    law = A[rows] @ coef
+    free = A[rows] @ (coef * kept)
+    return float(np.sum((force[rows] - law) ** 2)) < float(np.sum((force[rows] - free) ** 2))
 
 
 def _kept_free(tissue: Tissue) -> Array:
