@@ -21,7 +21,8 @@ held out; the rest is fitted by
 For each it reports, overall and by family group:
 
 - right: the chosen law has the truth's structure (a term whose force stands below the
-  noise in that session, see ``scenes.DETECTABLE``, may be in or out; a relaxation
+  noise in the part fitted, see ``scenes.DETECTABLE`` and ``Scene.judged_on``, may be
+  in or out; a relaxation
   branch counts by the part of its force the law's other terms cannot carry,
   ``scenes.branch_detectability``, so a law may leave out a branch no recording of that
   motion can tell from a spring or a damper);
@@ -208,6 +209,7 @@ def run_scene(scene: Scene, fits: Sequence[str] = FITS, seed: int = 0) -> list[R
     """Fit one scene every way, score each against the truth."""
     fitted, rest, i0 = split(scene.session)
     truth = scene.force[i0:]
+    judged = scene.judged_on(i0)  # what the fitted head can tell
     rows: list[Row] = []
     floor = idx_default = None
     for key in fits:
@@ -224,7 +226,7 @@ def run_scene(scene: Scene, fits: Sequence[str] = FITS, seed: int = 0) -> list[R
             row.wall_s, row.cpu_s = time.perf_counter() - t0, time.process_time() - c0
         law = chosen_law(est)
         row.law, row.probability = law.name, float(est.best_.probability)
-        row.right = scene.right(law)
+        row.right = judged.right(law)
         row.evidence = evidence_problems(est, len(fitted))
         if row.right:
             row.inside, row.errors = intervals(est, scene)

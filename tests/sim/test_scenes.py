@@ -201,3 +201,20 @@ def test_a_law_without_a_branch_no_design_can_see_is_right():
     assert scene.right(scene.tissue.law)
     assert not scene.right(Law.of(["x", "xdot", "xddot"]))
     assert not scene.right(Law.of(["x", "maxwell", "maxwell", "maxwell", "xdot", "xddot"]))
+
+
+def test_a_scene_is_judged_on_the_part_a_fit_sees():
+    # quadratic damping that stands above the noise over the whole session only because
+    # of its last 30 %: a fit of the first 70 % cannot be asked for it
+    scene = scenes.random_scene(777027, max_samples=10_000)
+    assert scene.tissue.law.name.startswith("x+xdot|xdot|")
+    t = scene.session.time
+    head = int(np.searchsorted(t, t[0] + 0.7 * (t[-1] - t[0])))
+    judged = scene.judged_on(head)
+    assert "xdot|xdot|" not in scene.unexcited and "xdot|xdot|" in judged.unexcited
+    without = Law.of([t.name for t in scene.tissue.law.terms if t.name != "xdot|xdot|"])
+    assert judged.right(without) and not scene.right(without)
+    assert judged.right(scene.tissue.law)  # an unexcited term may be in or out
+    # the whole session judged again is the scene as drawn
+    again = scene.judged_on(len(scene.session))
+    assert (again.unexcited, again.visible_branches) == (scene.unexcited, scene.visible_branches)

@@ -544,25 +544,32 @@ class BayesianFit(Estimator):
                 f"for {rival.name}"
             )
 
+    @staticmethod
+    def _top(results: list[ModelResult]) -> ModelResult:
+        """The evaluated law with the most evidence (any law, should none be evaluated)."""
+        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
+        return max(ranked, key=lambda r: r.ln_evidence)
+
+    @staticmethod
+    def _residual_of(result: ModelResult, fit: Context) -> tuple[Array, Array]:
+        """A law's design at the fitted rows and its least-squares residuals (N),
+        unfiltered: the law as least squares fits it where that differs."""
+        law = result.least_squares[0] if result.least_squares is not None else result.model
+        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        return A, fit.y - A @ lstsq_scaled_cond(A, fit.y)[0]
+
     def _top_residual(self, results: list[ModelResult], fit: Context) -> tuple[str, Array]:
         """The name of the law with the most evidence and its least-squares residuals
         (N) at the fitted rows, unfiltered."""
-        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
-        top = max(ranked, key=lambda r: r.ln_evidence)
-        law = top.least_squares[0] if top.least_squares is not None else top.model
-        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        beta = lstsq_scaled_cond(A, fit.y)[0]
-        return top.name, fit.y - A @ beta
+        top = self._top(results)
+        return top.name, self._residual_of(top, fit)[1]
 
     def _whitened_ratio(self, best: ModelResult, fit: Context) -> float:
         """Effective samples per sample of the prewhitened evidence for the chosen law
         (:func:`~tissuecli.identify.whiten.precision_ratio`): its coefficients' precision
         through the filter against a white likelihood's on the raw rows."""
         assert fit.whiten is not None
-        law = best.least_squares[0] if best.least_squares is not None else best.model
-        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        beta = lstsq_scaled_cond(A, fit.y)[0]
-        r = fit.y - A @ beta
+        A, r = self._residual_of(best, fit)
         Aw, yw = fit.whiten.transform(A), fit.target
         rw = yw - Aw @ lstsq_scaled_cond(Aw, yw)[0]
         ratio = precision_ratio(Aw.T @ Aw, float(rw @ rw) / max(yw.size, 1), A.T @ A,
@@ -574,12 +581,7 @@ class BayesianFit(Estimator):
     ) -> tuple[float, float]:
         """The residual autocorrelation time (samples) of the law with the most evidence
         and the data weight its residuals support (:func:`data_weight`)."""
-        ranked = [r for r in results if r.status != NOT_EVALUATED] or results
-        top = max(ranked, key=lambda r: r.ln_evidence)
-        law = top.least_squares[0] if top.least_squares is not None else top.model
-        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        beta = lstsq_scaled_cond(A, fit.y)[0]
-        residual = fit.y - A @ beta
+        A, residual = self._residual_of(self._top(results), fit)
         tau = residual_tau(residual)
         return tau, data_weight(A, residual, tau) * measured
 

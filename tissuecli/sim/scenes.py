@@ -164,6 +164,30 @@ class Scene:
             return False
         return self.classes([t.name for t in law.terms]) == self.classes(truth)
 
+    def judged_on(self, n: int) -> Scene:
+        """The scene as a fit of its first ``n`` samples can tell it: the terms whose
+        force stands below the noise over those samples (:func:`detectability`) are
+        unexcited, and the branches counted visible are those that stand above it
+        beside the law's other terms there (:func:`branch_detectability`).
+
+        A benchmark that fits the head of a session and holds out the rest scores the
+        chosen law against this: a term only the held-out part excites is not one the
+        fit could have found."""
+        rate = float(self.settings.get("rate_hz", 0.0)) or 1.0 / float(
+            np.median(np.diff(self.session.time[: max(n, 2)]))
+        )
+        x, v, a = self.x[:n], self.v[:n], self.a[:n]
+        snr = detectability(self.tissue, x, v, a, rate, self.noise_n)
+        branches = branch_detectability(self.tissue, x, v, a, rate, self.noise_n)
+        visible = None
+        if branches:
+            snr["maxwell"] = branches[0]
+            visible = sum(b >= DETECTABLE for b in branches)
+        weak = frozenset(k for k, s in snr.items() if s < DETECTABLE)
+        return replace(self, unexcited=weak, visible_branches=visible,
+                       settings={**self.settings, "detectability": snr,
+                                 "branch_detectability": branches})  # fmt: skip
+
     def within_truth(self, law: Law) -> bool:
         """Whether ``law`` uses only terms the truth is written with (indistinct columns
         count as one, unexcited ones are free)."""
@@ -475,16 +499,7 @@ def random_scene(
         quantisation=int(draw["bits"]),
         settings={**draw, "seed": seed},
     )
-    snr = detectability(tissue, scene.x, scene.v, scene.a, rate, scene.noise_n)
-    branches = branch_detectability(tissue, scene.x, scene.v, scene.a, rate, scene.noise_n)
-    visible = None
-    if branches:
-        snr["maxwell"] = branches[0]
-        visible = sum(b >= DETECTABLE for b in branches)
-    weak = frozenset(k for k, s in snr.items() if s < DETECTABLE)
-    return replace(scene, unexcited=weak, visible_branches=visible,
-                   settings={**scene.settings, "detectability": snr,
-                             "branch_detectability": branches})  # fmt: skip
+    return scene.judged_on(len(scene.session))
 
 
 def _coefficients(
