@@ -67,7 +67,12 @@ def data_weight(A: Array, r: Array, tau: float) -> float:
 
 
 def corrected_curvature(
-    gram: Array, b: Array, correction: Array, rss: float, rss_corrected: float
+    gram: Array,
+    b: Array,
+    correction: Array,
+    rss: float,
+    rss_corrected: float,
+    corrected: Array | None = None,
 ) -> tuple[Array, Array, float]:
     """Gaussian statistics ``(G, b, yy)`` whose posterior is centred on the
     errors-in-variables corrected coefficients with their sampling covariance.
@@ -94,6 +99,8 @@ def corrected_curvature(
         ``C``, the noise's expected share of ``A^T A``; ``A^T A - C`` positive definite.
     rss, rss_corrected : float
         Residual sums of squares of the raw and the corrected fits, N^2.
+    corrected : ndarray, shape (p, p), optional
+        ``A^T A - C``, if already formed.
 
     Returns
     -------
@@ -101,9 +108,10 @@ def corrected_curvature(
     b : ndarray, shape (p,)
     yy : float
     """
-    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))  # unit-norm columns: x^3 is 1e-6 of x
-    gram_s = gram / np.outer(d, d)
-    gc_s = (gram - correction) / np.outer(d, d)
+    d = np.sqrt(np.maximum(gram.diagonal(), 1e-300))  # unit-norm columns: x^3 is 1e-6 of x
+    dd = d[:, None] * d  # np.outer's numbers
+    gram_s = gram / dd
+    gc_s = (gram - correction if corrected is None else corrected) / dd
     # pseudo-inverses: a shape node can make two columns one (a branch slower than the
     # session is a spring), which leaves these singular where the posterior is not
     beta_s = np.linalg.lstsq(gc_s, b / d, rcond=None)[0]
@@ -112,7 +120,7 @@ def corrected_curvature(
     # curvature proper
     ratio = rss_corrected / rss if rss > 0 and rss_corrected > 0 else 1.0
     h_s = 0.5 * (h_s + h_s.T) * ratio
-    G = h_s * np.outer(d, d)
+    G = h_s * dd
     b_c = (h_s @ beta_s) * d
     yy = rss_corrected + float(beta_s @ h_s @ beta_s)
     return G, b_c, yy

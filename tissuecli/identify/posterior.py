@@ -47,7 +47,7 @@ LN_2PI = float(np.log(2 * np.pi))
 def gram_scales(G: Array) -> Array:
     """The column norms behind a Gram matrix ``A^T A``, shape (p,): ``sqrt(diag G)``,
     1 for an empty column."""
-    d = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    d = np.sqrt(np.maximum(G.diagonal(), 0.0))
     d[d == 0] = 1.0
     return d
 
@@ -63,7 +63,7 @@ def gram_lstsq(G: Array, b: Array) -> Array:
     conditioned. Scaled first, only a truly collinear direction is dropped.
     """
     d = gram_scales(G)
-    return np.asarray(np.linalg.lstsq(G / np.outer(d, d), b / d, rcond=None)[0] / d)
+    return np.asarray(np.linalg.lstsq(G / (d[:, None] * d), b / d, rcond=None)[0] / d)
 
 
 def gram_pinv(G: Array) -> Array:
@@ -153,8 +153,10 @@ class SufficientStats:
 
     def scaled(self) -> tuple[SufficientStats, Array]:
         """Statistics of unit-norm columns, and the column norms ``d`` (beta = gamma / d)."""
-        d = np.sqrt(np.clip(np.diag(self.G), 1e-300, None))
-        return SufficientStats(self.G / np.outer(d, d), self.b / d, self.yy, self.n, self.rss), d
+        # np.maximum and a column times a row: np.clip's and np.outer's numbers, without
+        # their wrappers (a shaped law's climb forms thousands of these)
+        d = np.sqrt(np.maximum(self.G.diagonal(), 1e-300))
+        return SufficientStats(self.G / (d[:, None] * d), self.b / d, self.yy, self.n, self.rss), d
 
     def least_squares_rss(self) -> float:
         """The least-squares residual sum of squares (``w`` times), >= 0: the given one,
@@ -228,12 +230,14 @@ class ExactPosterior:
         #: the lattice's target is the looser one of a law far behind (:meth:`rough`)
         self._rough = False
         self._mixture: tuple[Array, Array, Array, NDArray[np.intp]] | None = None
+        self._modal_at: tuple[Array, Array] | None = None
+        self._below: Array | None = None
         s, self.d = stats.scaled()
         self.ws = prior.scales * self.d  # prior scales of the unit-norm coefficients
         # whiten by the prior: gamma = ws * delta, delta ~ N(0, I); then diagonalise
-        Gw = s.G * np.outer(self.ws, self.ws)
+        Gw = s.G * (self.ws[:, None] * self.ws)
         lam, self.Q = np.linalg.eigh(Gw)
-        self.lam = np.clip(lam, 0.0, None)
+        self.lam = np.maximum(lam, 0.0)
         # rounding can leave a null direction of G with a sliver of b: the data say
         # nothing there, and c^2 / lam would blow the evidence up as sigma -> 0
         null = self.lam <= 1e-13 * max(float(self.lam.max()), 1e-300)
@@ -282,13 +286,13 @@ class ExactPosterior:
 
     def _ln_z_given_sigma(self, sigma: Array) -> Array:
         s2 = sigma[:, None] ** 2
-        lam, c = self._lam_safe[None, :], self.c[None, :]
+        lam = self._lam_safe
         # yy - c^T (lam + s2)^-1 c = rss0 + sum c^2 s2 / (lam (lam + s2)): every term >= 0
-        quad = self.rss0 + np.sum(c**2 / (lam * (lam + s2)), axis=1) * s2[:, 0]
+        quad = self.rss0 + (self.c**2 / (lam * (lam + s2))).sum(axis=1) * s2[:, 0]
         return (
             -self.s.n * (np.log(sigma) + 0.5 * LN_2PI)
             - 0.5 * quad / sigma**2
-            - 0.5 * np.sum(np.log1p(self.lam[None, :] / s2), axis=1)
+            - 0.5 * np.log1p(self.lam / s2).sum(axis=1)
         )
 
     def conditional(self, sigma: float) -> tuple[Array, Array]:
@@ -338,12 +342,15 @@ class ExactPosterior:
 
     def below_zero(self) -> Array:
         """Each coefficient's mass below zero under the posterior without the positivity
-        bounds (p,): exact, from the Gaussian mixture over sigma's nodes."""
-        w, mus, covs, _ = self.mixture()
-        sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.nan_to_num(-mus / sds, nan=-np.inf)  # SD 0: a point mass, at its mean
-        return np.asarray(w @ normal_cdf(z), dtype=float)
+        bounds (p,): exact, from the Gaussian mixture over sigma's nodes (computed once;
+        each caller gets its own copy)."""
+        if self._below is None:
+            w, mus, covs, _ = self.mixture()
+            sds = np.sqrt(np.clip(np.einsum("mii->mi", covs), 0.0, None))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = np.nan_to_num(-mus / sds, nan=-np.inf)  # SD 0: a point mass, at its mean
+            self._below = np.asarray(w @ normal_cdf(z), dtype=float)
+        return self._below.copy()
 
     def orthant_mass(self) -> float:
         """Posterior mass of the bounded coefficients >= 0 at the modal sigma (sigma's
@@ -385,9 +392,13 @@ class ExactPosterior:
             self._rough = True
 
     def _modal(self) -> tuple[Array, Array]:
-        mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
-        on = self.prior.bounded
-        return mu[on], cov[np.ix_(on, on)]
+        """Mean and covariance of the bounded coefficients at the modal sigma (computed
+        once: the orthant mass and the exact draws both read them; not to be written)."""
+        if self._modal_at is None:
+            mu, cov = self.conditional(float(np.exp(self.u[int(np.argmax(self.weights))])))
+            on = self.prior.bounded
+            self._modal_at = mu[on], cov[np.ix_(on, on)]
+        return self._modal_at
 
     def _orthant_mass(self, lattice: bool = False) -> tuple[float, float, float | None]:
         on = self.prior.bounded
@@ -566,17 +577,19 @@ class ExactPosterior:
         # coefficient vector (and every bound) only on the draws that pass them
         mu_m, cov_m = self._modal()
         z_m = mu_m / np.sqrt(np.clip(np.diag(cov_m), 1e-300, None))
-        near = np.flatnonzero(bounded)[z_m < NEAR_SDS]
-        if near.size == 0:
-            near = np.flatnonzero(bounded)[[int(np.argmin(z_m))]]
+        on_at = np.flatnonzero(bounded)
+        close = z_m < NEAR_SDS
+        if not close.any():
+            close[int(np.argmin(z_m))] = True
         # the near coefficients first, the one the bound cuts most leading: a Cholesky
         # root's first rows then take only a draw's first normals. The leading one is
         # drawn under its bound by inverse CDF (its node in proportion to the mass its
         # bound keeps there), the other near ones checked by rejection, and a draw's
         # remaining normals drawn only if it passes them
-        near = near[np.argsort(z_m[np.searchsorted(np.flatnonzero(bounded), near)],
-                               kind="stable")]  # fmt: skip
-        order = np.concatenate([near, np.setdiff1d(np.arange(p), near)])
+        near = on_at[close][np.argsort(z_m[close], kind="stable")]
+        rest = np.ones(p, bool)
+        rest[near] = False
+        order = np.concatenate([near, np.flatnonzero(rest)])
         back = np.argsort(order)
         q = near.size
         try:
@@ -625,10 +638,12 @@ class ExactPosterior:
                 z = np.hstack([z, rng.standard_normal((pick.size, p - width))])
             beta = _by_node(counts if lead_only else np.bincount(pick, minlength=w.size), z,
                             mus, roots)  # fmt: skip
-            ok = np.all(beta[:, on] >= 0, axis=1)
-            kept.append(np.column_stack([np.compress(ok, beta, axis=0)[:, back],
-                                         node_sigma[np.compress(ok, pick)]]))  # fmt: skip
-            have += int(ok.sum())
+            ok = (beta[:, on] >= 0).all(axis=1)
+            good = np.empty((int(np.count_nonzero(ok)), p + 1))
+            good[:, :p] = np.compress(ok, beta, axis=0)[:, back]
+            good[:, p] = node_sigma[np.compress(ok, pick)]
+            kept.append(good)
+            have += good.shape[0]
             total += batch
         if have < 100:
             return None
@@ -767,15 +782,17 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
 def _central95(samples: Array) -> Array:
     """Each column's 2.5 and 97.5 percentiles, shape (k, 2), for ``samples`` (n, k):
     ``np.percentile(samples, [2.5, 97.5], axis=0).T`` (linear interpolation between the
-    order statistics), from one partition at the four order statistics it reads."""
+    order statistics), from each column's sort."""
     n = samples.shape[0]
     at = np.array([0.025, 0.975]) * (n - 1)
     lo = np.floor(at).astype(np.intp)
     hi = np.minimum(lo + 1, n - 1)
-    part = np.partition(samples, np.unique(np.concatenate([lo, hi])), axis=0)
-    a, b, t = part[lo], part[hi], (at - lo)[:, None]
+    # the order statistics of each column sorted as a contiguous row: the same values as
+    # a partition at the four of them, which costs several times a sort at 4000 draws
+    ordered = np.sort(np.ascontiguousarray(samples.T), axis=1)
+    a, b, t = ordered[:, lo], ordered[:, hi], at - lo
     # numpy's interpolation: from the nearer order statistic
-    return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t).T
+    return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t)
 
 
 def _by_node(counts: NDArray[np.intp], z: Array, mus: Array, roots: Array) -> Array:

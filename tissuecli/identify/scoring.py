@@ -162,11 +162,12 @@ def first_pass(
     b = A.T @ y
     # least squares on unit-norm columns through the Gram matrix (one O(n p^2) product
     # instead of a second factorisation of A), unless it is too ill-conditioned for that
-    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+    d = np.sqrt(np.maximum(gram.diagonal(), 1e-300))
+    scaled = gram / (d[:, None] * d)  # np.outer's numbers, formed once
+    lam_s = np.linalg.eigvalsh(scaled)
     cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
     if cond_scaled < 1e5:
-        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+        beta = np.linalg.solve(scaled, b / d) / d
     else:
         beta, cond_scaled = lstsq_scaled_cond(A, y)
     r = y - A @ beta
@@ -194,7 +195,8 @@ def law_stats(
     """The tempered statistics and prior of one law, and the flags of its noise
     correction."""
     corr = fp.correction
-    rss_c = _correctable(fp, corr) if corr is not None else None
+    corrected = fp.gram - corr if corr is not None else None  # A^T A - C, formed once
+    rss_c = _correctable(fp, corr, corrected) if corr is not None else None
     uncorrected = corr is not None and rss_c is None
     if uncorrected:
         corr = None  # noise dominates a column: the correction would be meaningless
@@ -209,7 +211,7 @@ def law_stats(
         # it gained, and where that noise was nearly all of the residual rss_c was a
         # difference of two like numbers, near zero or below it (the law then left
         # uncorrected, hundreds of nats behind laws that were not)
-        G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, fp.rss)
+        G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, fp.rss, corrected)
     w, n = fit.weight, fit.rows
     st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
     prior = law_prior(model, fit.scales)
@@ -304,24 +306,26 @@ def not_evaluated(res: ModelResult, why: str) -> None:
     res.ln_evidence = -math.inf
 
 
-def _correctable(fp: FirstPass, corr: Array) -> float | None:
+def _correctable(fp: FirstPass, corr: Array, corrected: Array | None = None) -> float | None:
     """The corrected fit's residual sum of squares (:func:`_corrected_rss`, N^2) if the
     errors-in-variables correction leaves a proper regression, else None: ``A^T A - C``
     positive definite, and a corrected residual of at least a tenth of the raw one (the
     correction takes off what position noise adds to the residual; taking off nearly
-    all of it, or more, says the noise is as large as the motion)."""
-    G = fp.gram - corr
+    all of it, or more, says the noise is as large as the motion). ``corrected``:
+    ``A^T A - C``, if at hand."""
+    G = fp.gram - corr if corrected is None else corrected
     if np.any(np.linalg.eigvalsh(G) <= 0):
         return None
-    rss = _corrected_rss(fp, corr)
+    rss = _corrected_rss(fp, corr, G)
     return rss if rss > 0.1 * fp.rss else None
 
 
-def _corrected_rss(fp: FirstPass, corr: Array) -> float:
+def _corrected_rss(fp: FirstPass, corr: Array, corrected: Array | None = None) -> float:
     """The residual sum of squares of the errors-in-variables corrected fit, N^2:
     ``rss - beta_c^T C beta`` (``yy - beta_c^T b`` cancels to rounding when the law
     explains all but a millionth of ``yy``). Solved on unit-norm columns: unscaled, an
     ``x^3`` column beside an offset's fell below the solver's cut-off, and the corrected
-    fit without it took a third of the residual away."""
-    beta_c = gram_lstsq(fp.gram - corr, fp.b)
+    fit without it took a third of the residual away. ``corrected``: ``A^T A - C``, if
+    at hand."""
+    beta_c = gram_lstsq(fp.gram - corr if corrected is None else corrected, fp.b)
     return fp.rss - float(beta_c @ corr @ fp.beta)

@@ -513,13 +513,14 @@ class ShapedPass:
         b = np.empty(p)
         b[fixed] = self.b_f
         b[moving] = S.T @ y
-        d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-        lam_s = np.linalg.eigvalsh(gram / np.outer(d, d))
+        d = np.sqrt(np.maximum(gram.diagonal(), 1e-300))
+        scaled = gram / (d[:, None] * d)  # np.outer's numbers, formed once
+        lam_s = np.linalg.eigvalsh(scaled)
         cond_scaled = float(np.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else float("inf")
         if cond_scaled >= 1e5:  # too ill-conditioned for the normal equations
             return first_pass(bound, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns,
                               fit.paths, fit.whiten)  # fmt: skip
-        beta = np.linalg.solve(gram / np.outer(d, d), b / d) / d
+        beta = np.linalg.solve(scaled, b / d) / d
         # from the residuals themselves: yy - 2 beta.b + beta.G.beta cancels to zero (or
         # below) when the law explains all but a millionth of yy, and a zero residual
         # lets the evidence grow without bound as the noise level goes to zero
@@ -580,9 +581,12 @@ class ShapedPass:
         if good.size:
             beta[good] = np.linalg.solve(scaled[good], (b[good] / d[good])[..., None])[..., 0]
             beta[good] /= d[good]
-        r = (y - (self.F @ beta[:, fixed, None])[..., 0]
-             - (S @ beta[:, moving, None])[..., 0])  # fmt: skip
-        rss = (r[:, None, :] @ r[:, :, None])[:, 0, 0]
+        # the residuals node by node, as :meth:`__call__` forms them: stacked, their
+        # temporaries (several of nodes by rows) cost three times the products
+        rss = np.empty(n)
+        for i in range(n):
+            r = y - self.F @ beta[i, fixed] - S[i] @ beta[i, moving]
+            rss[i] = r @ r
         lam = np.linalg.eigvalsh(gram)
         with np.errstate(divide="ignore", invalid="ignore"):
             cond = np.where(lam[:, 0] > 0, np.sqrt(lam[:, -1] / lam[:, 0]), np.inf)

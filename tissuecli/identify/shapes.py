@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from ..core.terms import TIME_CONSTANT, Law, SessionSpan, ShapeParameter
 from .derivatives import Kinematics
-from .posterior import Posterior
+from .posterior import Posterior, _central95
 
 Array = NDArray[np.float64]
 
@@ -462,19 +462,17 @@ def mix(
             parts.append(q.samples[:k] if have >= k else q.samples[rng.integers(0, have, k)])
     samples = np.vstack(parts) if parts else np.zeros((0, mean.size + 1))
     beta = samples[:, :-1]
-    ci = (
-        np.percentile(beta, [2.5, 97.5], axis=0).T
-        if beta.shape[0]
-        else np.column_stack([mean, mean])
-    )
+    # np.percentile's numbers (linear interpolation), from one sort of each column
+    ci = _central95(beta) if beta.shape[0] else np.column_stack([mean, mean])
     sig = samples[:, -1] if samples.shape[0] else np.array([posteriors[0].sigma_mean])
+    sig_ci = _central95(sig[:, None])[0]
     return Posterior(
         mean=mean,
         sd=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
         ci95=ci,
         cov=cov,
         sigma_mean=float(w @ np.array([q.sigma_mean for q in posteriors])),
-        sigma_ci95=(float(np.percentile(sig, 2.5)), float(np.percentile(sig, 97.5))),
+        sigma_ci95=(float(sig_ci[0]), float(sig_ci[1])),
         ln_evidence=float("nan"),
         outside=float(w @ np.array([q.outside for q in posteriors])),
         method="+".join(sorted({q.method for q in posteriors})) + " (mixture over the shape)",

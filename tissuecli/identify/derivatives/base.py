@@ -18,7 +18,7 @@ import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +34,36 @@ from ..spectrum import (
 )
 
 Array = NDArray[np.float64]
+
+
+class _Recent:
+    """The values last computed for the very objects (held by weak reference, so that
+    a finished fit's are never matched by a new one's) and plain keys they were
+    computed from: what a fit asks about hundreds of times for one closure, kept
+    ``size`` at a time, the newest first. Thread-safe; callers must not write to what
+    they are given."""
+
+    def __init__(self, size: int = 1) -> None:
+        self._size = size
+        self._lock = threading.Lock()
+        self._items: list[tuple[tuple[weakref.ref[Any], ...], tuple[Any, ...], Any]] = []
+
+    def get(self, objects: tuple[Any, ...], plain: tuple[Any, ...] = ()) -> tuple[bool, Any]:
+        """Whether a value is kept for ``objects`` (by identity) and ``plain`` (by
+        equality), and that value (None if not)."""
+        with self._lock:
+            for refs, keys, value in self._items:
+                if keys == plain and all(r() is o for r, o in zip(refs, objects, strict=True)):
+                    return True, value
+        return False, None
+
+    def put(self, objects: tuple[Any, ...], plain: tuple[Any, ...], value: Any) -> Any:
+        """Keep ``value`` for ``objects`` and ``plain``, dropping the oldest beyond the
+        size; returns it."""
+        refs = tuple(weakref.ref(o) for o in objects)
+        with self._lock:
+            self._items[:] = [(refs, plain, value), *self._items[: self._size - 1]]
+        return value
 
 
 @dataclass(frozen=True)
@@ -267,14 +297,13 @@ class Kinematics:
         assert self.half is not None
         _, gh1, gh2, s2 = self.half
         n_v = noise_var * float(gh1 @ gh1)
-        with _half_lock:  # a long session's speed terms share them (see every())
-            if _half_of and _half_of[0][0]() is x_full and _half_of[0][1]() is gh1:
-                return (*_half_of[0][2], n_v)
+        found, kept = _HALF.get((x_full, gh1))  # a long session's speed terms share them
+        if found:
+            return (*kept, n_v)
         a = convolve_valid(x_full, gh2)
         v, spread = convolve_valid(x_full, gh1), s2 * a * a
         if self.stride > 1:
-            with _half_lock:
-                _half_of[:] = [(weakref.ref(x_full), weakref.ref(gh1), (v, spread))]
+            _HALF.put((x_full, gh1), (), (v, spread))
         return v, spread, n_v
 
     def _half_smooth(self, u: Array, x_full: Array) -> Array:
@@ -289,8 +318,8 @@ class Kinematics:
         return self._rows(col[trim : col.size - trim])  # to the full filter's outputs
 
 
-_half_lock = threading.Lock()
-_half_of: list[tuple[weakref.ref[Array], weakref.ref[Array], tuple[Array, Array]]] = []
+#: the half window's speed and spread for the last closure (see every())
+_HALF = _Recent()
 
 
 def first_order(u: Array, a: float) -> Array:
@@ -312,8 +341,8 @@ TAYLOR_TOLERANCE = 1e-18
 #: the moments kept of each block (the series' terms at ``|ln| = 1``: 1/20! = 4e-19)
 MOMENTS = 21
 
-_increments_lock = threading.Lock()
-_increments_of: list[tuple[weakref.ref[Array], weakref.ref[Array], int, Array, int, Array]] = []
+#: the filtered increments of the last closure, kernel and stride
+_INCREMENTS = _Recent()
 
 
 def increment_blocks(x: Array, kernel: Array, stride: int) -> tuple[Array, int, Array]:
@@ -325,11 +354,9 @@ def increment_blocks(x: Array, kernel: Array, stride: int) -> tuple[Array, int, 
     d_j^k`` with ``d_j = (stride - 1) / 2 - j``, k < :data:`MOMENTS`, shape (r,
     MOMENTS), each column contiguous. Kept for the last closure, kernel and stride
     asked about (a fit asks about one, for each shape of its relaxation branches)."""
-    with _increments_lock:
-        if _increments_of:
-            xr, kr, s, blocks, head, moments = _increments_of[0]
-            if xr() is x and kr() is kernel and s == stride:
-                return blocks, head, moments
+    found, kept = _INCREMENTS.get((x, kernel), (stride,))
+    if found:
+        return kept  # type: ignore[no-any-return]
     m = kernel.size
     count = (x.size - m) // stride + 1  # filtered outputs on the stride's grid
     dx = np.diff(x, prepend=x[:1])
@@ -339,9 +366,7 @@ def increment_blocks(x: Array, kernel: Array, stride: int) -> tuple[Array, int, 
     head = (pad + m) // stride - 1
     d = (stride - 1) / 2 - np.arange(stride, dtype=float)
     moments = np.asfortranarray(blocks @ (d[:, None] ** np.arange(MOMENTS)))
-    with _increments_lock:
-        _increments_of[:] = [(weakref.ref(x), weakref.ref(kernel), stride, blocks, head, moments)]
-    return blocks, head, moments
+    return _INCREMENTS.put((x, kernel), (stride,), (blocks, head, moments))  # type: ignore[no-any-return]
 
 
 #: largest level basis built (bytes, its entries while they are summed)
@@ -374,9 +399,8 @@ class LevelBasis:
         return np.bincount(self.row, weights=self.data * values[self.col], minlength=self.size)
 
 
-_basis_lock = threading.Lock()
-_BasisKey = tuple[weakref.ref[object], weakref.ref[Array], bool]
-_basis_of: list[tuple[_BasisKey, LevelBasis | None]] = []
+#: the level bases of the last two kinematics, closures and speed flags
+_BASES = _Recent(size=2)
 
 
 def level_basis(kin: Kinematics, x: Array, speed: bool = False) -> LevelBasis | None:
@@ -392,15 +416,10 @@ def level_basis(kin: Kinematics, x: Array, speed: bool = False) -> LevelBasis | 
     samples, a row of the record holds few levels: each (row, level) pair's samples
     are summed against each block of ``stride`` taps at once (one matrix product),
     and each sum is added to the output that block of taps reaches."""
-    key = (weakref.ref(kin), weakref.ref(x), speed)
-    with _basis_lock:
-        for k, found in _basis_of:
-            if k[0]() is kin and k[1]() is x and k[2] == speed:
-                return found
-    found = _level_basis(kin, x, speed)
-    with _basis_lock:
-        _basis_of[:] = [(key, found), *_basis_of[:1]]
-    return found
+    known, found = _BASES.get((kin, x), (speed,))
+    if known:
+        return found  # type: ignore[no-any-return]
+    return _BASES.put((kin, x), (speed,), _level_basis(kin, x, speed))  # type: ignore[no-any-return]
 
 
 def _level_basis(kin: Kinematics, x: Array, speed: bool) -> LevelBasis | None:
@@ -451,8 +470,8 @@ def _level_basis(kin: Kinematics, x: Array, speed: bool) -> LevelBasis | None:
 _EMPTY = (np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp), np.zeros(0))
 
 
-_padded_lock = threading.Lock()
-_padded_of: list[tuple[weakref.ref[Array], int, int, tuple[Array, NDArray[np.intp], int]]] = []
+#: the padded layout of the last closure, window and stride
+_PADDED = _Recent()
 
 
 def padded_levels(x: Array, m: int, stride: int) -> tuple[Array, NDArray[np.intp], int] | None:
@@ -463,11 +482,9 @@ def padded_levels(x: Array, m: int, stride: int) -> tuple[Array, NDArray[np.intp
     values at the levels, with a 0 appended, read at that index are the padded input
     itself: a long session's closure columns skip the record-long function values and
     their copy into the padded input. Kept for the last closure, window and stride."""
-    with _padded_lock:
-        if _padded_of:
-            xr, mm, ss, found = _padded_of[0]
-            if xr() is x and mm == m and ss == stride:
-                return found
+    known, found = _PADDED.get((x,), (m, stride))
+    if known:
+        return found  # type: ignore[no-any-return]
     levelled = _levels(x)
     if levelled is None:
         return None
@@ -476,31 +493,26 @@ def padded_levels(x: Array, m: int, stride: int) -> tuple[Array, NDArray[np.intp
     used = min(x.size, rows * stride)
     laid = np.full(rows * stride, levels.size, dtype=np.intp)
     laid[:used] = index[:used]
-    found = (levels, laid, out)
-    with _padded_lock:
-        _padded_of[:] = [(weakref.ref(x), m, stride, found)]
-    return found
+    return _PADDED.put((x,), (m, stride), (levels, laid, out))  # type: ignore[no-any-return]
 
 
 #: fewest samples per distinct closure level for :meth:`Kinematics.pointwise` to use them
 SAMPLES_PER_LEVEL = 8
 
-_levels_lock = threading.Lock()
-_levels_of: list[tuple[weakref.ref[Array], tuple[Array, NDArray[np.intp]] | None]] = []
+#: the levels of the last closure (None: not on few levels)
+_LEVELS = _Recent()
 
 
 def _levels(x: Array) -> tuple[Array, NDArray[np.intp]] | None:
     """The distinct values of ``x`` and each sample's index among them, if there are at
     most one per :data:`SAMPLES_PER_LEVEL` samples; kept for the last closure asked
     about (a fit asks about one, hundreds of times)."""
-    with _levels_lock:
-        if _levels_of and _levels_of[0][0]() is x:
-            return _levels_of[0][1]
+    known, found = _LEVELS.get((x,))
+    if known:
+        return found  # type: ignore[no-any-return]
     levels, index = np.unique(x, return_inverse=True)
     found = (levels, index.ravel()) if levels.size * SAMPLES_PER_LEVEL <= x.size else None
-    with _levels_lock:
-        _levels_of[:] = [(weakref.ref(x), found)]
-    return found
+    return _LEVELS.put((x,), (), found)  # type: ignore[no-any-return]
 
 
 class Differentiator(ABC):
