@@ -203,3 +203,52 @@ def test_the_true_law_predicts_a_held_out_end_that_ends_in_a_grasp(seed: int, bo
     truth = scene.force[i0:]
     rms = float(np.sqrt(np.mean((predicted - truth) ** 2)))
     assert rms < bound * _savgol_floor(s.force[i0:], truth)
+
+
+@pytest.mark.parametrize("degree", [3, 5, 7])
+def test_the_ends_carry_no_more_noise_than_the_centred_windows(degree: int) -> None:
+    """At either end a window's polynomial is read off-centre, where a high degree
+    amplifies noise most. On a quadratic closure every degree is unbiased and Lepski's
+    rule at 3 SDs sets the lowest aside about 1 % of the time in all, those samples
+    taking a noisier degree: over 400 draws the end samples' acceleration RMS error is
+    0.9-1.2 times the centred estimate's noise SD for degrees 3, 5, 7. 40 draws know it
+    to some 15 %, so 1.5 times; reading the chosen degree at the edge, as before, gave
+    3.4, 4.9 and 8.0 times."""
+    from tissuecli.identify.predict import _smoothed
+
+    dt, w, sigma = 1e-3, 101, 1e-6
+    t = np.arange(1000) * dt
+    x = 2e-3 + 0.5 * 3.0 * (t - 0.4) ** 2  # acceleration 3 m/s^2 throughout
+    rng = np.random.default_rng(3)
+    end, centre_sd = [], 0.0
+    for _ in range(40):
+        a, gain = _smoothed(x + rng.normal(0.0, sigma, x.size), w, degree, 2, dt, sigma)
+        end.append(np.concatenate([a[: w // 2], a[-(w // 2) :]]) - 3.0)
+        centre_sd = sigma * gain
+    rms = float(np.sqrt(np.mean(np.square(end))))
+    assert rms <= 1.5 * centre_sd, (rms, centre_sd)
+    # without position noise the chosen degree is kept: exact on its polynomial
+    exact, _ = _smoothed(x, w, degree, 2, dt, 0.0)
+    np.testing.assert_allclose(exact, 3.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize(("seed", "was"), [(7265007, 1.71), (9820720, 1.62), (9820730, 5.26)])
+def test_the_true_law_predicts_a_held_out_end_within_the_floor(seed: int, was: float) -> None:
+    """Sessions whose held-out end was lost to the end windows or to the grasp
+    detector (``was``: the true law's held-out error over the Savitzky-Golay floor
+    before): inertia at 2.5 and 6 kHz read off a degree-7 window's edge, and a
+    Hunt-Crossley tissue in contact throughout whose closure dips short of its contact
+    point, read free by the detector with the small force past that point. The true
+    law through ``predict_band`` lands within the 1.5 times the floor the
+    generalisation benchmark asks of a fit (0.98, 1.28 and 0.12 today)."""
+    from tissuecli.sim.scenes import FAMILIES, random_scene
+
+    other = [f for f in FAMILIES if not f.startswith("paper")]
+    scene = random_scene(seed, families=other, max_samples=10_000)
+    s = scene.session
+    i0 = int(np.searchsorted(s.time, s.time[0] + 0.7 * (s.time[-1] - s.time[0])))
+    tune = np.arange(len(s)) < i0
+    predicted = predict_band(scene.tissue, s, tune=tune).predicted[i0:]
+    truth = scene.force[i0:]
+    rms = float(np.sqrt(np.mean((predicted - truth) ** 2)))
+    assert rms < 1.5 * _savgol_floor(s.force[i0:], truth), (rms, was)

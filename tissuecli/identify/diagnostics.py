@@ -246,14 +246,12 @@ def outlier_warnings(kin: Kinematics, fitted: Array, z: float = 8.0) -> list[str
 def expected_residual_sd(best: ModelResult, sigma_x: float, n: int) -> float:
     """Residual SD the best form expects (N): force noise plus position noise through the law.
 
-    With the errors-in-variables correction the posterior noise SD is the force noise
-    alone; noise on position reaches the residuals through the design columns too, adding
-    ``beta^T C beta / n`` to their variance (C: the correction subtracted from A^T A).
+    The posterior noise SD is that of the raw residual about the law (the evidence is
+    scored on it, :func:`~tissuecli.identify.scoring.law_stats`): force noise and
+    position noise through the design columns together, ``beta^T C beta / n`` of its
+    variance the latter (C: the correction subtracted from A^T A). ``sigma_x`` and
+    ``n`` are kept for callers; the posterior already holds both parts.
     """
     post = best.posterior
     assert post is not None
-    sigma = float(post.sigma_mean)
-    if sigma_x <= 0 or best.correction is None:
-        return sigma  # no correction, or the fit left this form uncorrected
-    extra = float(post.mean @ best.correction @ post.mean) / max(n, 1)
-    return float(np.sqrt(sigma**2 + max(extra, 0.0)))
+    return float(post.sigma_mean)

@@ -183,13 +183,22 @@ def predict_band(
         noise = noise_sd
     else:
         grid, usable = _grid(session)
-        free = _free_jaws(grid)
-        if smoother is not None:
-            A = _raw_design(tissue, grid, usable, smoother, free)
-        else:
-            chooses = _on_grid_mask(session, grid, tune) & ~free
-            A = _tuned_design(tissue, grid, usable, free, chooses)
-        A[free] *= _kept_free(tissue)
+        detected = _free_jaws(grid)
+        past = detected & _past_contact_point(tissue, grid.position)
+        free = detected & ~past
+        judged = _on_grid_mask(session, grid, tune)
+
+        def regressors(free: NDArray[np.bool_]) -> Array:
+            if smoother is not None:
+                return _raw_design(tissue, grid, usable, smoother, free)
+            return _tuned_design(tissue, grid, usable, free, judged & ~detected)
+
+        A = regressors(free)
+        kept = _kept_free(tissue)
+        if past.any() and not _law_reads_contact(A, tissue.coef, kept, grid.force, past & judged):
+            free = detected  # terms with memory are held across these samples too
+            A = regressors(free)
+        A[free] *= kept
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
         if noise_sd is not None:
@@ -267,7 +276,7 @@ def _raw_design(
     for k in (k0, k1, k2):
         mid = convolve_valid(x, k)
         est.append(np.concatenate([np.full(h, np.nan), mid, np.full(h, np.nan)]))
-    xs, vs, acc = _ends(est, x, dt, w, smoother)
+    xs, vs, acc = _ends(est, x, dt, w, smoother, position_noise_sd(x, 1.0 / dt, usable))
     held = held_closure(xs, free) if free is not None else xs
     A = np.column_stack([term.series(dt, held if term.memory else xs, vs, acc)
                          for term in tissue.law.terms])  # fmt: skip
@@ -277,21 +286,19 @@ def _raw_design(
 
 
 def _ends(
-    est: list[Array], x: Array, dt: float, w: int, smoother: Differentiator
+    est: list[Array], x: Array, dt: float, w: int, smoother: Differentiator, sigma_x: float
 ) -> tuple[Array, Array, Array]:
     """Fill the half windows at either end with the end windows' polynomials (their
-    value, slope and curvature), so every sample has kinematics."""
+    value, slope and curvature, each of the degree :func:`_end_values` chooses for
+    position noise of SD ``sigma_x``, m), so every sample has kinematics."""
     h = w // 2
     order = int(getattr(smoother, "polyorder", 3))
-    s = (np.arange(w) - h) * dt  # window times about its centre
     out = [u.copy() for u in est]
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
-        c = np.polynomial.polynomial.polyfit(s, x[lo : lo + w], min(order, w - 1))
-        u = (where - (lo + h)) * dt
-        p = np.polynomial.polynomial
-        out[0][where] = p.polyval(u, c)
-        out[1][where] = p.polyval(u, p.polyder(c, 1))
-        out[2][where] = p.polyval(u, p.polyder(c, 2))
+        u = (where - (lo + h)) / max(h, 1)
+        for k in range(3):
+            values = _end_values(x[lo : lo + w], u, order, k, sigma_x)
+            out[k][where] = values / (max(h, 1) * dt) ** k
     return out[0], out[1], out[2]
 
 
@@ -302,6 +309,39 @@ def _free_jaws(grid: Session) -> NDArray[np.bool_]:
     if contact.all_contact or not contact.grasps:
         return np.zeros(len(grid), bool)
     return ~contact.mask
+
+
+def _past_contact_point(tissue: Tissue, x: Array) -> NDArray[np.bool_]:
+    """Samples whose closure ``x`` (m) is past the contact point of a term that declares
+    one (a Hunt-Crossley contact): the law's own, fitted, statement of where the tissue
+    is touched. The grasp detector reads contact from the force standing clear of the
+    noise, so it misses the first small force past that point (and reads a session in
+    contact throughout as grasps where the closure dips short of it); the law's contact
+    terms are zero short of their point by themselves and need no detector there."""
+    out = np.zeros(x.size, bool)
+    for term in tissue.law.terms:
+        for name, parameter in zip(term.shapes, term.parameters, strict=True):
+            if parameter.kind == "x0" and name in term.shape:
+                out |= x > term.shape[name]
+    return out
+
+
+def _law_reads_contact(
+    A: Array, coef: Array, kept: Array, force: Array, where: NDArray[np.bool_]
+) -> bool:
+    """Whether the law's force at the samples ``where`` (read free by the grasp detector,
+    past the law's contact point) is closer to the measured ``force`` than the free
+    jaws' (the tissue's terms zero, ``kept`` the rest): the test that the law's contact
+    point holds there. A law whose contact point falls short of the true touch (a
+    relaxation session fitted by a contact law, x0 below zero closure) puts a force
+    on free jaws that read the sensor's offset, and is set aside; with no such sample
+    to judge by, the detector stands."""
+    rows = where & np.all(np.isfinite(A), axis=1) & np.isfinite(force)
+    if not rows.any():
+        return False
+    law = A[rows] @ coef
+    free = A[rows] @ (coef * kept)
+    return float(np.sum((force[rows] - law) ** 2)) < float(np.sum((force[rows] - free) ** 2))
 
 
 def _kept_free(tissue: Tissue) -> Array:
@@ -446,7 +486,7 @@ def _columns(
     est = []
     for k, (degree, w) in enumerate(smoothers):
         if (k, (degree, w)) not in cache:
-            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt)
+            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt, sigma_x)
         est.append(cache[k, (degree, w)])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
@@ -482,10 +522,13 @@ def _fit_matrix(w: int, degree: int) -> Array:
     return np.linalg.pinv(np.vander(u, min(degree, w - 1) + 1, increasing=True))
 
 
-def _smoothed(x: Array, w: int, degree: int, k: int, dt: float) -> tuple[Array, float]:
+def _smoothed(
+    x: Array, w: int, degree: int, k: int, dt: float, sigma_x: float = 0.0
+) -> tuple[Array, float]:
     """The ``k``-th derivative's Savitzky-Golay estimate at every sample (centred windows;
-    at either end the end window's polynomial, as scipy's ``savgol_filter(mode="interp")``)
-    and the norm of its kernel (the gain of white noise)."""
+    in the half window at either end the end window's polynomial, its degree chosen by
+    :func:`_end_values` for position noise of SD ``sigma_x``, m) and the norm of its
+    kernel (the gain of white noise)."""
     h = w // 2
     fit = _fit_matrix(w, degree)
     scale = math.factorial(k) / (max(h, 1) * dt) ** k
@@ -493,12 +536,57 @@ def _smoothed(x: Array, w: int, degree: int, k: int, dt: float) -> tuple[Array, 
         return np.zeros_like(x), 0.0
     kernel = scale * fit[k][::-1]
     out = np.concatenate([np.full(h, np.nan), convolve_valid(x, kernel), np.full(h, np.nan)])
-    p = np.polynomial.polynomial
+    unit = 1.0 / (max(h, 1) * dt) ** k
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
-        c = fit @ x[lo : lo + w]
         u = (where - (lo + h)) / max(h, 1)
-        out[where] = p.polyval(u, p.polyder(c, k)) / (max(h, 1) * dt) ** k
+        out[where] = unit * _end_values(x[lo : lo + w], u, degree, k, sigma_x)
     return out, float(np.linalg.norm(kernel))
+
+
+#: a lower degree at a session's ends must agree with every higher one within this many
+#: SDs of their difference (:func:`_end_values`): an unbiased one is set aside 0.27 % of
+#: the time by each comparison
+END_SDS = 3.0
+
+
+def _end_values(xw: Array, u: Array, degree: int, k: int, sigma_x: float) -> Array:
+    """The ``k``-th derivative (in the window's time over its half-width) at the
+    off-centre points ``u`` (-1 to 1) of one end window ``xw`` of samples, shape like
+    ``u``.
+
+    A polynomial fit read off-centre amplifies noise far more than at its centre (at the
+    window's edge a degree-7 fit's acceleration has some 30 times the centred noise
+    gain), and the ends of a predicted session, a held-out end above all, were dominated
+    by it; a lower degree has less noise there but more bias. Each end sample takes the
+    lowest degree, from ``k`` up to ``degree`` (the one chosen on centred windows),
+    whose estimate agrees with that of every higher degree within ``END_SDS`` SDs of
+    their difference (Lepski's rule): a lower degree is taken only where the data show
+    no bias in it beyond what the higher degree's extra noise would hide. The fits are
+    nested least squares, so that difference's variance is exactly the difference of
+    their variances. Without position noise the chosen degree is kept."""
+    w = xw.size
+    top = min(degree, w - 1)
+    values, variances = [], []
+    for d in range(k, top + 1):
+        fit = _fit_matrix(w, d)
+        powers = np.arange(k, d + 1)
+        falling = np.array([math.factorial(j) // math.factorial(j - k) for j in powers], float)
+        basis = falling * u[:, None] ** (powers - k)
+        values.append(basis @ (fit[k:] @ xw))
+        gram = fit[k:] @ fit[k:].T
+        variances.append(sigma_x**2 * np.einsum("ij,jk,ik->i", basis, gram, basis))
+    if not values:
+        return np.zeros_like(u)
+    chosen = values[-1].copy()
+    done = np.zeros(u.size, bool)
+    for i in range(len(values) - 1):  # the lowest degree first
+        ok = ~done
+        for j in range(i + 1, len(values)):
+            spread = np.sqrt(np.clip(variances[j] - variances[i], 0.0, None))
+            ok &= np.abs(values[i] - values[j]) <= END_SDS * spread
+        chosen[ok] = values[i][ok]
+        done |= ok
+    return chosen
 
 
 def _samples_on(session: Session, grid: Session) -> Callable[[Array], Array]:

@@ -204,9 +204,17 @@ def law_stats(
     if uncorrected:
         corr = None  # noise dominates a column: the correction would be meaningless
     G, b, yy, rss = fp.gram, fp.b, fp.yy, fp.rss
-    if corr is not None and rss_c is not None:  # centred on the corrected fit
-        rss = max(rss_c, 0.0)
-        G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, rss, corrected)
+    if corr is not None and rss_c is not None:
+        # centred on the corrected fit, with the raw residual: position noise reaches
+        # the force through the law's columns, so the residuals about the corrected fit
+        # scatter by the force noise and that path together (variance
+        # s_f^2 + beta^T Sigma_u beta per row, whose best value given the data is the
+        # raw rss / n). Scored on the force noise alone (rss_c), a law gained what its
+        # own columns' noise took off: the more noise a law's columns carry, the more
+        # it gained, and where that noise was nearly all of the residual rss_c was a
+        # difference of two like numbers, near zero or below it (the law then left
+        # uncorrected, hundreds of nats behind laws that were not)
+        G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, fp.rss, corrected)
     w, n = fit.weight, fit.rows
     st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
     prior = law_prior(model, fit.scales)

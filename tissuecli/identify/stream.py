@@ -239,10 +239,12 @@ class StreamedFit:
             if s.n <= len(s.law.terms):
                 continue
             G, b, yy, rss = s.G, s.b, s.yy, s.rss()
-            if s.correction is not None:  # as in the full fit: the corrected estimator's spread
+            if s.correction is not None:
+                # as in the full fit: the corrected estimator's spread, and the raw
+                # residual (force noise and position noise through the law) scored
                 p, R = len(s.law.terms), s.R
-                raw = float(R[p, p] ** 2) if R is not None and R.shape[0] > p else rss
-                G, b, yy = corrected_curvature(s.G, s.b, s.correction, raw, rss)
+                rss = float(R[p, p] ** 2) if R is not None and R.shape[0] > p else rss
+                G, b, yy = corrected_curvature(s.G, s.b, s.correction, rss, rss)
             st = SufficientStats(weight * G, weight * b, weight * yy, weight * s.n, weight * rss)
             prior = law_prior(s.law, pilot.scales_)
             exact = ExactPosterior(st, prior)
