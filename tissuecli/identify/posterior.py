@@ -391,6 +391,14 @@ class ExactPosterior:
         if self._inside is None and self.upper_ln_evidence() < lead - FAR_BEHIND:
             self._rough = True
 
+    def loosen(self) -> None:
+        """Take the orthant mass to the lattice's looser target, as :meth:`rough` does,
+        whatever the evidence: for a closed form whose share of a sum is known to be
+        small (a node of a shape grid far below its top). Before the mass is first
+        computed only."""
+        if self._inside is None:
+            self._rough = True
+
     def _modal(self) -> tuple[Array, Array]:
         """Mean and covariance of the bounded coefficients at the modal sigma (computed
         once: the orthant mass and the exact draws both read them; not to be written)."""

@@ -69,6 +69,10 @@ MARGINAL_DRAWS = 4000
 #: or checks are wanted is formed again on the full grid
 SCAN_NODES = 101
 
+#: a shape node whose evidence, at its upper bound, weighs under e^-5 (0.7 %) of a node
+#: already known takes its orthant mass to the lattice's looser target
+LIGHT_NODE_NATS = 5.0
+
 #: the fewest draws a component of a mixture over shape nodes takes under the positivity
 #: bounds (:func:`mixed_posterior`): its mean and covariance come from them
 COMPONENT_DRAWS = 200
@@ -176,9 +180,20 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 ln_z[i] = untruncated[i] + truncation(grid.nodes[i])
             rough[near] = False
             continue
-        for i in near:
+        # heaviest first: a node whose upper bound weighs under e^-LIGHT_NODE_NATS of a
+        # node already known counts for as little of the sum over the grid, and its mass
+        # is taken to the lattice's looser target (ln P to about 0.01: under 1e-4 nats of
+        # the law's evidence), where the full one cost up to 64 times the points
+        known = float(np.max(ln_z[done & ~rough] + grid.log_weight[done & ~rough],
+                             initial=-np.inf))  # fmt: skip
+        for i in near[np.argsort(-(ln_z[near] + grid.log_weight[near]))]:
+            exact = exact_at(grid.nodes[i])
+            if exact.upper_ln_evidence() + grid.log_weight[i] < known - LIGHT_NODE_NATS:
+                exact.loosen()
             ln_z[i] += truncation(grid.nodes[i])
-            rough[i] = exact_at(grid.nodes[i]).bound_only
+            rough[i] = exact.bound_only
+            if not rough[i]:
+                known = max(known, float(ln_z[i] + grid.log_weight[i]))
         done[near] = True
     log_post = ln_z + grid.log_weight
     tops = np.argsort(-log_post)[:3]
