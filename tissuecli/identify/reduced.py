@@ -106,26 +106,20 @@ class ClosureSpan:
         values = np.asarray(values, dtype=float)
         if not np.all(np.isfinite(values)):
             return None
-        v = self.weight * values
-        norm = float(np.sqrt(v @ v))
         with self._lock:
-            Q = self._Q[: self.size]
-            c = Q @ v
-            rest = v - c @ Q
-            if norm == 0.0 or float(np.sqrt(rest @ rest)) <= tolerance * norm:
-                return c
-            again = Q @ rest  # a second pass keeps the basis orthonormal to rounding
-            rest -= again @ Q
-            c += again
-            left = float(np.sqrt(rest @ rest))
-            if left <= tolerance * norm:
+            c, rest, left = _project(self._Q[: self.size], self.weight * values, tolerance)
+            if rest is None:
                 return c
             if self.size >= self.most:
                 return None
             q = rest / left
             column = self.kin.smooth_pointwise(lambda _: q * self.inverse, self.x_full,
                                                self.speed)  # fmt: skip
-            self._append(q, column)
+            self._Q, self._C = _room(self._Q, self.size), _room(self._C, self.size)
+            self._Q[self.size] = q
+            self._C[self.size] = column
+            self.size += 1
+            self.misses += 1
             return np.append(c, left)
 
     def coordinates_many(
@@ -146,15 +140,31 @@ class ClosureSpan:
                 else self.coordinates(values[i], tolerances[i])
                 for i in range(len(values))]  # fmt: skip
 
-    def _append(self, q: Array, column: Array) -> None:
-        if self.size == self._Q.shape[0]:
-            grown = max(16, 2 * self.size)
-            self._Q = np.concatenate([self._Q, np.zeros((grown - self.size, self._Q.shape[1]))])
-            self._C = np.concatenate([self._C, np.zeros((grown - self.size, self.rows))])
-        self._Q[self.size] = q
-        self._C[self.size] = column
-        self.size += 1
-        self.misses += 1
+
+
+def _project(Q: Array, v: Array, tolerance: float) -> tuple[Array, Array | None, float]:
+    """Coordinates of ``v`` on the orthonormal rows of ``Q``, what is left of it and that
+    rest's norm; the rest None where it is within ``tolerance`` of ``v``'s norm. A second
+    pass keeps the basis orthonormal to rounding."""
+    norm = float(np.sqrt(v @ v))
+    c = Q @ v
+    rest = v - c @ Q
+    if norm == 0.0 or float(np.sqrt(rest @ rest)) <= tolerance * norm:
+        return c, None, 0.0
+    again = Q @ rest
+    rest -= again @ Q
+    c += again
+    left = float(np.sqrt(rest @ rest))
+    return (c, None, left) if left <= tolerance * norm else (c, rest, left)
+
+
+def _room(stack: Array, size: int) -> Array:
+    """``stack`` (rows of which ``size`` are in use) with room for one more: doubled
+    (at least 16 rows) when full."""
+    if size < stack.shape[0]:
+        return stack
+    grown = max(16, 2 * size)
+    return np.concatenate([stack, np.zeros((grown - size, stack.shape[1]))])
 
 
 def pad(c: Array, size: int) -> Array:
@@ -280,24 +290,13 @@ class RowSpan:
         v = np.asarray(column, dtype=float)
         if not np.all(np.isfinite(v)):
             return None
-        norm = float(np.sqrt(v @ v))
         with self._lock:
-            B = self._B[: self.size]
-            c = B @ v
-            rest = v - c @ B
-            if norm == 0.0 or float(np.sqrt(rest @ rest)) <= TOLERANCE * norm:
-                return c
-            again = B @ rest
-            rest -= again @ B
-            c += again
-            left = float(np.sqrt(rest @ rest))
-            if left <= TOLERANCE * norm:
+            c, rest, left = _project(self._B[: self.size], v, TOLERANCE)
+            if rest is None:
                 return c
             if self.size >= self.most:
                 return None
-            if self.size == self._B.shape[0]:
-                grown = max(16, 2 * self.size)
-                self._B = np.concatenate([self._B, np.zeros((grown - self.size, self.rows))])
+            self._B = _room(self._B, self.size)
             self._B[self.size] = rest / left
             self.size += 1
             self.misses += 1
