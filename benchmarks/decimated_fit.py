@@ -119,6 +119,19 @@ def against(checkout: str, repeats: int, seconds: list[float], scene: str) -> No
         p.wait()
 
 
+def take_scene(args: list[str]) -> str:
+    """The ``--scene NAME`` option's name, taken out of ``args`` (default ``forceps``);
+    exits with the names to choose from if it is not one of :data:`SCENES`."""
+    scene = "forceps"
+    if "--scene" in args:
+        i = args.index("--scene")
+        scene = args[i + 1]
+        del args[i : i + 2]
+    if scene not in SCENES:
+        sys.exit(f"unknown scene {scene!r}; choose {', '.join(SCENES)}")
+    return scene
+
+
 def main() -> None:
     if "--worker" in sys.argv:
         worker(sys.argv[sys.argv.index("--worker") + 1])
@@ -127,13 +140,7 @@ def main() -> None:
     if "-h" in args or "--help" in args:
         print(__doc__)
         return
-    checkout, repeats, scene = None, 3, "forceps"
-    if "--scene" in args:
-        i = args.index("--scene")
-        scene = args[i + 1]
-        del args[i : i + 2]
-        if scene not in SCENES:
-            sys.exit(f"unknown scene {scene!r}; choose {', '.join(SCENES)}")
+    checkout, repeats, scene = None, 3, take_scene(args)
     if "--against" in args:
         i = args.index("--against")
         checkout = args[i + 1]

@@ -29,15 +29,9 @@ def main() -> None:
     if "-h" in args or "--help" in args:
         print(__doc__)
         return
-    scene = "forceps"
-    if "--scene" in args:
-        i = args.index("--scene")
-        scene = args[i + 1]
-        del args[i : i + 2]
-    from decimated_fit import SCENES  # the same sessions, beside this file
+    from decimated_fit import SCENES, take_scene  # the same sessions, beside this file
 
-    if scene not in SCENES:
-        sys.exit(f"unknown scene {scene!r}; choose {', '.join(SCENES)}")
+    scene = take_scene(args)
     seconds = float(args[0]) if args else 60.0
     session = SCENES[scene](seconds)
     BayesianFit().fit(synthesize(ForcepsModel(seed=1), 2.0)[0])  # loads SciPy
