@@ -665,7 +665,7 @@ class ExactPosterior:
         centred = beta - mean
         cov = centred.T @ centred / (beta.shape[0] - 1)
         ci = (  # the coefficients', then sigma's
-            _central95(samples) if intervals else np.full((samples.shape[1], 2), np.nan)
+            central95(samples) if intervals else np.full((samples.shape[1], 2), np.nan)
         )
         return Posterior(
             mean=mean,
@@ -787,7 +787,7 @@ def _mixture_quantiles(q: Array, w: Array, mu: Array, sd: Array) -> Array:
     return out
 
 
-def _central95(samples: Array) -> Array:
+def central95(samples: Array) -> Array:
     """Each column's 2.5 and 97.5 percentiles, shape (k, 2), for ``samples`` (n, k):
     ``np.percentile(samples, [2.5, 97.5], axis=0).T`` (linear interpolation between the
     order statistics), from each column's sort."""

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from ..core.terms import TIME_CONSTANT, Law, SessionSpan, ShapeParameter
 from .derivatives import Kinematics
-from .posterior import Posterior, _central95
+from .posterior import Posterior, central95
 
 Array = NDArray[np.float64]
 
@@ -496,9 +496,9 @@ def mix(
     samples = np.vstack(parts) if parts else np.zeros((0, mean.size + 1))
     beta = samples[:, :-1]
     # np.percentile's numbers (linear interpolation), from one sort of each column
-    ci = _central95(beta) if beta.shape[0] else np.column_stack([mean, mean])
+    ci = central95(beta) if beta.shape[0] else np.column_stack([mean, mean])
     sig = samples[:, -1] if samples.shape[0] else np.array([posteriors[0].sigma_mean])
-    sig_ci = _central95(sig[:, None])[0]
+    sig_ci = central95(sig[:, None])[0]
     return Posterior(
         mean=mean,
         sd=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
