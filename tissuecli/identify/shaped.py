@@ -31,6 +31,7 @@ from .scoring import (
 from .shapes import (
     MIX_DRAWS,
     ShapeGrid,
+    continuous_mixture,
     hermite_nodes,
     kept,
     laplace,
@@ -219,8 +220,23 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         else:
             nodes_u, w = hermite_nodes(peak)
             inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            post = mixed_posterior([exact_at(grid.from_u(nodes_u[i])) for i in inside],
-                                   w[inside], fit.rng)  # fmt: skip
+            exacts = [exact_at(grid.from_u(nodes_u[i])) for i in inside]
+            post, comps = mixed_posterior(exacts, w[inside], fit.rng, parts=True)
+            # its intervals over the shape's Gaussian, not over the nodes alone; nodes
+            # beyond the prior's edge only shape the interpolant (where the law is
+            # defined there), their draws dropped
+            outside = [i for i in range(len(nodes_u)) if i not in inside]
+            if len(inside) == 1:
+                comps = []  # a posterior sharper than the nodes' spread: left as it is
+            elif outside and all(_allowed(grid, nodes_u[i]) for i in outside):
+                extra = {i: exact_at(grid.from_u(nodes_u[i])).bounded(
+                    fit.rng, CUT_THRESHOLD, intervals=False, draws=COMPONENT_DRAWS)
+                    for i in outside}  # fmt: skip
+                given = dict(zip(inside, comps, strict=True))
+                comps = [given[i] if i in given else extra[i] for i in range(len(nodes_u))]
+            if len(comps) == len(nodes_u):
+                post = continuous_mixture(post, comps, peak, grid, exacts[0].prior.bounded,
+                                          fit.rng, truncated=bool(outside))  # fmt: skip
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
         shape_post = _shape_draws(grid, draws)
         how = (
@@ -320,25 +336,39 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     return res
 
 
+def _allowed(grid: ShapeGrid, u: Array) -> bool:
+    """Whether the shape at ``u`` lies within every parameter's limits (where the law is
+    defined, inside the prior's support or not)."""
+    node = grid.from_u(u)
+    return all(grid.params[n].limits[0] <= v <= grid.params[n].limits[1]
+               for n, v in node.items())  # fmt: skip
+
+
 def mixed_posterior(
-    exacts: list[ExactPosterior], weights: Array, rng: np.random.Generator
-) -> Posterior:
+    exacts: list[ExactPosterior],
+    weights: Array,
+    rng: np.random.Generator,
+    parts: bool = False,
+) -> Any:
     """The posterior of a law whose shape is marginalised over several nodes: the
     mixture (:func:`~tissuecli.identify.shapes.mix`) of each node's bounded posterior
     (:meth:`ExactPosterior.bounded`). Each component draws only what the mixture takes
     of it (its share of :data:`~tissuecli.identify.shapes.MIX_DRAWS` by weight), and at
     least :data:`COMPONENT_DRAWS` for its own mean and covariance where those come from
     draws: a mixture of twelve nodes drew 48,000 draws under the bounds where it keeps
-    4,000. A single node's posterior is that node's, intervals and all."""
+    4,000. A single node's posterior is that node's, intervals and all. ``parts``:
+    return the components' posteriors too, as ``(posterior, components)``."""
     if len(exacts) == 1:
-        return exacts[0].bounded(rng, CUT_THRESHOLD)
+        one = exacts[0].bounded(rng, CUT_THRESHOLD)
+        return (one, [one]) if parts else one
     w = np.asarray(weights, dtype=float) / float(np.sum(weights))
     counts = rng.multinomial(MIX_DRAWS, w)
     posts = [
         e.bounded(rng, CUT_THRESHOLD, intervals=False, draws=max(int(k), COMPONENT_DRAWS))
         for e, k in zip(exacts, counts, strict=True)
     ]
-    return mix(posts, w, rng, counts)
+    mixed = mix(posts, w, rng, counts)
+    return (mixed, posts) if parts else mixed
 
 
 def marginal_posterior(

@@ -104,6 +104,19 @@ class ShapeGrid:
                 return False
         return all(at[a] < at[b] for group in self.ordered for a, b in itertools.pairwise(group))
 
+    def inside_many(self, us: Array) -> NDArray[np.bool_]:
+        """:meth:`inside` of each row of ``us`` (k, d), at once."""
+        us = np.atleast_2d(np.asarray(us, dtype=float))
+        ok = np.ones(us.shape[0], bool)
+        for j, n in enumerate(self.names):
+            lo, hi = (self.params[n].to_u(b) for b in self.ranges[n])
+            ok &= (us[:, j] >= lo) & (us[:, j] <= hi)
+        index = {n: j for j, n in enumerate(self.names)}
+        for group in self.ordered:
+            for a, b in itertools.pairwise(group):
+                ok &= us[:, index[a]] < us[:, index[b]]
+        return ok
+
     def interior(self, u: Array) -> Array:
         """``u`` moved inside the box by a millionth of a grid step: a node on the
         box's edge may fall outside it after a round trip through ln and exp."""
@@ -421,6 +434,101 @@ def hermite_nodes(peak: Peak) -> tuple[list[Array], Array]:
         nodes.append(peak.u + scale @ z)
         weights.append(float(np.prod(w1[list(idx)])))
     return nodes, np.array(weights)
+
+
+#: the three Gauss-Hermite abscissae of :func:`hermite_nodes`, in standard deviations
+HERMITE_Z = (-math.sqrt(3.0), 0.0, math.sqrt(3.0))
+
+
+def hermite_interpolant(values: Array, z: Array) -> Array:
+    """The polynomial through :func:`hermite_nodes`' values, at standard-normal points.
+
+    ``values`` (3^d, ...) hold a quantity at each node, in the nodes' order; the
+    interpolant is the tensor product of the Hermite polynomials 1, ``z`` and ``z^2 - 1``
+    in each principal direction, so its mean and variance over the peak's Gaussian are
+    the nodes' weighted mean and variance (the three-point rule integrates it and its
+    square exactly). Returns it at ``z`` (k, d), shape (k, ...).
+    """
+    z = np.atleast_2d(np.asarray(z, dtype=float))
+    d = z.shape[1]
+    nodes = np.array(list(itertools.product(HERMITE_Z, repeat=d)))
+
+    def basis(q: Array) -> Array:
+        per = np.stack([np.ones_like(q), q, q**2 - 1.0], axis=-1)  # (k, d, 3)
+        out = np.ones((q.shape[0], 1))
+        for j in range(d):
+            out = (out[:, :, None] * per[:, j, None, :]).reshape(q.shape[0], -1)
+        return out
+
+    vals = np.asarray(values, dtype=float)
+    coef = np.linalg.solve(basis(nodes), vals.reshape(vals.shape[0], -1))
+    return np.asarray((basis(z) @ coef).reshape((z.shape[0], *vals.shape[1:])))
+
+
+def continuous_mixture(
+    post: Posterior,
+    components: list[Posterior],
+    peak: Peak,
+    grid: ShapeGrid,
+    bounded: NDArray[np.bool_],
+    rng: np.random.Generator,
+    truncated: bool = False,
+) -> Posterior:
+    """``post``, the mixture of :func:`hermite_nodes`' conditional posteriors, with its
+    intervals and draws taken over the shape's continuous Gaussian rather than its nine
+    (or three) nodes.
+
+    The three-point rule carries the shape's uncertainty into the coefficients' mean and
+    variance exactly, but a mixture of a few narrow components has the quantiles of a
+    few points: where the shape's uncertainty dominates a coefficient (a contact
+    stiffness in N/m^n moves with n), its 2.5 % quantile sat on the outer node at
+    sqrt(3) = 1.73 SDs, not 1.96, and the interval held the truth in about nine cases in
+    ten. Here each draw takes a shape from the peak's Gaussian, the coefficients' mean
+    there from the nodes' means (:func:`hermite_interpolant`), and a deviation from the
+    nearest node's draws about its mean; draws the prior's support over the shape
+    (``grid``) or the positivity bounds (``bounded``, per coefficient) exclude are
+    dropped. Mean, covariance and everything else stay ``post``'s, unless ``truncated``:
+    some of the nodes lie outside the prior's support (``components`` holds every node
+    all the same, for the interpolant), so ``post`` is a mixture of the nodes inside
+    alone, and the draws give the mean and covariance too. A posterior near the edge
+    of the prior (an exponent near its largest) lost its outer nodes there, and the
+    mixture of those left was lopsided: the interval missed a truth 0.7 SDs from the
+    mean.
+    """
+    d = peak.u.size
+    if len(components) != 3**d or any(q.samples.shape[0] == 0 for q in components):
+        return post
+    k = max(int(post.samples.shape[0]), MIX_DRAWS)
+    z = rng.standard_normal((k, d))
+    lam, vec = np.linalg.eigh(peak.cov)  # the principal axes of :func:`hermite_nodes`
+    inside = grid.inside_many(peak.u + z @ (vec * np.sqrt(np.clip(lam, 0.0, None))).T)
+    means = np.array([np.append(q.mean, q.sigma_mean) for q in components])
+    centre = hermite_interpolant(means, z)
+    # the nearest node along each principal direction: its index in the nodes' order
+    digit = np.digitize(z, [-0.5 * math.sqrt(3.0), 0.5 * math.sqrt(3.0)])
+    nearest = digit @ (3 ** np.arange(d - 1, -1, -1))
+    draws = np.empty((k, means.shape[1]))
+    for i, q in enumerate(components):
+        rows = np.flatnonzero(nearest == i)
+        if rows.size:
+            pick = rng.integers(0, q.samples.shape[0], rows.size)
+            draws[rows] = centre[rows] + q.samples[pick] - means[i]
+    ok = inside & np.all(draws[:, :-1][:, bounded] >= 0, axis=1) & (draws[:, -1] > 0)
+    if np.count_nonzero(ok) < k // 2:
+        return post  # the bounds cut the Gaussian over the shape: keep the nodes' mixture
+    draws = draws[ok]
+    post.samples = draws
+    post.ci95 = central95(draws[:, :-1])
+    sig = central95(draws[:, -1:])[0]
+    post.sigma_ci95 = (float(sig[0]), float(sig[1]))
+    post.diagnostics["continuous_shape_draws"] = int(draws.shape[0])
+    if truncated:
+        beta = draws[:, :-1]
+        post.mean = beta.mean(axis=0)
+        post.cov = np.atleast_2d(np.cov(beta, rowvar=False))
+        post.sd = np.sqrt(np.clip(np.diag(post.cov), 0.0, None))
+        post.sigma_mean = float(draws[:, -1].mean())
+    return post
 
 
 def _trapezoid(lo: float, hi: float, k: int) -> tuple[Array, Array]:
