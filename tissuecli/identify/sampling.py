@@ -492,8 +492,14 @@ def sample_posteriors(
             continue
         if sampler == "auto" and res.stats is not None and res.prior is not None:
             # exact draws where the bound keeps enough for rejection to beat a chain
-            drawn = ExactPosterior(res.stats, res.prior).truncated(
-                rng, min_acceptance=REJECTION_ACCEPTANCE
+            # a law whose shape is marginalised keeps it so: drawn at its point alone,
+            # a contact stiffness lost the shape's part of its spread (z of 80)
+            drawn = (
+                res.redraw(rng, REJECTION_ACCEPTANCE)
+                if res.redraw is not None
+                else ExactPosterior(res.stats, res.prior).truncated(
+                    rng, min_acceptance=REJECTION_ACCEPTANCE
+                )
             )
             if drawn is not None:
                 drawn.diagnostics["exact"] = True

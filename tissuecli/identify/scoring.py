@@ -65,6 +65,13 @@ class ModelResult:
     #: (``status`` pending, sampled or skipped, and emcee's figures once sampled)
     shape_sampler: dict[str, Any] | None = None
     sample_shape: Callable[[], None] | None = field(default=None, repr=False, compare=False)
+    #: for a law whose sharp shape is marginalised over nodes: its posterior drawn again,
+    #: every node exact under the positivity bounds down to an acceptance (None if one
+    #: keeps less), the shape still marginalised (the chosen law's, where the search's
+    #: draws were not exact)
+    redraw: Callable[[np.random.Generator, float], Posterior | None] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     @property
     def name(self) -> str:

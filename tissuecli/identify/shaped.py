@@ -30,6 +30,7 @@ from .scoring import (
 )
 from .shapes import (
     MIX_DRAWS,
+    Peak,
     ShapeGrid,
     continuous_mixture,
     hermite_nodes,
@@ -219,24 +220,8 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             post = exact_at(point).bounded(fit.rng, CUT_THRESHOLD)
         else:
             nodes_u, w = hermite_nodes(peak)
-            inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
-            exacts = [exact_at(grid.from_u(nodes_u[i])) for i in inside]
-            post, comps = mixed_posterior(exacts, w[inside], fit.rng, parts=True)
-            # its intervals over the shape's Gaussian, not over the nodes alone; nodes
-            # beyond the prior's edge only shape the interpolant (where the law is
-            # defined there), their draws dropped
-            outside = [i for i in range(len(nodes_u)) if i not in inside]
-            if len(inside) == 1:
-                comps = []  # a posterior sharper than the nodes' spread: left as it is
-            elif outside and all(_allowed(grid, nodes_u[i]) for i in outside):
-                extra = {i: exact_at(grid.from_u(nodes_u[i])).bounded(
-                    fit.rng, CUT_THRESHOLD, intervals=False, draws=COMPONENT_DRAWS)
-                    for i in outside}  # fmt: skip
-                given = dict(zip(inside, comps, strict=True))
-                comps = [given[i] if i in given else extra[i] for i in range(len(nodes_u))]
-            if len(comps) == len(nodes_u):
-                post = continuous_mixture(post, comps, peak, grid, exacts[0].prior.bounded,
-                                          fit.rng, truncated=bool(outside))  # fmt: skip
+            post = hermite_posterior(nodes_u, w, peak, grid, exact_at, fit.rng)
+            hermite = (nodes_u, w, peak)
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
         shape_post = _shape_draws(grid, draws)
         how = (
@@ -271,6 +256,29 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     res.shape_posterior = shape_post
     res.shape_ranges = grid.ranges
     res.least_squares = (ls_law, ls_rms)
+    if sharp and not many:
+
+        def redraw(rng: np.random.Generator, min_acceptance: float) -> Posterior | None:
+            """The posterior again with every node's draws exact under the positivity
+            bounds down to ``min_acceptance`` (what the chosen law is given where the
+            bounds cut a node too deeply for the search's draws), the shape still
+            marginalised; None if a node's bound keeps less than that."""
+            nodes_u, w, peak_ = hermite
+
+            def component(e: ExactPosterior, k: int) -> Posterior | None:
+                return e.truncated(rng, draws=max(k, COMPONENT_DRAWS), intervals=False,
+                                   min_acceptance=min_acceptance)  # fmt: skip
+
+            again = hermite_posterior(nodes_u, w, peak_, grid, exact_at, rng, component)
+            if again is None:
+                return None
+            out = shaped_result(law, point, again, evaluate_fine, fit).posterior
+            at = exact_at(point).truncated(rng, intervals=False, min_acceptance=min_acceptance)
+            if out is not None and at is not None:  # the mean at the point, exact too
+                out.mean = at.mean
+            return out
+
+        res.redraw = redraw
 
     if many:
         res.shape_sampler = {"status": "pending", "evidence": how}
@@ -334,6 +342,53 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         fit.lead = max(fit.lead, res.ln_evidence)
     fit.scored(law.name)
     return res
+
+
+def hermite_posterior(
+    nodes_u: list[Array],
+    weights: Array,
+    peak: Peak,
+    grid: ShapeGrid,
+    exact_at: Callable[[dict[str, float]], ExactPosterior],
+    rng: np.random.Generator,
+    component: Callable[[ExactPosterior, int], Posterior | None] | None = None,
+) -> Any:
+    """The coefficients' posterior with a sharp shape marginalised over the peak's
+    Gaussian: the mixture of :func:`~tissuecli.identify.shapes.hermite_nodes`'
+    conditional posteriors inside the prior (``exact_at`` gives a node's), its
+    intervals and draws over the continuous Gaussian
+    (:func:`~tissuecli.identify.shapes.continuous_mixture`); nodes beyond the prior's
+    edge shape the interpolant only (where the law is defined there), their draws
+    dropped. ``component(exact, draws)``: a node's posterior, None where it cannot be
+    drawn exactly (then None is returned); by default :meth:`ExactPosterior.bounded`."""
+    inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
+    exacts = [exact_at(grid.from_u(nodes_u[i])) for i in inside]
+    if component is None:
+        post, comps = mixed_posterior(exacts, weights[inside], rng, parts=True)
+    else:
+        w = np.asarray(weights[inside], dtype=float) / float(np.sum(weights[inside]))
+        counts = rng.multinomial(MIX_DRAWS, w)
+        drawn = [component(e, int(k)) for e, k in zip(exacts, counts, strict=True)]
+        if any(q is None for q in drawn):
+            return None
+        comps = [q for q in drawn if q is not None]
+        post = mix(comps, w, rng, counts)
+        post.diagnostics["exact"] = True
+    outside = [i for i in range(len(nodes_u)) if i not in inside]
+    if len(inside) == 1:
+        return post  # a posterior sharper than the nodes' spread: left as it is
+    if outside:
+        if not all(_allowed(grid, nodes_u[i]) for i in outside):
+            return post
+        draw = component or (lambda e, k: e.bounded(rng, CUT_THRESHOLD, intervals=False,
+                                                     draws=k))  # fmt: skip
+        extra = {i: draw(exact_at(grid.from_u(nodes_u[i])), COMPONENT_DRAWS) for i in outside}
+        if any(q is None for q in extra.values()):
+            return post
+        given = dict(zip(inside, comps, strict=True))
+        comps = [given[i] if i in given else extra[i] for i in range(len(nodes_u))]
+    return continuous_mixture(post, comps, peak, grid, exacts[0].prior.bounded, rng,
+                              truncated=bool(outside))  # fmt: skip
 
 
 def _allowed(grid: ShapeGrid, u: Array) -> bool:
