@@ -33,6 +33,7 @@ from .shapes import (
     Peak,
     ShapeGrid,
     continuous_mixture,
+    edge_peak,
     hermite_nodes,
     kept,
     laplace,
@@ -78,6 +79,10 @@ LIGHT_NODE_NATS = 5.0
 #: the fewest draws a component of a mixture over shape nodes takes under the positivity
 #: bounds (:func:`mixed_posterior`): its mean and covariance come from them
 COMPONENT_DRAWS = 200
+
+#: a quadrature node holding more of the posterior than this: the grid does not resolve
+#: it (:func:`~tissuecli.identify.shapes.edge_peak`)
+ONE_NODE = 0.9
 
 #: bytes of shaped columns a batch of grid nodes holds at once (:meth:`ShapedPass.many`)
 BATCH_BYTES = 8 << 20
@@ -205,6 +210,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     sharp = peak is not None and bool(np.all(peak.sd < grid.spacing))
     if sharp:  # where sibling laws may start (:func:`~tissuecli.identify.shapes.laplace`)
         fit.spans[("peak", *grid.names)] = peak
+    hermite: tuple[list[Array], Array, Peak] | None = None  # the nodes a posterior is mixed over
     if sharp:
         assert peak is not None
         d = peak.u.size
@@ -218,6 +224,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         point = grid.from_u(peak.u)
         if many:  # the chain will carry the shape's uncertainty, if it runs
             post = exact_at(point).bounded(fit.rng, CUT_THRESHOLD)
+            hermite = None
         else:
             nodes_u, w = hermite_nodes(peak)
             post = hermite_posterior(nodes_u, w, peak, grid, exact_at, fit.rng)
@@ -237,6 +244,24 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         shape_post, point = shape_summary(grid, log_post)
         how = f"quadrature over {len(grid.nodes)} shape nodes"
         start, start_cov = grid.to_u(grid.nodes[heavy[0]]), np.diag((grid.spacing / 4) ** 2)
+        p_top = float(np.exp(log_post[heavy[0]] - ln_evidence))
+        edge = None
+        if not many and p_top > ONE_NODE:
+            # the posterior is sharper than the grid but piled against the prior's edge
+            # (an exponent at its largest): one node held it all, and its intervals were
+            # that node, zero wide. The peak's Gaussian where the law is defined, cut to
+            # the prior's support, carries the shape instead
+            edge = edge_peak(lambda u: evaluate(grid.from_u(u))[0], grid, start)
+        if edge is not None:
+            nodes_u, w = hermite_nodes(edge)
+            cut = hermite_posterior(nodes_u, w, edge, grid, exact_at, fit.rng)
+            draws = fit.rng.multivariate_normal(edge.u, edge.cov, size=4000)
+            draws = draws[grid.inside_many(draws)]
+            if "continuous_shape_draws" in cut.diagnostics and draws.shape[0] >= 400:
+                post, hermite = cut, (nodes_u, w, edge)
+                shape_post = _shape_draws(grid, draws)
+                point = grid.from_u(draws.mean(axis=0))
+                how += ", its Gaussian at the peak beyond the edge cut to the prior"
     post.ln_evidence = float(ln_evidence)
     ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
     ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
@@ -256,13 +281,14 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     res.shape_posterior = shape_post
     res.shape_ranges = grid.ranges
     res.least_squares = (ls_law, ls_rms)
-    if sharp and not many:
+    if hermite is not None:
 
         def redraw(rng: np.random.Generator, min_acceptance: float) -> Posterior | None:
             """The posterior again with every node's draws exact under the positivity
             bounds down to ``min_acceptance`` (what the chosen law is given where the
             bounds cut a node too deeply for the search's draws), the shape still
             marginalised; None if a node's bound keeps less than that."""
+            assert hermite is not None
             nodes_u, w, peak_ = hermite
 
             def component(e: ExactPosterior, k: int) -> Posterior | None:

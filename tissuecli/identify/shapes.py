@@ -19,7 +19,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import Any
 
@@ -325,6 +325,19 @@ def laplace(
             if peak is not None:
                 return peak
     return None
+
+
+def edge_peak(log_z: Callable[[Array], float], grid: ShapeGrid, start: Array) -> Peak | None:
+    """The peak of ``log_z`` near ``start`` (``u``) with the shape free to every
+    parameter's limits (where the law is defined), beyond the prior's box: where the
+    posterior is sharper than the grid and piled against the box's edge, the Gaussian at
+    that peak, cut to the box, is its shape. None if no concave peak is found there."""
+    limits = {n: grid.params[n].limits for n in grid.names}
+    open_grid = replace(grid, ranges=limits, ordered=grid.ordered)
+    peak = _polish(log_z, open_grid, np.asarray(start, dtype=float))
+    if peak is None or not np.all(np.isfinite(peak.cov)):
+        return None
+    return peak
 
 
 class _OnEdge(Exception):
