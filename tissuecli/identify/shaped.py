@@ -228,6 +228,8 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         else:
             nodes_u, w = hermite_nodes(peak)
             post = hermite_posterior(nodes_u, w, peak, grid, exact_at, fit.rng)
+            if post is None:  # no node inside the prior (never at a peak inside it)
+                post = exact_at(point).bounded(fit.rng, CUT_THRESHOLD)
             hermite = (nodes_u, w, peak)
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
         shape_post = _shape_draws(grid, draws)
@@ -257,7 +259,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             cut = hermite_posterior(nodes_u, w, edge, grid, exact_at, fit.rng)
             draws = fit.rng.multivariate_normal(edge.u, edge.cov, size=4000)
             draws = draws[grid.inside_many(draws)]
-            if "continuous_shape_draws" in cut.diagnostics and draws.shape[0] >= 400:
+            if cut is not None and "continuous_shape_draws" in cut.diagnostics and (
+                draws.shape[0] >= 400
+            ):
                 post, hermite = cut, (nodes_u, w, edge)
                 shape_post = _shape_draws(grid, draws)
                 point = grid.from_u(draws.mean(axis=0))
@@ -388,6 +392,8 @@ def hermite_posterior(
     dropped. ``component(exact, draws)``: a node's posterior, None where it cannot be
     drawn exactly (then None is returned); by default :meth:`ExactPosterior.bounded`."""
     inside = [i for i, u in enumerate(nodes_u) if grid.inside(u)]
+    if not inside:
+        return None
     exacts = [exact_at(grid.from_u(nodes_u[i])) for i in inside]
     if component is None:
         post, comps = mixed_posterior(exacts, weights[inside], rng, parts=True)

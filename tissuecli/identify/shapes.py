@@ -334,7 +334,7 @@ def edge_peak(log_z: Callable[[Array], float], grid: ShapeGrid, start: Array) ->
     that peak, cut to the box, is its shape. None if no concave peak is found there."""
     limits = {n: grid.params[n].limits for n in grid.names}
     open_grid = replace(grid, ranges=limits, ordered=grid.ordered)
-    peak = _polish(log_z, open_grid, np.asarray(start, dtype=float))
+    peak = laplace(log_z, open_grid, [np.asarray(start, dtype=float)])
     if peak is None or not np.all(np.isfinite(peak.cov)):
         return None
     return peak
