@@ -463,6 +463,8 @@ def sample_posteriors(
     for res in results:
         assert res.posterior is not None
         behind = top - res.ln_evidence
+        if res.refine is not None and behind <= 0:
+            res.refine(rng)  # a shape posterior piled on the prior's edge, made finer
         exact = res.posterior.diagnostics.get("exact", False)
         cut = res.posterior.outside
         if exact and sampler == "auto":

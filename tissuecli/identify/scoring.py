@@ -72,6 +72,11 @@ class ModelResult:
     redraw: Callable[[np.random.Generator, float], Posterior | None] | None = field(
         default=None, repr=False, compare=False
     )
+    #: for a law whose shape posterior piled against the prior's edge on the grid: its
+    #: shape and coefficients' posterior made finer, in place (the chosen law's)
+    refine: Callable[[np.random.Generator], None] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     @property
     def name(self) -> str:

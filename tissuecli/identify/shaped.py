@@ -211,6 +211,7 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     if sharp:  # where sibling laws may start (:func:`~tissuecli.identify.shapes.laplace`)
         fit.spans[("peak", *grid.names)] = peak
     hermite: tuple[list[Array], Array, Peak] | None = None  # the nodes a posterior is mixed over
+    piled = False
     if sharp:
         assert peak is not None
         d = peak.u.size
@@ -246,26 +247,11 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
         shape_post, point = shape_summary(grid, log_post)
         how = f"quadrature over {len(grid.nodes)} shape nodes"
         start, start_cov = grid.to_u(grid.nodes[heavy[0]]), np.diag((grid.spacing / 4) ** 2)
-        p_top = float(np.exp(log_post[heavy[0]] - ln_evidence))
-        edge = None
-        if not many and p_top > ONE_NODE:
-            # the posterior is sharper than the grid but piled against the prior's edge
-            # (an exponent at its largest): one node held it all, and its intervals were
-            # that node, zero wide. The peak's Gaussian where the law is defined, cut to
-            # the prior's support, carries the shape instead
-            edge = edge_peak(lambda u: evaluate(grid.from_u(u))[0], grid, start)
-        if edge is not None:
-            nodes_u, w = hermite_nodes(edge)
-            cut = hermite_posterior(nodes_u, w, edge, grid, exact_at, fit.rng)
-            draws = fit.rng.multivariate_normal(edge.u, edge.cov, size=4000)
-            draws = draws[grid.inside_many(draws)]
-            if cut is not None and "continuous_shape_draws" in cut.diagnostics and (
-                draws.shape[0] >= 400
-            ):
-                post, hermite = cut, (nodes_u, w, edge)
-                shape_post = _shape_draws(grid, draws)
-                point = grid.from_u(draws.mean(axis=0))
-                how += ", its Gaussian at the peak beyond the edge cut to the prior"
+        # the posterior sharper than the grid but piled against the prior's edge (an
+        # exponent at its largest): one node holds it all, and its intervals are that
+        # node, zero wide. For the chosen law, the peak's Gaussian where the law is
+        # defined, cut to the prior's support, carries the shape instead (``refine``)
+        piled = not many and float(np.exp(log_post[heavy[0]] - ln_evidence)) > ONE_NODE
     post.ln_evidence = float(ln_evidence)
     ls_key, ls_value = min(cache.items(), key=lambda kv: kv[1][1][0].rss)
     ls_law = law.bind(dict(zip(grid.names, ls_key, strict=True)))
@@ -285,15 +271,17 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
     res.shape_posterior = shape_post
     res.shape_ranges = grid.ranges
     res.least_squares = (ls_law, ls_rms)
-    if hermite is not None:
+
+    def redrawn(
+        nodes: tuple[list[Array], Array, Peak], at: dict[str, float]
+    ) -> Callable[[np.random.Generator, float], Posterior | None]:
+        """The posterior over ``nodes`` drawn again, every node's draws exact under the
+        positivity bounds down to an acceptance (what the chosen law is given where the
+        bounds cut a node too deeply for the search's draws), the shape still
+        marginalised; None if a node's bound keeps less than that."""
 
         def redraw(rng: np.random.Generator, min_acceptance: float) -> Posterior | None:
-            """The posterior again with every node's draws exact under the positivity
-            bounds down to ``min_acceptance`` (what the chosen law is given where the
-            bounds cut a node too deeply for the search's draws), the shape still
-            marginalised; None if a node's bound keeps less than that."""
-            assert hermite is not None
-            nodes_u, w, peak_ = hermite
+            nodes_u, w, peak_ = nodes
 
             def component(e: ExactPosterior, k: int) -> Posterior | None:
                 return e.truncated(rng, draws=max(k, COMPONENT_DRAWS), intervals=False,
@@ -302,13 +290,45 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
             again = hermite_posterior(nodes_u, w, peak_, grid, exact_at, rng, component)
             if again is None:
                 return None
-            out = shaped_result(law, point, again, evaluate_fine, fit).posterior
-            at = exact_at(point).truncated(rng, intervals=False, min_acceptance=min_acceptance)
-            if out is not None and at is not None:  # the mean at the point, exact too
-                out.mean = at.mean
+            out = shaped_result(law, at, again, evaluate_fine, fit).posterior
+            mid = exact_at(at).truncated(rng, intervals=False, min_acceptance=min_acceptance)
+            if out is not None and mid is not None:  # the mean at the point, exact too
+                out.mean = mid.mean
             return out
 
-        res.redraw = redraw
+        return redraw
+
+    if hermite is not None:
+        res.redraw = redrawn(hermite, point)
+    if not sharp and piled:
+
+        def refine(rng: np.random.Generator) -> None:
+            """The shape of a posterior piled against the prior's edge as the Gaussian at
+            the peak beyond it, cut to the prior (:func:`edge_peak`); left as the grid
+            gave it if no such peak is found."""
+            edge = edge_peak(lambda u: evaluate(grid.from_u(u))[0], grid, start)
+            if edge is None:
+                return
+            nodes_u, w = hermite_nodes(edge)
+            cut = hermite_posterior(nodes_u, w, edge, grid, exact_at, rng)
+            draws = rng.multivariate_normal(edge.u, edge.cov, size=4000)
+            draws = draws[grid.inside_many(draws)]
+            if cut is None or "continuous_shape_draws" not in cut.diagnostics or (
+                draws.shape[0] < 400
+            ):
+                return
+            at = grid.from_u(draws.mean(axis=0))
+            cut.ln_evidence = res.ln_evidence
+            new = shaped_result(law, at, cut, evaluate_fine, fit)
+            for name in ("model", "posterior", "cond", "cond_scaled", "residual_rms",
+                         "gram", "correction", "stats", "prior", "flags"):  # fmt: skip
+                setattr(res, name, getattr(new, name))
+            res.shape_posterior = _shape_draws(grid, draws)
+            res.redraw = redrawn((nodes_u, w, edge), at)
+            res.reason += "; the shape piled on the prior's edge: the Gaussian at the peak "
+            res.reason += "beyond it, cut to the prior"
+
+        res.refine = refine
 
     if many:
         res.shape_sampler = {"status": "pending", "evidence": how}
