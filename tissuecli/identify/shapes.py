@@ -527,8 +527,10 @@ def continuous_mixture(
             pick = rng.integers(0, q.samples.shape[0], rows.size)
             draws[rows] = centre[rows] + q.samples[pick] - means[i]
     ok = inside & np.all(draws[:, :-1][:, bounded] >= 0, axis=1) & (draws[:, -1] > 0)
-    if np.count_nonzero(ok) < k // 2:
-        return post  # the bounds cut the Gaussian over the shape: keep the nodes' mixture
+    if np.count_nonzero(ok) < k // 4:
+        # the bounds keep too little of the Gaussian over the shape for its quantiles:
+        # the nodes' mixture stands
+        return post
     draws = draws[ok]
     post.samples = draws
     post.ci95 = central95(draws[:, :-1])
