@@ -83,6 +83,12 @@ class FirstPass:
     cond: float
     cond_scaled: float
     correction: Array | None
+    #: what :func:`law_stats` takes from these statistics before any weight (the
+    #: corrected curvature and the flag), formed once: a law is scored again at each
+    #: data weight the fit tries, and each node of its shape's grid more than once
+    untempered: tuple[Array, Array, float, float, Array | None, bool] | None = field(
+        default=None, init=False, repr=False, compare=False
+    )
 
 
 def _nothing(name: str) -> None:
@@ -197,6 +203,26 @@ def law_stats(
 ) -> tuple[SufficientStats, Prior, Array | None, list[str]]:
     """The tempered statistics and prior of one law, and the flags of its noise
     correction."""
+    if fp.untempered is None:
+        fp.untempered = _untempered(fp)
+    G, b, yy, rss, corr, uncorrected = fp.untempered
+    w, n = fit.weight, fit.rows
+    st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
+    prior = law_prior(model, fit.scales)
+    flags = []
+    if uncorrected:
+        flags.append(
+            "position noise dominates a column: left uncorrected, so M (and "
+            "perhaps S) are biased towards zero"
+        )
+    return st, prior, corr, flags
+
+
+def _untempered(fp: FirstPass) -> tuple[Array, Array, float, float, Array | None, bool]:
+    """:func:`law_stats`' statistics before the data weight: the Gram matrix, moment
+    vector, ``yy`` and residual sum of squares (corrected for position noise where the
+    correction leaves a proper regression), the correction kept, and whether it was
+    left out."""
     corr = fp.correction
     corrected = fp.gram - corr if corr is not None else None  # A^T A - C, formed once
     rss_c = _correctable(fp, corr, corrected) if corr is not None else None
@@ -215,16 +241,7 @@ def law_stats(
         # difference of two like numbers, near zero or below it (the law then left
         # uncorrected, hundreds of nats behind laws that were not)
         G, b, yy = corrected_curvature(fp.gram, fp.b, corr, fp.rss, fp.rss, corrected)
-    w, n = fit.weight, fit.rows
-    st = SufficientStats(w * G, w * b, w * yy, w * n, w * rss)
-    prior = law_prior(model, fit.scales)
-    flags = []
-    if uncorrected:
-        flags.append(
-            "position noise dominates a column: left uncorrected, so M (and "
-            "perhaps S) are biased towards zero"
-        )
-    return st, prior, corr, flags
+    return G, b, yy, rss, corr, uncorrected
 
 
 def prepared(
