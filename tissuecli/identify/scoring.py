@@ -326,15 +326,29 @@ def not_evaluated(res: ModelResult, why: str) -> None:
     res.ln_evidence = -math.inf
 
 
+#: smallest eigenvalue of the corrected Gram matrix on unit-norm columns that counts
+#: as positive definite (rounding leaves about 1e-16 there)
+DEFINITE = 1e-12
+
+
 def _correctable(fp: FirstPass, corr: Array, corrected: Array | None = None) -> float | None:
     """The corrected fit's residual sum of squares (:func:`_corrected_rss`, N^2) if the
     errors-in-variables correction leaves a proper regression, else None: ``A^T A - C``
     positive definite, and a corrected residual of at least a tenth of the raw one (the
     correction takes off what position noise adds to the residual; taking off nearly
     all of it, or more, says the noise is as large as the motion). ``corrected``:
-    ``A^T A - C``, if at hand."""
+    ``A^T A - C``, if at hand.
+
+    Definiteness is judged on unit-norm columns (``A^T A - C`` over the outer product
+    of the columns' norms), to :data:`DEFINITE` of the unit diagonal: columns whose
+    norms differ by 1e8 (a contact stiffness in N/m^n beside an inertia) leave the
+    raw matrix's smallest eigenvalue at 1e-16 of its largest, where rounding alone
+    decides its sign, and a shape that moved by a millionth of its SD then switched
+    the correction on or off (the law's evidence jumping by hundredths of a nat,
+    which finite differences of the evidence over the shape read as curvature)."""
     G = fp.gram - corr if corrected is None else corrected
-    if np.any(np.linalg.eigvalsh(G) <= 0):
+    d = np.sqrt(np.maximum(fp.gram.diagonal(), 1e-300))
+    if np.any(np.linalg.eigvalsh(G / (d[:, None] * d)) <= DEFINITE):
         return None
     rss = _corrected_rss(fp, corr, G)
     return rss if rss > 0.1 * fp.rss else None
