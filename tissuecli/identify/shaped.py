@@ -233,6 +233,9 @@ def exact_shaped(law: Law, fit: Context) -> ModelResult:
                 post = exact_at(point).bounded(fit.rng, CUT_THRESHOLD)
             hermite = (nodes_u, w, peak)
         draws = fit.rng.multivariate_normal(peak.u, peak.cov, size=4000)
+        inside_prior = grid.inside_many(draws)
+        if np.count_nonzero(inside_prior) >= draws.shape[0] // 4:
+            draws = draws[inside_prior]  # the shape's posterior is cut by its prior too
         shape_post = _shape_draws(grid, draws)
         how = (
             f"Laplace approximation at the peak over the shape, after a {len(grid.nodes)}-"
