@@ -246,6 +246,8 @@ def prepare(
 #: jaws read open where their smoothed closure lies below the least closure seen in
 #: contact by this many of its noise SDs (and one quantisation step)
 OPEN_SD = 4.0
+#: and within this fraction of the way from the most open closure to that of contact
+REST_FRACTION = 0.2
 #: and a quarter of a filter's width from every grasp: with the whole window free on
 #: top of it, a grasp's edge read late by the detector lies in the window's outer tail
 #: at most (a Gaussian's is 7 SDs wide, its weight beyond 3 SDs 0.3 %)
@@ -256,14 +258,16 @@ MIN_OPEN_ROWS = 32
 
 def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np.bool_]:
     """Samples where the jaws are surely free of the tissue, shape (n,): outside every
-    grasp by :data:`OPEN_MARGIN` of a filter's width, and more open than the jaws ever
-    are in contact (their smoothed closure below the least smoothed closure of any
-    grasp, by :data:`OPEN_SD` noise SDs and a quantisation step).
+    grasp by :data:`OPEN_MARGIN` of a filter's width, and near their most open: their
+    smoothed closure within :data:`REST_FRACTION` of the way from the session's most
+    open to the least closure of any grasp (less :data:`OPEN_SD` noise SDs and a
+    quantisation step).
 
     The closure test guards against contact too weak for the grasp detector (a soft
-    tissue resting a few noise SDs above the free level): the tissue is touched at one
-    closure, so jaws opened past every closure seen in contact touch nothing, whatever
-    the force reads there."""
+    tissue, or a noisy session's loose grasp, a few noise SDs above the free level):
+    the tissue is touched at one closure, below the least the detector saw in contact
+    by however much contact it missed; jaws opened most of the way from there to their
+    widest touch nothing, whatever the force reads there."""
     x = session.position
     w = kin.window
     reach = max(1, int(OPEN_MARGIN * w))
@@ -282,7 +286,13 @@ def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np
     d2 = np.diff(x, 2)
     sd = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0) if d2.size else 0.0
     margin = OPEN_SD * sd * float(np.linalg.norm(kin.kernels[0])) + step
-    return ~near & (xs < float(np.min(xs[inside])) - margin)
+    top = float(np.min(xs[inside])) - margin
+    lowest = float(np.min(xs[np.isfinite(xs)]))
+    # contact too weak for the detector lies just above the true touch, which is below
+    # the least closure the detector saw in contact: only the jaws near their most open
+    # are taken, however weak the contact it missed
+    limit = min(top, lowest + max(margin, REST_FRACTION * (top - lowest)))
+    return ~near & (xs < limit)
 
 
 def with_open_jaws(
