@@ -104,6 +104,8 @@ SPIKE_WIDTHS, MIN_GRASP_SAMPLES = 2, 4
 #: its edge (a parabola follows a damped or massive tissue's force falling through the
 #: free-jaw level as the jaws open)
 EDGE_DEGREE = 2
+#: the parabola is fitted to at least this many samples beyond the candidate edges
+EDGE_SAMPLES = 4 * (EDGE_DEGREE + 1)
 #: edges whose sums of squares lie within this many noise variances of the best are a
 #: tie (a likelihood ratio of e), settled for the free jaws
 EDGE_TIE = 2.0
@@ -428,10 +430,13 @@ def _sharpen(
         hi = runs[k + 1][0] if k + 1 < len(runs) else mask.size
         for edge, rising in ((start, True), (stop, False)):
             first, last = max(edge - h, lo), min(edge + h, hi)  # the candidate edges
+            # the grasp's side holds enough samples for its parabola at every candidate
+            # (at a few hundred Hz half a width is three samples)
+            reach = max(h, EDGE_SAMPLES)
             if rising:
-                span = (max(first - h, lo), min(last + h, hi))
+                span = (max(first - h, lo), min(last + reach, hi))
             else:
-                span = (max(first - h, lo), min(last + h, hi))
+                span = (max(first - reach, lo), min(last + h, hi))
             best = _split(above[span[0] : span[1]], first - span[0], last - span[0], rising,
                           EDGE_TIE * noise**2)  # fmt: skip
             if best is None:
