@@ -8,8 +8,9 @@ but rises and falls with the closure); a sample is in contact when
 the smoothed force stands away from the baseline by more than 6 noise SDs (entering)
 and until it comes within 3 (leaving): SDs of the smoothed force's own noise, measured
 on the free stretches, where the raw noise dithers the force's quantisation (else of the
-raw force's noise). Each edge then goes where the raw force steps most within half a
-smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
+raw force's noise). Each edge then goes, within half a smoothing width of it, where
+least squares best split the raw force into free jaws at the baseline on one side and
+the grasp's force, a parabola, on the other. Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one, unless the jaws are
 seen resting open in them (below). When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
