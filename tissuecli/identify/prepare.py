@@ -238,8 +238,12 @@ def prepare(
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
     if by_grasp:
-        # a relaxation branch is strained only in contact: held across free jaw motion
-        kin = replace(kin, drive=held_closure(session.position, ~contact.mask))
+        # a relaxation branch is strained only in contact: held across free jaw motion;
+        # and the jaws at their most open bound where contact may begin
+        # (:class:`~tissuecli.core.terms.ContactPoint`)
+        seen = session.position[trusted] if np.any(trusted) else session.position
+        kin = replace(kin, drive=held_closure(session.position, ~contact.mask),
+                      x_floor=float(np.percentile(seen, 2)))  # fmt: skip
         if grasps == "all":
             free = valid & open_jaws(session, contact, kin)
             kin = with_open_jaws(kin, session, valid & chosen, free)
@@ -314,7 +318,7 @@ def with_open_jaws(
     touching = grasped.copy()
     if np.count_nonzero(~touching[both.keep]) < MIN_OPEN_ROWS:
         return kin
-    return replace(both, drive=kin.drive, touching=touching)
+    return replace(both, drive=kin.drive, x_floor=kin.x_floor, touching=touching)
 
 
 def _differentiate(

@@ -11,7 +11,8 @@ log-uniform between what the filter can resolve and a third of the fitted stretc
 within 10 ms to 100 s); several branches' time constants are ordered, tau1 < tau2,
 uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5]; the
 contact point x0 uniform from a quarter of the closure's span below its lowest fitted
-value to half the span above it.
+value (or from the lowest closure of the whole session, where the fit keeps to the
+grasps) to half the span above it.
 """
 
 from __future__ import annotations
@@ -118,13 +119,16 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
     """What a session lets the shape parameters' priors span (see
     :class:`~tissuecli.core.terms.SessionSpan`); without ``closure`` the closure's low
     end and span are NaN (a pass over every sample saved where only times matter)."""
-    x = kin.x_raw
+    gate = kin.gate
+    x = kin.x_raw if gate is None else kin.x_raw[gate > 0]  # the closures in contact
+    x = x if x.size else kin.x_raw
     return SessionSpan(
         dt=kin.dt,
         cutoff_hz=float(kin.cutoff_hz),
         duration_s=float(kin.time[-1] - kin.time[0]),
         x_low=float(np.percentile(x, 2)) if closure else math.nan,
         x_span=float(np.ptp(x)) if closure else math.nan,
+        x_floor=kin.x_floor if closure and kin.x_floor is not None else math.nan,
     )
 
 

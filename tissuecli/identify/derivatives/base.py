@@ -111,6 +111,9 @@ class Kinematics:
     stride: int = 1
     #: the raw grid's sample interval (s), where the kept outputs no longer show it
     step_s: float | None = None
+    #: the closure's low end (2nd percentile, m) over the whole session, free jaw motion
+    #: included, where the outputs keep to the grasps; None where they fit every sample
+    x_floor: float | None = None
     #: untrimmed, one flag per raw sample: the jaws hold the tissue. Where a fit also
     #: reads free jaws (the force sensor's offset alone), the tissue's columns are zero
     #: at the outputs that sit on a free sample (:attr:`gate`); None: all in contact
