@@ -259,6 +259,9 @@ REST_FRACTION = 0.2
 #: top of it, a grasp's edge read late by the detector lies in the window's outer tail
 #: at most (a Gaussian's is 7 SDs wide, its weight beyond 3 SDs 0.3 %)
 OPEN_MARGIN = 0.25
+#: open jaws are fitted only where their mean force stands beyond this many standard
+#: errors from zero (an offset to measure)
+OPEN_SE = 4.0
 #: free jaws are fitted only where they give at least this many filtered outputs
 MIN_OPEN_ROWS = 32
 
@@ -310,9 +313,16 @@ def with_open_jaws(
     set: the tissue's columns are zero there and the force is the sensor's offset, so a
     law's offset is measured where nothing else can stand in for it (inside the grasps
     a spring's intercept trades with it). Unchanged when the free jaws give fewer than
-    :data:`MIN_OPEN_ROWS` outputs. ``free`` must lie a filter's width from every
+    :data:`MIN_OPEN_ROWS` outputs, or read zero within :data:`OPEN_SE` standard errors
+    of their mean (no offset to measure). ``free`` must lie a filter's width from every
     grasped sample, so that no window holds both."""
     if np.count_nonzero(free) < MIN_OPEN_ROWS + kin.window:
+        return kin
+    # the open jaws measure the offset: where their force is zero within its noise
+    # they tell nothing the grasps need, and the fit keeps to the grasps
+    level = session.force[free]
+    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
+    if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
         return kin
     both = Frozen(kin)(session.time, session.position, session.force, grasped | free)
     touching = grasped.copy()
