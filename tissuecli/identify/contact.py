@@ -215,8 +215,11 @@ def find_contact(session: Session) -> Contact:
     # in it (a fast session's rests last 20-60 ms, and a damped tissue's pull on release
     # keeps the smoothed force off the free level for part of its break)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
+    # the moving mean spreads a grasp's edges over its width, dithered or not: a damped
+    # tissue touched by closing jaws steps many noise SDs at once, and an edge left half
+    # a width early puts the law's force on free jaws
+    mask = _sharpen(mask, f - baseline, width)
     if dithered:
-        mask = _sharpen(mask, f - baseline, width)
         # contact too weak for the moving mean of one width, seen by longer ones
         mask |= _weak_contact(f - baseline, mask, noise, width)
         mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
