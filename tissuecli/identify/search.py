@@ -285,19 +285,31 @@ class GreedySearch(Search):
         """The search's steps from one linear law; False if the session resolves no
         relaxation (no other stem will either)."""
         contact = self._prune(score([*self.replacing(scope), *self.kept(best.model)]), score)
-        base = contact if contact.ln_evidence > best.ln_evidence else best
         why = self.unresolved(scope)
         if why:
             notes.append(why)
             return False
-        # branches one at a time while each raises the evidence; a contact law takes one
-        # (its exponent and contact point already make it the costliest to sample)
-        most = 1 if base is contact else MAX_BRANCHES
+        # branches grow on the stem whichever of it and its contact law leads: a contact
+        # law's curvature and contact point stand in for a branch's relaxation on a
+        # grasp's rise, and led the stem by a nat or two where the truth was a spring
+        # with a branch, which the stem alone then reaches
+        if contact.ln_evidence > best.ln_evidence:
+            self._branches(contact, 1, score, scope, notes)
+        self._branches(best, MAX_BRANCHES, score, scope, notes)
+        return True
+
+    def _branches(
+        self, base: ModelResult, most: int, score: Score, scope: Scope, notes: list[str]
+    ) -> None:
+        """Branches added to ``base`` one at a time while each raises the evidence (at
+        most ``most``; a contact law takes one, its exponent and contact point already
+        make it the costliest to sample), pruning after each."""
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
             if why:
-                notes.append(why)
+                if why not in notes:
+                    notes.append(why)
                 break
             names = [t.name for t in (current.family or current.model).terms]
             grow = [g for g in self.terms("grow") if names.count(g) < term(g).max_count]
@@ -307,7 +319,6 @@ class GreedySearch(Search):
             if trial.ln_evidence <= current.ln_evidence:
                 break
             current = self._prune(trial, score)
-        return True
 
 
 @register
