@@ -316,7 +316,19 @@ class GreedySearch(Search):
             if not grow:
                 break
             trial = max((score([*names, g]) for g in grow), key=lambda r: r.ln_evidence)
-            if trial.ln_evidence <= current.ln_evidence:
+            if not math.isfinite(trial.ln_evidence):
+                # a stem whose missing branches drove a coefficient far below zero (a
+                # negative mass or hardening standing in for relaxation) has no evidence
+                # within its positivity bounds, and neither may the law with one branch
+                # more: pruned of the term it need not hold, or with a further branch, it
+                # may; from no evidence to none is no step down, and the search goes on
+                trial = self._prune(trial, score)
+                if not math.isfinite(trial.ln_evidence) and not math.isfinite(
+                    current.ln_evidence
+                ):
+                    current = trial
+                    continue
+            if not trial.ln_evidence > current.ln_evidence:
                 break
             current = self._prune(trial, score)
 
