@@ -119,6 +119,14 @@ class Search:
         n = scope.samples
         stems = {r.name: r for r in (max(linear, key=lambda r: r.ln_evidence),
                                      min(linear, key=lambda r: bic(r, n)))}  # fmt: skip
+        # and the best by Schwarz's criterion of another stiffness: relaxation the linear
+        # laws cannot follow may favour a hardening spring over a linear one, and the
+        # branches grown on it never reach a law without it (pruning keeps a stiffness)
+        held = {_stiffness(r) for r in stems.values()}
+        other = [r for r in linear if _stiffness(r) not in held]
+        if other:
+            extra = min(other, key=lambda r: bic(r, n))
+            stems[extra.name] = extra
         return list(stems.values())
 
     def replacing(self, scope: Scope) -> list[str]:
@@ -396,6 +404,11 @@ class ExhaustiveSearch(Search):
                 fewer = [n for n in names if n not in out]
                 if any(term(n).role == "stiffness" for n in fewer):
                     yield fewer
+
+
+def _stiffness(res: ModelResult) -> frozenset[str]:
+    """The names of a law's stiffness terms."""
+    return frozenset(t.name for t in res.model.terms if t.role == "stiffness")
 
 
 def bic(res: ModelResult, n: int) -> float:
