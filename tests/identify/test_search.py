@@ -99,6 +99,20 @@ def test_greedy_grows_branches_on_the_stem_too_when_its_contact_law_leads(one_br
     assert max(score.calls.values()) == 1
 
 
+def test_greedy_grows_branches_on_a_stem_of_another_stiffness(one_branch):
+    """Relaxation the linear laws cannot follow may make a hardening spring the best of
+    them by evidence and by Schwarz's criterion; pruning keeps a stiffness, so the
+    branches grown on it never reached the linear spring with a branch."""
+    _, scope = one_branch
+    score = _Scorer(gains=[30.0, -1.0], bonus={"x": 10.0})
+    cubic = _linear(Law.of(["x^3", "xdot", "xddot"]), 0.0)
+    spring = _linear(STEM, -5.0)
+    tried, _ = GreedySearch().run([cubic, spring], score, scope)
+    best = max(tried, key=lambda r: r.ln_evidence)
+    assert best.name == "x+maxwell+xdot+xddot"
+    assert max(score.calls.values()) == 1
+
+
 class _Bounded(_Scorer):
     """As :class:`_Scorer`, but a law with fewer than ``needs`` branches has no evidence
     within its positivity bounds (a negative mass standing in for relaxation)."""
