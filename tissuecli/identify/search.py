@@ -119,15 +119,18 @@ class Search:
         n = scope.samples
         stems = {r.name: r for r in (max(linear, key=lambda r: r.ln_evidence),
                                      min(linear, key=lambda r: bic(r, n)))}  # fmt: skip
-        # and the best by Schwarz's criterion of another stiffness: relaxation the linear
-        # laws cannot follow may favour a hardening spring over a linear one, and the
-        # branches grown on it never reach a law without it (pruning keeps a stiffness)
-        held = {_stiffness(r) for r in stems.values()}
-        other = [r for r in linear if _stiffness(r) not in held]
-        if other:
-            extra = min(other, key=lambda r: bic(r, n))
-            stems[extra.name] = extra
         return list(stems.values())
+
+    def other_stiffness(
+        self, linear: Sequence[ModelResult], stems: Sequence[ModelResult], scope: Scope
+    ) -> list[ModelResult]:
+        """The linear law that fits best by Schwarz's criterion among those whose
+        stiffness terms differ from every stem's (none if there is none): relaxation the
+        linear laws cannot follow may make a hardening spring the best of them, and
+        branches grown on it never reach a law without it (pruning keeps a stiffness)."""
+        held = {_stiffness(r) for r in stems}
+        other = [r for r in linear if _stiffness(r) not in held]
+        return [min(other, key=lambda r: bic(r, scope.samples))] if other else []
 
     def replacing(self, scope: Scope) -> list[str]:
         """The ``"replace"`` terms (contact), less those of closure and speed together
@@ -267,9 +270,17 @@ class GreedySearch(Search):
     def explore(
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
     ) -> None:
-        for stem in self.stems(linear, scope):
-            if not self._grow(stem, score, scope, notes):
-                break
+        stems = self.stems(linear, scope)
+        grew = False
+        for stem in stems:
+            found = self._grow(stem, score, scope, notes)
+            if found is None:
+                return
+            grew |= found
+        # once a branch has paid, on a stem of another stiffness too
+        if grew:
+            for stem in self.other_stiffness(linear, stems, scope):
+                self._branches(stem, MAX_BRANCHES, score, scope, notes)
 
     def _prune(self, res: ModelResult, score: Score) -> ModelResult:
         """Take ``"prune"`` terms out of ``res``'s law while that raises the evidence
@@ -289,29 +300,31 @@ class GreedySearch(Search):
                     break
         return res
 
-    def _grow(self, best: ModelResult, score: Score, scope: Scope, notes: list[str]) -> bool:
-        """The search's steps from one linear law; False if the session resolves no
-        relaxation (no other stem will either)."""
+    def _grow(
+        self, best: ModelResult, score: Score, scope: Scope, notes: list[str]
+    ) -> bool | None:
+        """The search's steps from one linear law: whether a branch raised the evidence,
+        None if the session resolves no relaxation (no other stem will either)."""
         contact = self._prune(score([*self.replacing(scope), *self.kept(best.model)]), score)
         why = self.unresolved(scope)
         if why:
             notes.append(why)
-            return False
+            return None
         # branches grow on the stem whichever of it and its contact law leads: a contact
         # law's curvature and contact point stand in for a branch's relaxation on a
         # grasp's rise, and led the stem by a nat or two where the truth was a spring
         # with a branch, which the stem alone then reaches
+        grew = False
         if contact.ln_evidence > best.ln_evidence:
-            self._branches(contact, 1, score, scope, notes)
-        self._branches(best, MAX_BRANCHES, score, scope, notes)
-        return True
+            grew = self._branches(contact, 1, score, scope, notes)
+        return self._branches(best, MAX_BRANCHES, score, scope, notes) or grew
 
     def _branches(
         self, base: ModelResult, most: int, score: Score, scope: Scope, notes: list[str]
-    ) -> None:
+    ) -> bool:
         """Branches added to ``base`` one at a time while each raises the evidence (at
         most ``most``; a contact law takes one, its exponent and contact point already
-        make it the costliest to sample), pruning after each."""
+        make it the costliest to sample), pruning after each; whether one did."""
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
@@ -339,11 +352,13 @@ class GreedySearch(Search):
             if not trial.ln_evidence > current.ln_evidence:
                 break
             current = self._prune(trial, score)
+        return current is not base and math.isfinite(current.ln_evidence)
 
 
 @register
 class ExhaustiveSearch(Search):
-    """Every law the greedy search could reach from each stem, each scored: with its
+    """Every law the greedy search could reach from each stem (and from the stem of
+    another stiffness, :meth:`Search.other_stiffness`), each scored: with its
     stiffness and damping kept or replaced by the ``"replace"`` terms, any of its
     ``"prune"`` terms taken out (some stiffness kept), and zero to ``max_branches``
     ``"grow"`` terms (one on a contact law), as far as the session resolves time
@@ -380,7 +395,8 @@ class ExhaustiveSearch(Search):
                 break
             room = k
         grow = self.terms("grow")
-        for stem in self.stems(linear, scope):
+        stems = self.stems(linear, scope)
+        for stem in [*stems, *self.other_stiffness(linear, stems, scope)]:
             names = [t.name for t in stem.model.terms]
             bases = [(names, room)]
             replace = self.replacing(scope)
