@@ -271,16 +271,16 @@ class GreedySearch(Search):
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
     ) -> None:
         stems = self.stems(linear, scope)
-        grew = False
+        grew = 0
         for stem in stems:
             found = self._grow(stem, score, scope, notes)
             if found is None:
                 return
-            grew |= found
-        # once a branch has paid, on a stem of another stiffness too
+            grew = max(grew, found)
+        # once branches have paid, on a stem of another stiffness too, as many as paid
         if grew:
             for stem in self.other_stiffness(linear, stems, scope):
-                self._branches(stem, MAX_BRANCHES, score, scope, notes)
+                self._branches(stem, grew, score, scope, notes)
 
     def _prune(self, res: ModelResult, score: Score) -> ModelResult:
         """Take ``"prune"`` terms out of ``res``'s law while that raises the evidence
@@ -302,9 +302,10 @@ class GreedySearch(Search):
 
     def _grow(
         self, best: ModelResult, score: Score, scope: Scope, notes: list[str]
-    ) -> bool | None:
-        """The search's steps from one linear law: whether a branch raised the evidence,
-        None if the session resolves no relaxation (no other stem will either)."""
+    ) -> int | None:
+        """The search's steps from one linear law: how many branches raised the
+        evidence, None if the session resolves no relaxation (no other stem will
+        either)."""
         contact = self._prune(score([*self.replacing(scope), *self.kept(best.model)]), score)
         why = self.unresolved(scope)
         if why:
@@ -314,17 +315,17 @@ class GreedySearch(Search):
         # law's curvature and contact point stand in for a branch's relaxation on a
         # grasp's rise, and led the stem by a nat or two where the truth was a spring
         # with a branch, which the stem alone then reaches
-        grew = False
+        grew = 0
         if contact.ln_evidence > best.ln_evidence:
             grew = self._branches(contact, 1, score, scope, notes)
-        return self._branches(best, MAX_BRANCHES, score, scope, notes) or grew
+        return max(self._branches(best, MAX_BRANCHES, score, scope, notes), grew)
 
     def _branches(
         self, base: ModelResult, most: int, score: Score, scope: Scope, notes: list[str]
-    ) -> bool:
+    ) -> int:
         """Branches added to ``base`` one at a time while each raises the evidence (at
         most ``most``; a contact law takes one, its exponent and contact point already
-        make it the costliest to sample), pruning after each; whether one did."""
+        make it the costliest to sample), pruning after each; how many did."""
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
@@ -352,7 +353,14 @@ class GreedySearch(Search):
             if not trial.ln_evidence > current.ln_evidence:
                 break
             current = self._prune(trial, score)
-        return current is not base and math.isfinite(current.ln_evidence)
+        if current is base or not math.isfinite(current.ln_evidence):
+            return 0
+        grown = set(self.terms("grow"))
+
+        def count(r: ModelResult) -> int:
+            return sum(t.name in grown for t in (r.family or r.model).terms)
+
+        return count(current) - count(base)
 
 
 @register
