@@ -43,13 +43,17 @@ V_SMOOTH = 1e-3
 class SessionSpan:
     """What a session lets a shape parameter's prior span: its sample interval ``dt``
     (s), the cutoff of the filter that formed its kinematics (Hz), its fitted stretch
-    (s), and its closure's low end (2nd percentile) and span (m)."""
+    (s), and its fitted closure's low end (2nd percentile) and span (m); ``x_floor``,
+    the low end (2nd percentile) of the closure over the whole session, free jaw
+    motion included, where the fit keeps to the grasps (m; NaN where it fits every
+    sample)."""
 
     dt: float
     cutoff_hz: float
     duration_s: float
     x_low: float
     x_span: float
+    x_floor: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -139,7 +143,15 @@ class TimeConstant(ShapeParameter):
 @dataclass(frozen=True)
 class ContactPoint(ShapeParameter):
     """A contact point (closure, m): uniform from a quarter of the closure's span below
-    its lowest fitted value to half the span above it."""
+    its lowest fitted value to half the span above it, and down to the lowest closure
+    of the whole session where the fit keeps to the grasps.
+
+    A fit that keeps to the grasps sees only samples whose force stands above the free
+    jaws' (and, of those, the ones whose filter window holds no free motion): the
+    samples near the contact point, where the force rises slowly from zero, are the
+    ones it leaves out. So the lowest fitted closure says only that the contact point
+    lies below it, not how far; what the session does say is that the jaws touched
+    nothing at their most open."""
 
     kind: str = "x0"
     unit: str = "m"
@@ -150,7 +162,10 @@ class ContactPoint(ShapeParameter):
 
     def prior_range(self, span: SessionSpan) -> tuple[float, float]:
         width = span.x_span or 1e-3
-        return span.x_low - 0.25 * width, span.x_low + 0.5 * width
+        lo = span.x_low - 0.25 * width
+        if math.isfinite(span.x_floor):
+            lo = min(lo, span.x_floor)
+        return lo, span.x_low + 0.5 * width
 
 
 #: the Hunt-Crossley exponent, uniform on [1, 2.5]

@@ -145,8 +145,12 @@ def _column(
         if recursion is not None:  # on a long session's coarse grid: the same column
             return kin.smooth_recursion(*recursion, drive)
         dt, v_full = speed or raw_speed(kin, x_full)
-        if kin.stride > 1 and not term.memory and term.closure_factor(x_full[:1]) is not None:
-            return kin.smooth_pointwise(term.closure_factor, x_full, v_full)  # type: ignore[arg-type]
+        if not term.memory and term.closure_factor(x_full[:1]) is not None:
+            if kin.stride > 1:
+                return kin.smooth_pointwise(term.closure_factor, x_full, v_full)  # type: ignore[arg-type]
+            # f(x) xdot with f formed once per ADC level (Kinematics.pointwise): the same
+            # products, at the cost of indexing where it was a power of every sample
+            return kin.smooth(kin.pointwise(term.closure_factor, x_full) * v_full)  # type: ignore[arg-type]
         return kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
     return term(np.ones(kin.time.size))
 

@@ -235,8 +235,12 @@ def prepare(
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
     if by_grasp:
-        # a relaxation branch is strained only in contact: held across free jaw motion
-        kin = replace(kin, drive=held_closure(session.position, ~contact.mask))
+        # a relaxation branch is strained only in contact: held across free jaw motion;
+        # and the jaws at their most open bound where contact may begin
+        # (:class:`~tissuecli.core.terms.ContactPoint`)
+        seen = session.position[trusted] if np.any(trusted) else session.position
+        kin = replace(kin, drive=held_closure(session.position, ~contact.mask),
+                      x_floor=float(np.percentile(seen, 2)))  # fmt: skip
     return Prepared(session, kin, warnings, contact, measured, trusted)
 
 

@@ -11,7 +11,8 @@ log-uniform between what the filter can resolve and a third of the fitted stretc
 within 10 ms to 100 s); several branches' time constants are ordered, tau1 < tau2,
 uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5]; the
 contact point x0 uniform from a quarter of the closure's span below its lowest fitted
-value to half the span above it.
+value (or from the lowest closure of the whole session, where the fit keeps to the
+grasps) to half the span above it.
 """
 
 from __future__ import annotations
@@ -125,6 +126,7 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
         duration_s=float(kin.time[-1] - kin.time[0]),
         x_low=float(np.percentile(x, 2)) if closure else math.nan,
         x_span=float(np.ptp(x)) if closure else math.nan,
+        x_floor=kin.x_floor if closure and kin.x_floor is not None else math.nan,
     )
 
 

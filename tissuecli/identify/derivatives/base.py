@@ -111,6 +111,9 @@ class Kinematics:
     stride: int = 1
     #: the raw grid's sample interval (s), where the kept outputs no longer show it
     step_s: float | None = None
+    #: the closure's low end (2nd percentile, m) over the whole session, free jaw motion
+    #: included, where the outputs keep to the grasps; None where they fit every sample
+    x_floor: float | None = None
 
     @property
     def window(self) -> int:
