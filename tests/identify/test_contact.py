@@ -237,3 +237,32 @@ def test_an_edge_is_pushed_to_the_foot_of_a_fast_release() -> None:
         moved.append(int(_extend(mask, rng.standard_normal(200), 1.0, 50).sum()) - 100)
     assert np.mean(np.array(moved) > 0) < 0.02
     assert max(moved) <= 3
+
+
+def _edges(mask: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+
+
+@pytest.mark.parametrize(
+    "seed, families, first",
+    [(7301013, ["friction", "friction+offset", "offset"], 0), (6587750, OTHER, 1)],
+)
+def test_edges_where_the_force_steps_through_the_level(
+    seed: int, families: list[str], first: int
+) -> None:
+    """Grasps whose force crosses the free-jaw level on its way: an offset law's damping
+    pulls it 6 noise SDs below the level while the jaws open, then it steps back at the
+    release (11 bits, 3.3 kHz); a massive law's force leaps at the touch and falls
+    through the level (8 bits, 5.5 kHz, noise 1.2 quantisation steps: not dithered, so
+    no edge was placed at all). Their edges were read 7-48 samples late (14 at the
+    first's release: the half widths' means either side of the step average near the
+    level), and the law's force put on free jaws there. Least squares with the grasp's
+    force a parabola puts each within 2 samples (the steps stand 6 to 50 noise SDs
+    high, where a change point falls within a sample or two). From grasp ``first`` on:
+    the second scene's first grasp begins with 0.3 s of force 2-6 noise SDs above the
+    level on a coarse ADC, contact the thresholds do not reach."""
+    scene = random_scene(seed, families=families, max_samples=10_000)
+    found = _edges(find_contact(scene.session).mask)
+    true = _edges(scene.x > 0)
+    assert found.size == true.size
+    assert np.max(np.abs(found[2 * first :] - true[2 * first :])) <= 2

@@ -246,3 +246,19 @@ def test_no_protocol_gives_an_impossible_evidence(seed, name):
     """Over the whole stress space: every ln Z finite and within 20 nats per sample."""
     o = prot.fit_protocol(random_protocol(seed, name, max_samples=4000))
     assert not o.evidence, o.evidence
+
+
+def test_a_one_branch_squeeze_whose_linear_laws_have_no_evidence_finds_its_branch():
+    """A 13 s squeeze of x+maxwell+xdot+xddot in contact throughout (11 bits, 749 Hz):
+    the relaxation pushes the inertia of every linear law with xdot far below zero, so
+    none has evidence within its positivity bounds, nor has one with one branch and
+    x^3 or an offset; the greedy search stopped there and grew its branches on
+    xdot|xdot| instead (x+maxwell+maxwell+xdot|xdot|+xddot, P 0.99, held-out error 5.8
+    times the noise floor)."""
+    others = ["hardening", "friction", "offset", "friction+offset", "Hunt-Crossley",
+              "one branch", "two branches"]  # fmt: skip
+    seed = 27111522
+    scene = random_scene(seed, families=others, max_samples=10000)
+    (row,) = [r for r in gen.run_scene(scene, fits=("default",), seed=seed) if r.fit == "default"]
+    assert row.right, row.law
+    assert row.ratio <= 1.5, row.ratio

@@ -86,6 +86,57 @@ def test_greedy_prunes_what_a_branch_makes_redundant(one_branch):
     assert best.name == "x+maxwell+xdot+xddot"
 
 
+def test_greedy_grows_branches_on_the_stem_too_when_its_contact_law_leads(one_branch):
+    """A contact law's curvature and contact point stand in for a branch on a grasp's
+    rise: a nat or two ahead of the stem, it once took every branch, and the spring
+    with a branch (the truth) was never scored."""
+    _, scope = one_branch
+    score = _Scorer(gains=[30.0, -1.0], contact=2.0)
+    tried, _ = GreedySearch().run([_linear(STEM, 0.0)], score, scope)
+    names = [r.name for r in tried]
+    assert "x+maxwell+xdot+xddot" in names
+    assert any(n.startswith("contact") and "maxwell" in n for n in names)
+    assert max(score.calls.values()) == 1
+
+
+def test_greedy_grows_branches_on_a_stem_of_another_stiffness(one_branch):
+    """Relaxation the linear laws cannot follow may make a hardening spring the best of
+    them by evidence and by Schwarz's criterion; pruning keeps a stiffness, so the
+    branches grown on it never reached the linear spring with a branch."""
+    _, scope = one_branch
+    score = _Scorer(gains=[30.0, -1.0], bonus={"x": 10.0})
+    cubic = _linear(Law.of(["x^3", "xdot", "xddot"]), 0.0)
+    spring = _linear(STEM, -5.0)
+    tried, _ = GreedySearch().run([cubic, spring], score, scope)
+    best = max(tried, key=lambda r: r.ln_evidence)
+    assert best.name == "x+maxwell+xdot+xddot"
+    assert max(score.calls.values()) == 1
+
+
+class _Bounded(_Scorer):
+    """As :class:`_Scorer`, but a law with fewer than ``needs`` branches has no evidence
+    within its positivity bounds (a negative mass standing in for relaxation)."""
+
+    def __init__(self, needs: int, **kwargs: object) -> None:
+        super().__init__(**kwargs)  # type: ignore[arg-type]
+        self.needs = needs
+
+    def __call__(self, law: Law) -> ModelResult:
+        r = super().__call__(law)
+        if [t.name for t in law.terms].count("maxwell") < self.needs:
+            r.ln_evidence = float("-inf")
+        return r
+
+
+def test_greedy_goes_on_through_laws_without_evidence_to_one_with_it(one_branch):
+    _, scope = one_branch
+    score = _Bounded(needs=2, gains=[30.0, 4.0, -2.0], contact=-500.0)
+    stem = Law.of(["x", "x^3", "xdot", "xddot", "offset"])
+    tried, _ = GreedySearch().run([_linear(stem, float("-inf"))], score, scope)
+    best = max(tried, key=lambda r: r.ln_evidence)
+    assert best.name == "x+maxwell+maxwell+xdot+xddot"
+
+
 def test_searches_say_when_the_session_is_too_short_for_more_branches(one_branch):
     s, _ = one_branch
     short = s.replace(s.time[:400], s.force[:400], s.position[:400])  # 0.02-0.2 s

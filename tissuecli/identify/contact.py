@@ -8,8 +8,9 @@ but rises and falls with the closure); a sample is in contact when
 the smoothed force stands away from the baseline by more than 6 noise SDs (entering)
 and until it comes within 3 (leaving): SDs of the smoothed force's own noise, measured
 on the free stretches, where the raw noise dithers the force's quantisation (else of the
-raw force's noise). Each edge then goes where the raw force steps most within half a
-smoothing width of it. Stretches shorter than :data:`MIN_GRASP_S` are not
+raw force's noise). Each edge then goes, within half a smoothing width of it, where
+least squares best split the raw force into free jaws at the baseline on one side and
+the grasp's force, a parabola, on the other. Stretches shorter than :data:`MIN_GRASP_S` are not
 grasps, and gaps shorter than :data:`MIN_GAP_S` do not end one, unless the jaws are
 seen resting open in them (below). When no free stretch
 covers :data:`MIN_FREE_FRACTION` of the session, the whole session is one contact.
@@ -100,6 +101,15 @@ DITHER_STEPS = 2.0
 #: a grasp lasts at least this many smoothing widths (an outlier spread by the moving
 #: mean stands out for one width) and this many samples; never more than MIN_GRASP_S
 SPIKE_WIDTHS, MIN_GRASP_SAMPLES = 2, 4
+#: a grasp's force is read as a polynomial of this degree over the half width beside
+#: its edge (a parabola follows a damped or massive tissue's force falling through the
+#: free-jaw level as the jaws open)
+EDGE_DEGREE = 2
+#: the parabola is fitted to at least this many samples beyond the candidate edges
+EDGE_SAMPLES = 4 * (EDGE_DEGREE + 1)
+#: edges whose sums of squares lie within this many noise variances of the best are a
+#: tie (a likelihood ratio of e), settled for the free jaws
+EDGE_TIE = 2.0
 #: weak contact is sought by moving means this many times wider, then again, up to
 #: COARSE_SCALES times; each needs this many independent widths of free samples below
 #: the free-jaw level to measure its noise (the median of 16 half-normal values is
@@ -215,8 +225,8 @@ def find_contact(session: Session) -> Contact:
     # in it (a fast session's rests last 20-60 ms, and a damped tissue's pull on release
     # keeps the smoothed force off the free level for part of its break)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
+    mask = _sharpen(mask, f - baseline, width, noise)
     if dithered:
-        mask = _sharpen(mask, f - baseline, width)
         # contact too weak for the moving mean of one width, seen by longer ones
         mask |= _weak_contact(f - baseline, mask, noise, width)
         mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
@@ -395,35 +405,85 @@ def _free_sd(above: Array, mask: NDArray[np.bool_], noise: float, width: int) ->
     return float(np.clip(sd, noise / np.sqrt(width), noise))
 
 
-def _sharpen(mask: NDArray[np.bool_], above: Array, width: int) -> NDArray[np.bool_]:
-    """Each grasp's edges where the raw force ``above`` the free-jaw level steps most.
+def _sharpen(
+    mask: NDArray[np.bool_], above: Array, width: int, noise: float = 0.0
+) -> NDArray[np.bool_]:
+    """Each grasp's edges where the raw force ``above`` the free-jaw level leaves it (or
+    comes back to it), by least squares.
 
     The moving mean spreads a grasp's first rise (and last fall) over its width, so a
-    threshold on it places the edges up to half a width outside; within half a width of
-    each, the edge goes where the mean of the half width after it departs most from the
-    mean of the half width before it (a step's least-squares place).
+    threshold on it places the edges up to half a width outside. Within half a width
+    of each edge, the edge goes to the place that best splits the span around it into
+    free jaws, at the level, on one side, and contact on the other, its force a
+    straight line (a ramp) over up to a width. A step between the means of the half
+    widths either side (the rule before) put the release late wherever the force
+    crosses the level as it falls: a damped tissue pulls below it while the jaws open,
+    and the half width before the release then averages out near the level. ``noise``
+    (N, the raw force's noise SD) sets what counts as a tie (:data:`EDGE_TIE`).
     """
     h = width // 2
     if h < 2:
         return mask
     out = mask.copy()
-    csum = np.concatenate([[0.0], np.cumsum(above)])
     runs = _runs(mask)
     for k, (start, stop) in enumerate(runs):
         lo = runs[k - 1][1] if k else 0
         hi = runs[k + 1][0] if k + 1 < len(runs) else mask.size
         for edge, rising in ((start, True), (stop, False)):
-            cand = np.arange(max(edge - h, lo + h), min(edge + h, hi - h) + 1)
-            if cand.size < 2:
+            first, last = max(edge - h, lo), min(edge + h, hi)  # the candidate edges
+            # the grasp's side holds enough samples for its parabola at every candidate
+            # (at a few hundred Hz half a width is three samples)
+            reach = max(h, EDGE_SAMPLES)
+            if rising:
+                span = (max(first - h, lo), min(last + reach, hi))
+            else:
+                span = (max(first - reach, lo), min(last + h, hi))
+            best = _split(above[span[0] : span[1]], first - span[0], last - span[0], rising,
+                          EDGE_TIE * noise**2)  # fmt: skip
+            if best is None:
                 continue
-            before = (csum[cand] - csum[cand - h]) / h
-            after = (csum[cand + h] - csum[cand]) / h
-            best = int(cand[int(np.argmax(np.abs(after - before)))])
+            best += span[0]
             if rising:
                 out[min(best, edge) : max(best, edge)] = best < edge
             else:
                 out[min(best, edge) : max(best, edge)] = best > edge
     return out
+
+
+def _split(y: Array, first: int, last: int, rising: bool, tie: float = 0.0) -> int | None:
+    """The index c in ``first..last`` that best splits ``y`` into free samples at zero
+    and contact samples on a parabola (:data:`EDGE_DEGREE`): ``y[:c]`` free and
+    ``y[c:]`` contact when ``rising``, the other way round when not; None when no split
+    leaves more samples on the curve than it has coefficients. Of the splits within
+    ``tie`` (a sum of squares) of the best, the one with the least contact."""
+    n = y.size
+    p = EDGE_DEGREE + 1
+    t = (np.arange(n) - 0.5 * n) / max(n, 1)  # centred and scaled: sums keep precision
+    zero = np.zeros(1)
+    powers = [np.concatenate([zero, np.cumsum(t**k)]) for k in range(2 * p - 1)]
+    moments = [np.concatenate([zero, np.cumsum(y * t**k)]) for k in range(p)]
+    squares = np.concatenate([zero, np.cumsum(y * y)])
+    c = np.arange(max(first, 0), min(last, n) + 1)
+    i, j = (c, np.full(c.size, n)) if rising else (np.zeros(c.size, np.intp), c)
+    ok = j - i > p
+    if not ok.any():
+        return None
+    c, i, j = c[ok], i[ok], j[ok]
+    G = np.stack([np.stack([powers[a + b][j] - powers[a + b][i] for b in range(p)], -1)
+                  for a in range(p)], -2)  # fmt: skip
+    r = np.stack([m[j] - m[i] for m in moments], -1)
+    try:
+        beta = np.linalg.solve(G, r[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    curve = (squares[j] - squares[i]) - np.einsum("ka,ka->k", beta, r)  # its residual SS
+    free = squares[c] if rising else squares[n] - squares[c]
+    cost = curve + free
+    # where the force fades into the level (a soft law at its contact point) the place
+    # is not told by the data: the least contact within a tie, as free jaws read in
+    # contact take a law's force where there is none
+    near = np.flatnonzero(cost <= float(np.min(cost)) + tie)
+    return int(c[near[-1] if rising else near[0]])
 
 
 def _min_free(dt: float, width: int) -> int:

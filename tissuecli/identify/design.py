@@ -127,6 +127,20 @@ def _column(
     var: float,
     speed: tuple[float, Array] | None = None,
 ) -> Array:
+    column = _ungated_column(term, kin, x_full, var, speed)
+    gate = kin.gate
+    if gate is None or not term.rendered:
+        return column  # a sensor's offset stays with the jaws free
+    return column * gate  # free jaws touch no tissue
+
+
+def _ungated_column(
+    term: Term,
+    kin: Kinematics,
+    x_full: Array,
+    var: float,
+    speed: tuple[float, Array] | None = None,
+) -> Array:
     if term.variable == "x":
         return kin.stiffness_input(term, x_full, var)
     if term.variable == "v":
@@ -219,6 +233,14 @@ def noise_path(
 
 
 def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
+    kernel, slope = _ungated_noise_path(term, kin, x_full, sigma_x)
+    gate = kin.gate
+    return (kernel, slope) if gate is None or not term.rendered else (kernel, slope * gate)
+
+
+def _ungated_noise_path(
+    term: Term, kin: Kinematics, x_full: Array, sigma_x: float
+) -> tuple[Array, Array]:
     if term.variable == "x":
         if term.shapes:  # many shapes on one closure: filtered once per level
             return kin.kernels[0], kin.smooth_pointwise(term.derivative, x_full)

@@ -198,6 +198,8 @@ def predict_band(
         if past.any() and not _law_reads_contact(A, tissue.coef, kept, grid.force, past & judged):
             free = detected  # terms with memory are held across these samples too
             A = regressors(free)
+        if free.any() and not any(t.memory for t in tissue.law.terms):
+            free = free & ~_touching_by_closure(A, tissue.coef, kept, grid, free)
         A[free] *= kept
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
@@ -342,6 +344,40 @@ def _law_reads_contact(
     law = A[rows] @ coef
     free = A[rows] @ (coef * kept)
     return float(np.sum((force[rows] - law) ** 2)) < float(np.sum((force[rows] - free) ** 2))
+
+
+#: a closure threshold for contact on samples read free is taken where it lowers their
+#: sum of squares by more than this many times the noise variance times ln(samples)
+#: (a BIC for one parameter, times four)
+TOUCH_BIC = 4.0
+
+
+def _touching_by_closure(
+    A: Array, coef: Array, kept: Array, grid: Session, free: NDArray[np.bool_]
+) -> NDArray[np.bool_]:
+    """Samples the grasp detector read free whose force the law explains, as contact:
+    those whose closure is at or past one threshold, chosen by least squares.
+
+    The detector reads contact from the force standing clear of its noise, so a grasp's
+    loose part (a noisy session's light taps, a soft law at small closure) is read
+    free, and its force predicted as the sensor's offset alone. The tissue is touched
+    past one closure, though: over the samples read free, the threshold c that best
+    splits them into contact (closure >= c, the law's force) and free jaws (below, the
+    offset's) is taken, where it beats reading them all free by :data:`TOUCH_BIC`
+    times the noise variance times ln(samples); none otherwise."""
+    rows = free & np.all(np.isfinite(A), axis=1) & np.isfinite(grid.force)
+    if np.count_nonzero(rows) < 8:
+        return np.zeros(free.size, bool)
+    x, f = grid.position[rows], grid.force[rows]
+    law, off = A[rows] @ coef, A[rows] @ (coef * kept)
+    order = np.argsort(x, kind="stable")
+    gain = ((f - off) ** 2 - (f - law) ** 2)[order]  # what reading a sample touched saves
+    saved = np.cumsum(gain[::-1])[::-1]  # reading touched every sample from each on
+    k = int(np.argmax(saved))
+    noise = force_noise_sd(grid.force)
+    if not noise > 0 or saved[k] <= TOUCH_BIC * noise**2 * np.log(f.size):
+        return np.zeros(free.size, bool)
+    return free & (grid.position >= x[order][k])
 
 
 def _kept_free(tissue: Tissue) -> Array:

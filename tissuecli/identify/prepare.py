@@ -14,7 +14,7 @@ from ..core.plausible import unit_warnings
 from ..core.session import Session
 from ..core.timebase import sample_clock
 from .contact import Contact, find_contact
-from .derivatives import Differentiator, Kinematics
+from .derivatives import Differentiator, Frozen, Kinematics
 from .design import held_closure
 from .spectrum import convolve_valid
 
@@ -103,7 +103,10 @@ def prepare(
     Where the session alternates grasps with free jaw motion
     (:func:`~tissuecli.identify.contact.find_contact`), only filtered samples whose
     whole window lies inside a chosen grasp are fitted: ``grasps="all"`` (every
-    grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers.
+    grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers. With
+    every grasp, the filtered samples of jaws near their most open are fitted too
+    where they read an offset (:func:`open_jaws`, :func:`with_open_jaws`), the
+    tissue's columns zero there: they read the force sensor's offset alone.
 
     ``refuse_constant=False`` lets jaws that never move through (to predict a hold: a
     law with memory has a force to give there, though nothing can be identified).
@@ -241,7 +244,91 @@ def prepare(
         seen = session.position[trusted] if np.any(trusted) else session.position
         kin = replace(kin, drive=held_closure(session.position, ~contact.mask),
                       x_floor=float(np.percentile(seen, 2)))  # fmt: skip
+        if grasps == "all":
+            free = valid & open_jaws(session, contact, kin)
+            kin = with_open_jaws(kin, session, valid & chosen, free)
     return Prepared(session, kin, warnings, contact, measured, trusted)
+
+
+#: jaws read open where their smoothed closure lies below the least closure seen in
+#: contact by this many of its noise SDs (and one quantisation step)
+OPEN_SD = 4.0
+#: and within this fraction of the way from the most open closure to that of contact
+REST_FRACTION = 0.2
+#: and a quarter of a filter's width from every grasp: with the whole window free on
+#: top of it, a grasp's edge read late by the detector lies in the window's outer tail
+#: at most (a Gaussian's is 7 SDs wide, its weight beyond 3 SDs 0.3 %)
+OPEN_MARGIN = 0.25
+#: open jaws are fitted only where their mean force stands beyond this many standard
+#: errors from zero (an offset to measure)
+OPEN_SE = 4.0
+#: free jaws are fitted only where they give at least this many filtered outputs
+MIN_OPEN_ROWS = 32
+
+
+def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np.bool_]:
+    """Samples where the jaws are surely free of the tissue, shape (n,): outside every
+    grasp by :data:`OPEN_MARGIN` of a filter's width, and near their most open: their
+    smoothed closure within :data:`REST_FRACTION` of the way from the session's most
+    open to the least closure of any grasp (less :data:`OPEN_SD` noise SDs and a
+    quantisation step).
+
+    The closure test guards against contact too weak for the grasp detector (a soft
+    tissue, or a noisy session's loose grasp, a few noise SDs above the free level):
+    the tissue is touched at one closure, below the least the detector saw in contact
+    by however much contact it missed; jaws opened most of the way from there to their
+    widest touch nothing, whatever the force reads there."""
+    x = session.position
+    w = kin.window
+    reach = max(1, int(OPEN_MARGIN * w))
+    near = np.convolve(contact.mask.astype(float), np.ones(2 * reach + 1), mode="same") > 0.5
+    if not contact.mask.any() or near.all():
+        return np.zeros(x.size, bool)
+    smooth = convolve_valid(x, kin.kernels[0])
+    h = (x.size - smooth.size) // 2
+    xs = np.full(x.size, np.inf)
+    xs[h : h + smooth.size] = smooth
+    inside = contact.mask & np.isfinite(xs)
+    if not inside.any():
+        return np.zeros(x.size, bool)
+    steps = np.abs(np.diff(x))
+    step = float(np.min(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    d2 = np.diff(x, 2)
+    sd = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0) if d2.size else 0.0
+    margin = OPEN_SD * sd * float(np.linalg.norm(kin.kernels[0])) + step
+    top = float(np.min(xs[inside])) - margin
+    lowest = float(np.min(xs[np.isfinite(xs)]))
+    # contact too weak for the detector lies just above the true touch, which is below
+    # the least closure the detector saw in contact: only the jaws near their most open
+    # are taken, however weak the contact it missed
+    limit = min(top, lowest + max(margin, REST_FRACTION * (top - lowest)))
+    return ~near & (xs < limit)
+
+
+def with_open_jaws(
+    kin: Kinematics, session: Session, grasped: NDArray[np.bool_], free: NDArray[np.bool_]
+) -> Kinematics:
+    """``kin`` (filtered inside the ``grasped`` samples) with the outputs whose window
+    lies wholly in ``free`` jaws added, in time order, and :attr:`Kinematics.touching`
+    set: the tissue's columns are zero there and the force is the sensor's offset, so a
+    law's offset is measured where nothing else can stand in for it (inside the grasps
+    a spring's intercept trades with it). Unchanged when the free jaws give fewer than
+    :data:`MIN_OPEN_ROWS` outputs, or read zero within :data:`OPEN_SE` standard errors
+    of their mean (no offset to measure). ``free`` must lie a filter's width from every
+    grasped sample, so that no window holds both."""
+    if np.count_nonzero(free) < MIN_OPEN_ROWS + kin.window:
+        return kin
+    # the open jaws measure the offset: where their force is zero within its noise
+    # they tell nothing the grasps need, and the fit keeps to the grasps
+    level = session.force[free]
+    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
+    if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
+        return kin
+    both = Frozen(kin)(session.time, session.position, session.force, grasped | free)
+    touching = grasped.copy()
+    if np.count_nonzero(~touching[both.keep]) < MIN_OPEN_ROWS:
+        return kin
+    return replace(both, drive=kin.drive, x_floor=kin.x_floor, touching=touching)
 
 
 def _differentiate(

@@ -27,8 +27,11 @@ def session_scales(kin: Kinematics, force_scale: float | None = None) -> MotionS
     def ms(u: Array) -> float:
         return float(np.mean(np.square(u))) if u.size else 0.0
 
-    peak = float(np.max(np.abs(kin.force))) if kin.force.size else 0.0
-    return scales_from(ms(kin.x), ms(kin.v), ms(kin.a), peak, force_scale)
+    gate = kin.gate
+    on = slice(None) if gate is None else gate > 0  # the motion in contact: the tissue's
+    x, v, a, force = kin.x[on], kin.v[on], kin.a[on], kin.force[on]
+    peak = float(np.max(np.abs(force))) if force.size else 0.0
+    return scales_from(ms(x), ms(v), ms(a), peak, force_scale)
 
 
 def scales_from(

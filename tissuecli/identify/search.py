@@ -121,6 +121,17 @@ class Search:
                                      min(linear, key=lambda r: bic(r, n)))}  # fmt: skip
         return list(stems.values())
 
+    def other_stiffness(
+        self, linear: Sequence[ModelResult], stems: Sequence[ModelResult], scope: Scope
+    ) -> list[ModelResult]:
+        """The linear law that fits best by Schwarz's criterion among those whose
+        stiffness terms differ from every stem's (none if there is none): relaxation the
+        linear laws cannot follow may make a hardening spring the best of them, and
+        branches grown on it never reach a law without it (pruning keeps a stiffness)."""
+        held = {_stiffness(r) for r in stems}
+        other = [r for r in linear if _stiffness(r) not in held]
+        return [min(other, key=lambda r: bic(r, scope.samples))] if other else []
+
     def replacing(self, scope: Scope) -> list[str]:
         """The ``"replace"`` terms (contact), less those of closure and speed together
         where the recording has one speed (contact damping, ``(x - x0)^n xdot``, is
@@ -259,9 +270,17 @@ class GreedySearch(Search):
     def explore(
         self, linear: list[ModelResult], score: Score, scope: Scope, notes: list[str]
     ) -> None:
-        for stem in self.stems(linear, scope):
-            if not self._grow(stem, score, scope, notes):
-                break
+        stems = self.stems(linear, scope)
+        grew = 0
+        for stem in stems:
+            found = self._grow(stem, score, scope, notes)
+            if found is None:
+                return
+            grew = max(grew, found)
+        # once branches have paid, on a stem of another stiffness too, as many as paid
+        if grew:
+            for stem in self.other_stiffness(linear, stems, scope):
+                self._branches(stem, grew, score, scope, notes)
 
     def _prune(self, res: ModelResult, score: Score) -> ModelResult:
         """Take ``"prune"`` terms out of ``res``'s law while that raises the evidence
@@ -281,38 +300,73 @@ class GreedySearch(Search):
                     break
         return res
 
-    def _grow(self, best: ModelResult, score: Score, scope: Scope, notes: list[str]) -> bool:
-        """The search's steps from one linear law; False if the session resolves no
-        relaxation (no other stem will either)."""
+    def _grow(
+        self, best: ModelResult, score: Score, scope: Scope, notes: list[str]
+    ) -> int | None:
+        """The search's steps from one linear law: how many branches raised the
+        evidence, None if the session resolves no relaxation (no other stem will
+        either)."""
         contact = self._prune(score([*self.replacing(scope), *self.kept(best.model)]), score)
-        base = contact if contact.ln_evidence > best.ln_evidence else best
         why = self.unresolved(scope)
         if why:
             notes.append(why)
-            return False
-        # branches one at a time while each raises the evidence; a contact law takes one
-        # (its exponent and contact point already make it the costliest to sample)
-        most = 1 if base is contact else MAX_BRANCHES
+            return None
+        # branches grow on the stem whichever of it and its contact law leads: a contact
+        # law's curvature and contact point stand in for a branch's relaxation on a
+        # grasp's rise, and led the stem by a nat or two where the truth was a spring
+        # with a branch, which the stem alone then reaches
+        grew = 0
+        if contact.ln_evidence > best.ln_evidence:
+            grew = self._branches(contact, 1, score, scope, notes)
+        return max(self._branches(best, MAX_BRANCHES, score, scope, notes), grew)
+
+    def _branches(
+        self, base: ModelResult, most: int, score: Score, scope: Scope, notes: list[str]
+    ) -> int:
+        """Branches added to ``base`` one at a time while each raises the evidence (at
+        most ``most``; a contact law takes one, its exponent and contact point already
+        make it the costliest to sample), pruning after each; how many did."""
         current = base
         for k in range(1, most + 1):
             why = self.too_narrow(scope, k)
             if why:
-                notes.append(why)
+                if why not in notes:
+                    notes.append(why)
                 break
             names = [t.name for t in (current.family or current.model).terms]
             grow = [g for g in self.terms("grow") if names.count(g) < term(g).max_count]
             if not grow:
                 break
             trial = max((score([*names, g]) for g in grow), key=lambda r: r.ln_evidence)
-            if trial.ln_evidence <= current.ln_evidence:
+            if not math.isfinite(trial.ln_evidence):
+                # a stem whose missing branches drove a coefficient far below zero (a
+                # negative mass or hardening standing in for relaxation) has no evidence
+                # within its positivity bounds, and neither may the law with one branch
+                # more: pruned of the term it need not hold, or with a further branch, it
+                # may; from no evidence to none is no step down, and the search goes on
+                trial = self._prune(trial, score)
+                if not math.isfinite(trial.ln_evidence) and not math.isfinite(
+                    current.ln_evidence
+                ):
+                    current = trial
+                    continue
+            if not trial.ln_evidence > current.ln_evidence:
                 break
             current = self._prune(trial, score)
-        return True
+        if current is base or not math.isfinite(current.ln_evidence):
+            return 0
+        grown = set(self.terms("grow"))
+
+        def count(r: ModelResult) -> int:
+            return sum(t.name in grown for t in (r.family or r.model).terms)
+
+        return count(current) - count(base)
 
 
 @register
 class ExhaustiveSearch(Search):
-    """Every law the greedy search could reach from each stem, each scored: with its
+    """Every law the greedy search could reach from each stem (and from the stem of
+    another stiffness, :meth:`Search.other_stiffness`), each scored: with its
     stiffness and damping kept or replaced by the ``"replace"`` terms, any of its
     ``"prune"`` terms taken out (some stiffness kept), and zero to ``max_branches``
     ``"grow"`` terms (one on a contact law), as far as the session resolves time
@@ -349,7 +403,8 @@ class ExhaustiveSearch(Search):
                 break
             room = k
         grow = self.terms("grow")
-        for stem in self.stems(linear, scope):
+        stems = self.stems(linear, scope)
+        for stem in [*stems, *self.other_stiffness(linear, stems, scope)]:
             names = [t.name for t in stem.model.terms]
             bases = [(names, room)]
             replace = self.replacing(scope)
@@ -373,6 +428,11 @@ class ExhaustiveSearch(Search):
                 fewer = [n for n in names if n not in out]
                 if any(term(n).role == "stiffness" for n in fewer):
                     yield fewer
+
+
+def _stiffness(res: ModelResult) -> frozenset[str]:
+    """The names of a law's stiffness terms."""
+    return frozenset(t.name for t in res.model.terms if t.role == "stiffness")
 
 
 def bic(res: ModelResult, n: int) -> float:

@@ -132,7 +132,9 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
     """What a session lets the shape parameters' priors span (see
     :class:`~tissuecli.core.terms.SessionSpan`); without ``closure`` the closure's low
     end and span are NaN (a pass over every sample saved where only times matter)."""
-    x = kin.x_raw
+    gate = kin.gate
+    x = kin.x_raw if gate is None else kin.x_raw[gate > 0]  # the closures in contact
+    x = x if x.size else kin.x_raw
     return SessionSpan(
         dt=kin.dt,
         cutoff_hz=float(kin.cutoff_hz),

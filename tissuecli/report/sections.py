@@ -689,7 +689,9 @@ def grasps_table(outcome: FitOutcome) -> str:
         f"<h3>Grasps</h3><p>{esc(contact.describe())}. A sample is in contact while the "
         "smoothed force stands above the free-jaw baseline (the force sensor's offset) by "
         "more than a few noise SDs; only filtered samples whose whole window lies in a "
-        "fitted grasp are fitted (<code>--grasps</code> chooses).</p>"
+        "fitted grasp are fitted (<code>--grasps</code> chooses), and with every grasp "
+        "those of jaws near their most open where they read an offset (the sensor's "
+        "alone).</p>"
         + table(
             [
                 "grasp",

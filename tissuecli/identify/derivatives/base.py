@@ -114,6 +114,18 @@ class Kinematics:
     #: the closure's low end (2nd percentile, m) over the whole session, free jaw motion
     #: included, where the outputs keep to the grasps; None where they fit every sample
     x_floor: float | None = None
+    #: untrimmed, one flag per raw sample: the jaws hold the tissue. Where a fit also
+    #: reads free jaws (the force sensor's offset alone), the tissue's columns are zero
+    #: at the outputs that sit on a free sample (:attr:`gate`); None: all in contact
+    touching: NDArray[np.bool_] | None = None
+
+    @property
+    def gate(self) -> Array | None:
+        """1.0 at the outputs in contact and 0.0 at those of free jaws, shape (m,); None
+        when every output is in contact."""
+        if self.touching is None:
+            return None
+        return self.touching[self.keep].astype(float)
 
     @property
     def window(self) -> int:
