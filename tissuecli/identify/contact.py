@@ -198,7 +198,7 @@ def find_contact(session: Session) -> Contact:
         # the force alone found no free level: jaws resting open between grasps, told by
         # the closure (a damped tissue pulls the force below the free level on release,
         # and a soft law rests at the free level's force at small closure)
-        q = _step(session.position) if not resolved else 0.0
+        q = quantisation_step(session.position) if not resolved else 0.0
         baseline, free, rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))
     if free < MIN_FREE_FRACTION:
         return Contact(
@@ -217,7 +217,7 @@ def find_contact(session: Session) -> Contact:
     # the thresholds in the smoothed force's own noise, measured where the jaws are free,
     # where the noise dithers the force's quantisation (a moving mean of a force quantised
     # coarser than that is a staircase whose error does not average out)
-    dithered = noise >= DITHER_STEPS * _step(f)
+    dithered = noise >= DITHER_STEPS * quantisation_step(f)
     level_sd = _free_sd(above, mask, noise, width) if dithered else noise
     if level_sd < noise:
         mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
@@ -503,7 +503,7 @@ def _noise_sd(f: Array) -> float:
     sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(6)
     # a quantised signal whose noise does not dither its steps: half a step, as a
     # mostly constant one gives
-    q = _step(f)
+    q = quantisation_step(f)
     return sd if sd >= q / np.sqrt(12) or q == 0 else q / 2
 
 
@@ -588,7 +588,7 @@ def _open_rest(
     return level, float(np.mean(rest)), rest
 
 
-def _step(x: Array) -> float:
+def quantisation_step(x: Array) -> float:
     """The smallest nonzero step between successive samples (a quantised signal's step)."""
     d = np.abs(np.diff(x))
     d = d[d > 0]

@@ -13,7 +13,7 @@ from ..core.errors import FitError
 from ..core.plausible import unit_warnings
 from ..core.session import Session
 from ..core.timebase import sample_clock
-from .contact import Contact, find_contact
+from .contact import DITHER_STEPS, Contact, find_contact, quantisation_step
 from .derivatives import Differentiator, Frozen, Kinematics
 from .design import held_closure
 from .spectrum import convolve_valid
@@ -313,9 +313,10 @@ def with_open_jaws(
     set: the tissue's columns are zero there and the force is the sensor's offset, so a
     law's offset is measured where nothing else can stand in for it (inside the grasps
     a spring's intercept trades with it). Unchanged when the free jaws give fewer than
-    :data:`MIN_OPEN_ROWS` outputs, or read zero within :data:`OPEN_SE` standard errors
-    of their mean (no offset to measure). ``free`` must lie a filter's width from every
-    grasped sample, so that no window holds both."""
+    :data:`MIN_OPEN_ROWS` outputs, read zero within :data:`OPEN_SE` standard errors
+    of their mean (no offset to measure), or are read by an ADC their noise does not
+    dither (:data:`~tissuecli.identify.contact.DITHER_STEPS`). ``free`` must lie a
+    filter's width from every grasped sample, so that no window holds both."""
     if np.count_nonzero(free) < MIN_OPEN_ROWS + kin.window:
         return kin
     # the open jaws measure the offset: where their force is zero within its noise
@@ -323,6 +324,12 @@ def with_open_jaws(
     level = session.force[free]
     noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
     if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
+        return kin
+    # a steady force read through an ADC whose noise does not dither it is off by up to
+    # half a step in every sample alike, an error no count of samples averages away:
+    # the open jaws would pin the offset there, tens of its standard errors off, and
+    # the spring's intercept with it (inside the grasps the force sweeps the steps)
+    if noise < DITHER_STEPS * quantisation_step(session.force):
         return kin
     both = Frozen(kin)(session.time, session.position, session.force, grasped | free)
     touching = grasped.copy()
