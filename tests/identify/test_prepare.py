@@ -34,9 +34,9 @@ def test_open_jaws_are_fitted_with_the_tissue_columns_zero() -> None:
     s = scene.session
     ready = BayesianFit().prepare(s.replace(s.time[:n], s.force[:n], s.position[:n]))
     kin = ready.kinematics
-    gate = kin.gate
-    assert gate is not None
-    free = np.flatnonzero(gate == 0)
+    weight = kin.contact_weight
+    assert weight is not None
+    free = np.flatnonzero(weight == 0)  # whole windows of free jaws
     assert free.size > 100
     h = kin.window // 2
     centres = np.arange(n)[kin.keep][free]

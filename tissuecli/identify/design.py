@@ -127,26 +127,16 @@ def _column(
     var: float,
     speed: tuple[float, Array] | None = None,
 ) -> Array:
-    column = _ungated_column(term, kin, x_full, var, speed)
-    gate = kin.gate
-    if gate is None or not term.rendered:
-        return column  # a sensor's offset stays with the jaws free
-    return column * gate  # free jaws touch no tissue
-
-
-def _ungated_column(
-    term: Term,
-    kin: Kinematics,
-    x_full: Array,
-    var: float,
-    speed: tuple[float, Array] | None = None,
-) -> Array:
+    """A term's column, the tissue's terms gated by the contact flags on the raw grid
+    (:meth:`Kinematics.gated`: zero force on the free samples of an output's window,
+    as the filtered force has there) and filtered as the force is; a sensor's offset
+    stays with the jaws free."""
     if term.variable == "x":
         return kin.stiffness_input(term, x_full, var)
     if term.variable == "v":
         return kin.damping_input(term, x_full, var)
     if term.variable == "a":
-        return term(kin.a)
+        return kin.acceleration_input(term, x_full)
     if term.variable in ("xv", "h"):
         # terms of closure and speed together (contact damping) or of the closure's
         # history (relaxation) are formed on the raw grid and filtered as the force is;
@@ -155,17 +145,24 @@ def _ungated_column(
         drive = x_full
         if term.memory and kin.drive is not None:
             drive = kin.drive  # the tissue is not indented while the jaws are free
-        recursion = term.recursion(kin.dt) if kin.stride > 1 else None
-        if recursion is not None:  # on a long session's coarse grid: the same column
-            return kin.smooth_recursion(*recursion, drive)
         dt, v_full = speed or raw_speed(kin, x_full)
-        if not term.memory and term.closure_factor(x_full[:1]) is not None:
+        if term.memory:
+            # a branch's recursion commutes with the filter only ungated (the coarse
+            # grid's column): gated by the output's own sample alike on every grid
+            recursion = term.recursion(kin.dt) if kin.stride > 1 else None
+            if recursion is not None:  # on a long session's coarse grid: the same column
+                column = kin.smooth_recursion(*recursion, drive)
+            else:
+                column = kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
+            gate = kin.gate
+            return column if gate is None else column * gate
+        if term.closure_factor(x_full[:1]) is not None:
             if kin.stride > 1:
                 return kin.smooth_pointwise(term.closure_factor, x_full, v_full)  # type: ignore[arg-type]
             # f(x) xdot with f formed once per ADC level (Kinematics.pointwise): the same
             # products, at the cost of indexing where it was a power of every sample
-            return kin.smooth(kin.pointwise(term.closure_factor, x_full) * v_full)  # type: ignore[arg-type]
-        return kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
+            return kin.smooth(kin.gated(kin.pointwise(term.closure_factor, x_full) * v_full))  # type: ignore[arg-type]
+        return kin.smooth(kin.gated(term.series(dt, drive, v_full, np.zeros_like(x_full))))
     return term(np.ones(kin.time.size))
 
 
@@ -233,22 +230,19 @@ def noise_path(
 
 
 def _noise_path(term: Term, kin: Kinematics, x_full: Array, sigma_x: float) -> tuple[Array, Array]:
-    kernel, slope = _ungated_noise_path(term, kin, x_full, sigma_x)
-    gate = kin.gate
-    return (kernel, slope) if gate is None or not term.rendered else (kernel, slope * gate)
-
-
-def _ungated_noise_path(
-    term: Term, kin: Kinematics, x_full: Array, sigma_x: float
-) -> tuple[Array, Array]:
+    # the slopes of the tissue's terms are gated as their columns are (design's
+    # _column): on the raw grid where the half kernels allow, else by the share of
+    # each output's filter weight in contact
     if term.variable == "x":
         if term.shapes:  # many shapes on one closure: filtered once per level
             return kin.kernels[0], kin.smooth_pointwise(term.derivative, x_full)
-        return kin.kernels[0], kin.smooth(kin.pointwise(term.derivative, x_full))
+        return kin.kernels[0], kin.smooth(kin.gated(kin.pointwise(term.derivative, x_full)))
     if term.variable == "v":
         return kin.kernels[1], kin.damping_slope(term, x_full, sigma_x**2)
     if term.variable == "a":
-        return kin.kernels[2], term.derivative(kin.a)
+        slope = term.derivative(kin.a)
+        weight = kin.contact_weight
+        return kin.kernels[2], slope if weight is None else slope * weight
     # a constant, or a history filtered from the raw closure, carries none to first order
     return np.zeros_like(kin.kernels[0]), np.zeros(kin.v.size)
 

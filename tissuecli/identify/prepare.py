@@ -244,9 +244,9 @@ def prepare(
         seen = session.position[trusted] if np.any(trusted) else session.position
         kin = replace(kin, drive=held_closure(session.position, ~contact.mask),
                       x_floor=float(np.percentile(seen, 2)))  # fmt: skip
-        if grasps == "all":
-            free = valid & open_jaws(session, contact, kin)
-            kin = with_open_jaws(kin, session, valid & chosen, free)
+        free = valid & open_jaws(session, contact, kin) if grasps == "all" else None
+        kin = with_open_jaws(kin, session, valid, chosen, contact.mask, free,
+                             touching_by_closure(session, contact.mask, valid, free))  # fmt: skip
     return Prepared(session, kin, warnings, contact, measured, trusted)
 
 
@@ -306,36 +306,113 @@ def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np
 
 
 def with_open_jaws(
-    kin: Kinematics, session: Session, grasped: NDArray[np.bool_], free: NDArray[np.bool_]
+    kin: Kinematics,
+    session: Session,
+    valid: NDArray[np.bool_],
+    chosen: NDArray[np.bool_],
+    contact: NDArray[np.bool_],
+    free: NDArray[np.bool_] | None = None,
+    touching: NDArray[np.bool_] | None = None,
 ) -> Kinematics:
-    """``kin`` (filtered inside the ``grasped`` samples) with the outputs whose window
-    lies wholly in ``free`` jaws added, in time order, and :attr:`Kinematics.touching`
-    set: the tissue's columns are zero there and the force is the sensor's offset, so a
-    law's offset is measured where nothing else can stand in for it (inside the grasps
-    a spring's intercept trades with it). Unchanged when the free jaws give fewer than
-    :data:`MIN_OPEN_ROWS` outputs, read zero within :data:`OPEN_SE` standard errors
-    of their mean (no offset to measure), or are read by an ADC their noise does not
-    dither (:data:`~tissuecli.identify.contact.DITHER_STEPS`). ``free`` must lie a
-    filter's width from every grasped sample, so that no window holds both."""
-    if np.count_nonzero(free) < MIN_OPEN_ROWS + kin.window:
-        return kin
+    """``kin`` (filtered wholly inside the ``chosen`` grasps) filtered again over the
+    grasps and a window either side: every output whose window touches a chosen grasp
+    and holds only ``valid`` samples, and no sample of a grasp not chosen (of the
+    ``contact`` flags); with :attr:`Kinematics.touching` set to ``touching`` (by
+    default ``contact``: :func:`touching_by_closure`), so each tissue column is zero on
+    the free samples of a window, as the tissue's force is.
+    The jaws close onto the tissue and leave it at a grasp's edges, where the speed is:
+    a fit kept wholly inside the grasps loses that half window at each edge, and with it
+    most of what damping's force tells.
+
+    With ``free`` jaws, the outputs whose window lies wholly in them are added too, in
+    time order: the tissue's columns are zero there and the force is the sensor's
+    offset, so a law's offset is measured where nothing else can stand in for it
+    (inside the grasps a spring's intercept trades with it). Not added when the free
+    jaws give fewer than :data:`MIN_OPEN_ROWS` outputs, read zero within
+    :data:`OPEN_SE` standard errors of their mean (no offset to measure), or are read by
+    an ADC their noise does not dither
+    (:data:`~tissuecli.identify.contact.DITHER_STEPS`). ``free`` must lie a quarter of a
+    filter's width from every grasped sample (:func:`open_jaws`)."""
+    if free is not None and not _offset_readable(session, free, kin.window):
+        free = None
+    w = kin.window
+    chosen = chosen & valid
+    # within a window's width of a chosen grasp: every sample an output touching it reads
+    near = np.convolve(chosen.astype(float), np.ones(2 * w - 1), mode="same") > 0.5
+    around = valid & near & ~(contact & ~chosen)
+    ones = np.ones(w)
+    for extra in (free, None) if free is not None else (None,):
+        mask = around if extra is None else around | extra
+        both = Frozen(kin)(session.time, session.position, session.force, mask)
+        rows = np.arange(both.time.size) if both.rows is None else both.rows
+        touch = convolve_valid(chosen.astype(float), ones)[rows] > 0.5
+        kept = touch
+        if extra is not None:
+            alone = convolve_valid(extra.astype(float), ones)[rows] > w - 0.5
+            if np.count_nonzero(alone) < MIN_OPEN_ROWS:
+                continue
+            kept = touch | alone
+        out = _outputs(both, np.flatnonzero(kept))
+        flags = contact if touching is None else touching
+        return replace(out, drive=kin.drive, x_floor=kin.x_floor, touching=flags.copy())
+    return kin
+
+
+def touching_by_closure(
+    session: Session,
+    contact: NDArray[np.bool_],
+    valid: NDArray[np.bool_],
+    free: NDArray[np.bool_] | None = None,
+) -> NDArray[np.bool_]:
+    """The samples where the jaws hold the tissue, shape (n,): those of the grasps found
+    (``contact``), and those closed at least as far as the least closure of any grasp
+    (its 1st percentile over the ``valid`` samples, against noise), but for the ``free``
+    jaws. The tissue is touched at one closure; the detector reads contact from the
+    force standing clear of its noise, so a soft grasp's ends and its weak stretches
+    are read free, their tissue force small but not zero, and a column gated by the
+    detector alone would set it to zero beside each grasp."""
+    inside = contact & valid
+    if not inside.any():
+        return contact.copy()
+    x = session.position
+    closed = x >= float(np.percentile(x[inside], 1.0))
+    out = contact | closed
+    return out if free is None else out & ~free
+
+
+def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> bool:
+    """Whether the ``free`` jaws measure an offset (:func:`with_open_jaws`)."""
+    if np.count_nonzero(free) < MIN_OPEN_ROWS + window:
+        return False
     # the open jaws measure the offset: where their force is zero within its noise
     # they tell nothing the grasps need, and the fit keeps to the grasps
     level = session.force[free]
     noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
     if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
-        return kin
+        return False
     # a steady force read through an ADC whose noise does not dither it is off by up to
     # half a step in every sample alike, an error no count of samples averages away:
     # the open jaws would pin the offset there, tens of its standard errors off, and
     # the spring's intercept with it (inside the grasps the force sweeps the steps)
-    if noise < DITHER_STEPS * quantisation_step(session.force):
-        return kin
-    both = Frozen(kin)(session.time, session.position, session.force, grasped | free)
-    touching = grasped.copy()
-    if np.count_nonzero(~touching[both.keep]) < MIN_OPEN_ROWS:
-        return kin
-    return replace(both, drive=kin.drive, x_floor=kin.x_floor, touching=touching)
+    return noise >= DITHER_STEPS * quantisation_step(session.force)
+
+
+def _outputs(kin: Kinematics, kept: NDArray[np.intp]) -> Kinematics:
+    """``kin`` at its outputs numbered ``kept`` (in time order)."""
+    rows = np.arange(kin.time.size) if kin.rows is None else kin.rows
+    h = kin.window // 2
+    return replace(
+        kin,
+        time=kin.time[kept],
+        x_raw=kin.x_raw[kept],
+        x=kin.x[kept],
+        v=kin.v[kept],
+        a=kin.a[kept],
+        force=kin.force[kept],
+        force_raw=kin.force_raw[kept],
+        keep=rows[kept] + h,  # type: ignore[arg-type]
+        rows=rows[kept],
+    )
 
 
 def _differentiate(

@@ -113,10 +113,9 @@ class ClosureSpan:
             if self.size >= self.most:
                 return None
             q = rest / left
+            # gated by the contact flags on the raw grid (Kinematics.smooth_pointwise)
             column = self.kin.smooth_pointwise(lambda _: q * self.inverse, self.x_full,
                                                self.speed)  # fmt: skip
-            if self.kin.gate is not None:  # free jaws touch no tissue
-                column = column * self.kin.gate
             self._Q, self._C = _room(self._Q, self.size), _room(self._C, self.size)
             self._Q[self.size] = q
             self._C[self.size] = column

@@ -114,9 +114,11 @@ class Kinematics:
     #: the closure's low end (2nd percentile, m) over the whole session, free jaw motion
     #: included, where the outputs keep to the grasps; None where they fit every sample
     x_floor: float | None = None
-    #: untrimmed, one flag per raw sample: the jaws hold the tissue. Where a fit also
-    #: reads free jaws (the force sensor's offset alone), the tissue's columns are zero
-    #: at the outputs that sit on a free sample (:attr:`gate`); None: all in contact
+    #: untrimmed, one flag per raw sample: the jaws hold the tissue. Where a fit keeps
+    #: to the grasps (its outputs' windows may reach free jaws beside a grasp) or also
+    #: reads free jaws (the force sensor's offset alone), the tissue's force is zero on
+    #: the free samples: each tissue column is formed on the raw grid times these flags
+    #: and filtered as the force is (:meth:`gated`); None: all in contact
     touching: NDArray[np.bool_] | None = None
 
     @property
@@ -126,6 +128,29 @@ class Kinematics:
         if self.touching is None:
             return None
         return self.touching[self.keep].astype(float)
+
+    @property
+    def contact_weight(self) -> Array | None:
+        """The share of each output's filter weight on samples in contact, shape (m,):
+        1 inside a grasp, falling to 0 across its edges; None when every output is in
+        contact. How far position noise reaches a gated column (its slope's factor)."""
+        if self.touching is None:
+            return None
+        return self.smooth(self.touching.astype(float))
+
+    def gated(self, u: Array, offset: int = 0) -> Array:
+        """``u`` (a series on the raw grid, or on a filter's valid outputs starting
+        ``offset`` samples into it) times the contact flags at its samples: the
+        tissue's force is zero while the jaws are free. ``u`` itself when every sample
+        is in contact."""
+        if self.touching is None:
+            return u
+        return u * self.touching[offset : offset + u.size]
+
+    def _half_gated(self, u: Array) -> Array:
+        """:meth:`gated` for a series on the half window's valid outputs."""
+        assert self.half is not None
+        return self.gated(u, self.half[0].size // 2)
 
     @property
     def window(self) -> int:
@@ -192,6 +217,8 @@ class Kinematics:
         values at the levels: a product of a (rows, levels) matrix where each column
         was a filter pass over the record. The same sums in another order.
         """
+        # the contact flags (:meth:`gated`) multiply every branch: the level basis holds
+        # them, the strided filter's input takes them as it takes the speed
         basis = level_basis(self, x_full, speed is not None) if self.stride > 1 else None
         if basis is not None:
             values = fn(basis.levels)
@@ -205,11 +232,14 @@ class Kinematics:
                 if speed is not None:
                     used = min(speed.size, u.size)  # beyond: the padding's zeros
                     np.multiply(u[:used], speed[:used], out=u[:used])
+                if self.touching is not None:
+                    used = min(self.touching.size, u.size)
+                    np.multiply(u[:used], self.touching[:used], out=u[:used])
                 assert self.rows is not None
                 kept = convolve_padded_every(u, self.kernels[0], self.stride, out)
                 return kept[self.rows // self.stride]
         u = self.pointwise(fn, x_full)
-        return self.smooth(u if speed is None else u * speed)
+        return self.smooth(self.gated(u if speed is None else u * speed))
 
     def every(self, stride: int) -> Kinematics:
         """These kinematics at the filtered outputs whose index (counted from the first
@@ -251,7 +281,7 @@ class Kinematics:
 
         if term.shapes:  # many shapes on one closure: filtered once per level
             return self.smooth_pointwise(r, x_full)
-        return self.smooth(self.pointwise(r, x_full))
+        return self.smooth(self.gated(self.pointwise(r, x_full)))
 
     def pointwise(self, fn: Callable[[Array], Array], x_full: Array) -> Array:
         """``fn(x_full)`` for a function of each sample's value alone (a term of the
@@ -278,9 +308,29 @@ class Kinematics:
         linear r. Without half kernels: ``r(v)``.
         """
         if self.half is None:
-            return term(self.v)
+            return self._row_gated(term(self.v))
         v, spread, n_v = self._half_speed(x_full, noise_var)
-        return self._half_smooth(term.expected(v, spread - n_v), x_full)
+        return self._half_smooth(self._half_gated(term.expected(v, spread - n_v)), x_full)
+
+    def acceleration_input(self, term: Term, x_full: Array) -> Array:
+        """The column ``~ g * r(a)`` of an acceleration term: ``r(a)`` where every output
+        is in contact; otherwise with half kernels ``g_h * (touching * r(a_h))``, the
+        acceleration ``a_h = g_h'' * x`` of the half window, gated on the raw grid as
+        the tissue's force is (:meth:`gated`)."""
+        if self.touching is None:
+            return term(self.a)
+        if self.half is None:
+            return self._row_gated(term(self.a))
+        return self._half_smooth(
+            self._half_gated(term(convolve_valid(x_full, self.half[2]))), x_full
+        )
+
+    def _row_gated(self, column: Array) -> Array:
+        """A column without half kernels to gate it on the raw grid: zero at the outputs
+        whose own sample is free (exact where every window lies wholly in or out of
+        contact)."""
+        gate = self.gate
+        return column if gate is None else column * gate
 
     def damping_slope(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
         """How position noise moves a speed term's column (:meth:`damping_input`): its
@@ -297,14 +347,20 @@ class Kinematics:
         correction took it off the friction's share of the data.
         """
         if not term.step:
-            return term.derivative(self.v)
+            return self._weighted(term.derivative(self.v))
         if self.half is None:
             k1 = self.kernels[1]
-            return term.expected_slope(self.v, noise_var * float(k1 @ k1))
+            return self._row_gated(term.expected_slope(self.v, noise_var * float(k1 @ k1)))
         v, spread, n_v = self._half_speed(x_full, noise_var)
         # the column's own spread (less the noise's, at least none) and the noise's
         slope = term.expected_slope(v, np.maximum(spread - n_v, 0.0) + n_v)
-        return self._half_smooth(slope, x_full)
+        return self._half_smooth(self._half_gated(slope), x_full)
+
+    def _weighted(self, slope: Array) -> Array:
+        """A slope at the outputs times their share of contact (:attr:`contact_weight`):
+        the noise that reaches a gated column, the slope slow beside the noise."""
+        weight = self.contact_weight
+        return slope if weight is None else slope * weight
 
     def _half_speed(self, x_full: Array, noise_var: float) -> tuple[Array, Array, float]:
         """The half window's speed (m/s), the other half's spread of speeds about it
@@ -461,6 +517,8 @@ def _level_basis(kin: Kinematics, x: Array, speed: bool) -> LevelBasis | None:
     # each pair's samples by their place in the row: 1 (or the speed) where it is there
     Z = np.zeros((pairs.size, s))
     u = np.ones(used) if not speed else np.gradient(x, kin.dt)[:used]
+    if kin.touching is not None:  # the tissue's force is zero while the jaws are free
+        u = u * kin.touching[:used]
     Z[pair_of[:used], np.arange(used) % s] = u
     P = Z @ taps.reshape(q, s).T  # (pairs, q): each pair against each block of taps
     del Z
