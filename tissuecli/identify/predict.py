@@ -36,7 +36,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,7 +49,7 @@ from ..core.tissue import Tissue
 from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
 from .design import design, held_closure, position_noise_sd
-from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare
+from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare, touching_by_closure
 from .spectrum import convolve_valid
 
 Array = NDArray[np.float64]
@@ -173,6 +173,13 @@ def predict_band(
         diff = differentiator(d) if isinstance(d, str) else d
         ready = prepare(session, diff, "none", refuse_constant=False)
         kin, grid = ready.kinematics, ready.session
+        detected = _free_jaws(grid)
+        if detected.any():
+            # the tissue's force is zero on free jaws: its columns gated on the raw grid
+            # and filtered as the force is, as a fit kept to the grasps forms them
+            touching = touching_by_closure(grid, ~detected, ready.trusted)
+            kin = replace(kin, touching=touching,
+                          drive=held_closure(grid.position, ~detected))  # fmt: skip
         A_rows = design(tissue.law, kin, grid.position)
         rows = np.arange(len(grid))[kin.keep]
         A = np.full((len(grid), A_rows.shape[1]), np.nan)

@@ -102,11 +102,12 @@ def prepare(
 
     Where the session alternates grasps with free jaw motion
     (:func:`~tissuecli.identify.contact.find_contact`), only filtered samples whose
-    whole window lies inside a chosen grasp are fitted: ``grasps="all"`` (every
+    window touches a chosen grasp are fitted, the tissue's columns gated on the raw
+    grid by the samples in contact (:func:`with_open_jaws`): ``grasps="all"`` (every
     grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers. With
     every grasp, the filtered samples of jaws near their most open are fitted too
-    where they read an offset (:func:`open_jaws`, :func:`with_open_jaws`), the
-    tissue's columns zero there: they read the force sensor's offset alone.
+    where they read an offset (:func:`open_jaws`), the tissue's columns zero there:
+    they read the force sensor's offset alone.
 
     ``refuse_constant=False`` lets jaws that never move through (to predict a hold: a
     law with memory has a force to give there, though nothing can be identified).
