@@ -340,6 +340,12 @@ def with_open_jaws(
     chosen = chosen & valid
     # within a window's width of a chosen grasp: every sample an output touching it reads
     near = np.convolve(chosen.astype(float), np.ones(2 * w - 1), mode="same") > 0.5
+    step = quantisation_step(session.force)
+    if not _dithered(session.force[valid & ~contact & near], step):
+        # the free jaws' steady force, read by an ADC its noise does not dither, is off
+        # the offset by up to half a step in every sample alike: the windows across a
+        # grasp's edges would pin the offset there (and the spring's intercept with it)
+        near = chosen
     around = valid & near & ~(contact & ~chosen)
     ones = np.ones(w)
     for extra in (free, None) if free is not None else (None,):
@@ -395,7 +401,16 @@ def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> 
     # half a step in every sample alike, an error no count of samples averages away:
     # the open jaws would pin the offset there, tens of its standard errors off, and
     # the spring's intercept with it (inside the grasps the force sweeps the steps)
-    return noise >= DITHER_STEPS * quantisation_step(session.force)
+    return _dithered(level, quantisation_step(session.force))
+
+
+def _dithered(level: NDArray[np.float64], step: float) -> bool:
+    """Whether a steady force's noise dithers the ADC's ``step`` (N)
+    (:data:`~tissuecli.identify.contact.DITHER_STEPS`); True when too few samples to tell."""
+    if level.size < 8:
+        return True
+    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
+    return noise >= DITHER_STEPS * step
 
 
 def _outputs(kin: Kinematics, kept: NDArray[np.intp]) -> Kinematics:

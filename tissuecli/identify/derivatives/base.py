@@ -309,14 +309,43 @@ class Kinematics:
         """
         if self.half is None:
             return self._row_gated(term(self.v))
+        if self.touching is not None:
+            v, spread, n_v, share = self._contact_speed(x_full, noise_var)
+            return self._half_smooth(share * term.expected(v, spread - n_v), x_full)
         v, spread, n_v = self._half_speed(x_full, noise_var)
-        return self._half_smooth(self._half_gated(term.expected(v, spread - n_v)), x_full)
+        return self._half_smooth(term.expected(v, spread - n_v), x_full)
+
+    def _contact_speed(
+        self, x_full: Array, noise_var: float
+    ) -> tuple[Array, Array, float, Array]:
+        """:meth:`_half_speed` over the samples in contact alone, and each half window's
+        share of weight in contact ``m_h = g_h * touching``, on the half window's valid
+        outputs: the speed ``g_h * (touching * x') / m_h`` and the spread ``s^2
+        a^2`` of the acceleration formed alike, from the raw grid's central
+        differences. ``g_h * (m_h * E[r](v, spread - n_v))`` is then the gated column
+        (:meth:`gated`): exact for a linear r, ``g * (touching * x')``; the half
+        window's own speed would carry the free jaws' approach, faster than the
+        tissue lets them close, into each grasp's first samples and take damping's
+        force for less than it is."""
+        assert self.half is not None and self.touching is not None
+        gh, gh1, _, s2 = self.half
+        n_v = noise_var * float(gh1 @ gh1)
+        m = self.touching.astype(float)
+        speed = np.gradient(x_full, self.dt)
+        share = convolve_valid(m, gh)
+        some = share > 1e-9
+        safe = np.where(some, share, 1.0)
+        v = np.where(some, convolve_valid(m * speed, gh) / safe, 0.0)
+        a = np.where(some, convolve_valid(m * np.gradient(speed, self.dt), gh) / safe, 0.0)
+        return v, s2 * a * a, n_v, np.where(some, share, 0.0)
 
     def acceleration_input(self, term: Term, x_full: Array) -> Array:
         """The column ``~ g * r(a)`` of an acceleration term: ``r(a)`` where every output
         is in contact; otherwise with half kernels ``g_h * (touching * r(a_h))``, the
-        acceleration ``a_h = g_h'' * x`` of the half window, gated on the raw grid as
-        the tissue's force is (:meth:`gated`)."""
+        acceleration ``a_h = g_h'' * x`` of the half window gated on the raw grid as the
+        tissue's force is (:meth:`gated`). (Over the samples in contact alone, as the
+        speed is, from the raw grid's second differences, its noise put more intervals
+        of M off their truth on random grasp sessions.)"""
         if self.touching is None:
             return term(self.a)
         if self.half is None:
@@ -351,10 +380,14 @@ class Kinematics:
         if self.half is None:
             k1 = self.kernels[1]
             return self._row_gated(term.expected_slope(self.v, noise_var * float(k1 @ k1)))
+        if self.touching is not None:
+            v, spread, n_v, share = self._contact_speed(x_full, noise_var)
+            slope = term.expected_slope(v, np.maximum(spread - n_v, 0.0) + n_v)
+            return self._half_smooth(share * slope, x_full)
         v, spread, n_v = self._half_speed(x_full, noise_var)
         # the column's own spread (less the noise's, at least none) and the noise's
         slope = term.expected_slope(v, np.maximum(spread - n_v, 0.0) + n_v)
-        return self._half_smooth(self._half_gated(slope), x_full)
+        return self._half_smooth(slope, x_full)
 
     def _weighted(self, slope: Array) -> Array:
         """A slope at the outputs times their share of contact (:attr:`contact_weight`):
