@@ -8,14 +8,16 @@ Each argument is a scene seed of :func:`tissuecli.sim.scenes.random_scene` (10,0
 samples at most), with ``:paper`` to draw from the paper's four forms (otherwise from
 the other families, as ``generalisation.py`` and its ``scene_one`` reruns do). The first
 70 % is fitted by the default fit. Printed per scene: the filter's taps, the samples in
-contact and those fitted (a filtered sample is fitted only where its whole window lies
-inside a grasp), the chosen law and the truth's law with their ln evidence, and for each
-term of the truth its force RMS over the samples in contact and over the fitted ones,
-and ``snr2``: the fitted rows' term force over the filtered noise, squared, times the
-effective samples (about twice the nats it can earn). Last, the RMS error of the filtered
-velocity against the same filter applied to the true closure, beside what the
-errors-in-variables correction assumes (position noise SD times the filter's velocity
-gain): a ratio well above 1 says the ADC's staircase is not white noise to the filter.
+contact and those fitted (a filtered sample is fitted where its window touches a grasp,
+the tissue's columns gated by the contact flags on the raw grid; before, only where its
+whole window lay inside one), the chosen law and the truth's law with their ln
+evidence, and for each term of the truth its force RMS over the samples in contact and
+over the fitted ones, and ``snr2``: the fitted rows' term force over the filtered
+noise, squared, times the effective samples (about twice the nats it can earn). Last,
+the RMS error of the filtered velocity against the same filter applied to the true
+closure, beside what the errors-in-variables correction assumes (position noise SD
+times the filter's velocity gain): a ratio well above 1 says the ADC's staircase is not
+white noise to the filter.
 
 Then, for a truth without memory terms, what a design gated by the grasps would recover
 from the same samples: every filtered sample whose window touches a grasp, the force
