@@ -129,8 +129,8 @@ def _column(
 ) -> Array:
     """A term's column, the tissue's terms gated by the contact flags on the raw grid
     (:meth:`Kinematics.gated`: zero force on the free samples of an output's window,
-    as the filtered force has there) and filtered as the force is; a sensor's offset
-    stays with the jaws free."""
+    as the filtered force has there) and filtered as the force is; an offset stays with
+    the jaws free, but where it holds in contact alone (:attr:`Kinematics.offset_gated`)."""
     if term.variable == "x":
         return kin.stiffness_input(term, x_full, var)
     if term.variable == "v":
@@ -163,6 +163,8 @@ def _column(
             # products, at the cost of indexing where it was a power of every sample
             return kin.smooth(kin.gated(kin.pointwise(term.closure_factor, x_full) * v_full))  # type: ignore[arg-type]
         return kin.smooth(kin.gated(term.series(dt, drive, v_full, np.zeros_like(x_full))))
+    if kin.offset_gated and kin.touching is not None:
+        return kin.smooth(kin.touching.astype(float))
     return term(np.ones(kin.time.size))
 
 

@@ -323,7 +323,11 @@ def with_open_jaws(
     the free samples of a window, as the tissue's force is.
     The jaws close onto the tissue and leave it at a grasp's edges, where the speed is:
     a fit kept wholly inside the grasps loses that half window at each edge, and with it
-    most of what damping's force tells.
+    most of what damping's force tells. The free samples of those windows read the free
+    jaws' level (their median), which is taken off the force before it is filtered, and
+    the law's offset holds in contact alone (:attr:`Kinematics.offset_gated`): an
+    offset in contact may be the sensor's or a preload (a spring touched short of zero
+    closure), the free jaws read the sensor's alone.
 
     With ``free`` jaws, the outputs whose window lies wholly in them are added too, in
     time order: the tissue's columns are zero there and the force is the sensor's
@@ -359,9 +363,17 @@ def with_open_jaws(
             if np.count_nonzero(alone) < MIN_OPEN_ROWS:
                 continue
             kept = touch | alone
+        flags = (contact if touching is None else touching).copy()
+        if extra is None:  # (with open jaws, the offset is the free jaws' level itself)
+            free_near = mask & ~flags
+            if free_near.any():
+                b = float(np.median(session.force[free_near]))
+                adj = session.force - np.where(flags, 0.0, b)
+                f = convolve_valid(adj, kin.kernels[0])
+                both = replace(both, force=f if both.rows is None else f[both.rows])
         out = _outputs(both, np.flatnonzero(kept))
-        flags = contact if touching is None else touching
-        return replace(out, drive=kin.drive, x_floor=kin.x_floor, touching=flags.copy())
+        return replace(out, drive=kin.drive, x_floor=kin.x_floor, touching=flags,
+                       offset_gated=extra is None)
     return kin
 
 

@@ -120,6 +120,10 @@ class Kinematics:
     #: the free samples: each tissue column is formed on the raw grid times these flags
     #: and filtered as the force is (:meth:`gated`); None: all in contact
     touching: NDArray[np.bool_] | None = None
+    #: the law's offset holds in contact alone (its column gated as the tissue's are):
+    #: the free samples of a window across a grasp's edge read the free jaws' own level,
+    #: taken off the filtered force (:func:`~tissuecli.identify.prepare.with_open_jaws`)
+    offset_gated: bool = False
 
     @property
     def gate(self) -> Array | None:
