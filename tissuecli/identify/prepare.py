@@ -371,7 +371,7 @@ def with_open_jaws(
                 adj = session.force - np.where(flags, 0.0, b)
                 f = convolve_valid(adj, kin.kernels[0])
                 both = replace(both, force=f if both.rows is None else f[both.rows])
-        out = _outputs(both, np.flatnonzero(kept))
+        out = both.outputs(np.flatnonzero(kept))
         return replace(out, drive=kin.drive, x_floor=kin.x_floor, touching=flags,
                        offset_gated=extra is None)
     return kin
@@ -423,24 +423,6 @@ def _dithered(level: NDArray[np.float64], step: float) -> bool:
         return True
     noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
     return noise >= DITHER_STEPS * step
-
-
-def _outputs(kin: Kinematics, kept: NDArray[np.intp]) -> Kinematics:
-    """``kin`` at its outputs numbered ``kept`` (in time order)."""
-    rows = np.arange(kin.time.size) if kin.rows is None else kin.rows
-    h = kin.window // 2
-    return replace(
-        kin,
-        time=kin.time[kept],
-        x_raw=kin.x_raw[kept],
-        x=kin.x[kept],
-        v=kin.v[kept],
-        a=kin.a[kept],
-        force=kin.force[kept],
-        force_raw=kin.force_raw[kept],
-        keep=rows[kept] + h,  # type: ignore[arg-type]
-        rows=rows[kept],
-    )
 
 
 def _differentiate(

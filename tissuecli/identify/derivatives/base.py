@@ -255,7 +255,11 @@ class Kinematics:
         rows = np.arange(self.x_raw.size) if self.rows is None else self.rows
         stride *= self.stride
         kept = np.flatnonzero(rows % stride == 0)
-        h = self.window // 2
+        return replace(self.outputs(kept), stride=stride, step_s=self.dt)
+
+    def outputs(self, kept: NDArray[np.intp]) -> Kinematics:
+        """These kinematics at their outputs numbered ``kept`` (in time order)."""
+        rows = np.arange(self.time.size) if self.rows is None else self.rows
         return replace(
             self,
             time=self.time[kept],
@@ -265,10 +269,8 @@ class Kinematics:
             a=self.a[kept],
             force=self.force[kept],
             force_raw=self.force_raw[kept],
-            keep=rows[kept] + h,  # type: ignore[arg-type]
+            keep=rows[kept] + self.window // 2,  # type: ignore[arg-type]
             rows=rows[kept],
-            stride=stride,
-            step_s=self.dt,
         )
 
     def stiffness_input(self, term: Term, x_full: Array, noise_var: float = 0.0) -> Array:
