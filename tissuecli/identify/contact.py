@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..core.session import Session
+from .spectrum import white_noise_sd
 
 Array = NDArray[np.float64]
 
@@ -496,11 +497,9 @@ def _min_free(dt: float, width: int) -> int:
 
 def _noise_sd(f: Array) -> float:
     """Force noise SD from second differences (robust to the signal's slow changes)."""
-    d = np.diff(f, 2)
-    if d.size == 0:
+    if f.size < 3:
         return 0.0
-    # second differences: a slope (a squeeze sampled slowly) does not pass for noise
-    sd = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(6)
+    sd = white_noise_sd(f)
     # a quantised signal whose noise does not dither its steps: half a step, as a
     # mostly constant one gives
     q = quantisation_step(f)

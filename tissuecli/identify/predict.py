@@ -50,7 +50,7 @@ from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
 from .design import design, held_closure, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare, touching_by_closure
-from .spectrum import convolve_valid
+from .spectrum import convolve_valid, white_noise_sd
 
 Array = NDArray[np.float64]
 
@@ -144,8 +144,8 @@ def predict_band(
         Covariance of the coefficients (SI); none: the band holds the noise alone.
     noise_sd : float, optional
         SD of the fit's residual, N; none: the band holds the coefficients' uncertainty
-        alone. Unfiltered, the measured force's own noise (:func:`force_noise_sd`) is
-        added to it.
+        alone. Unfiltered, the measured force's own noise
+        (:func:`~tissuecli.identify.spectrum.white_noise_sd`) is added to it.
     differentiator_name : str or Differentiator
         As the fit used (``gaussian`` by default), for ``filtered``.
     filtered : bool
@@ -211,7 +211,7 @@ def predict_band(
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
         if noise_sd is not None:
-            noise = float(np.hypot(noise_sd, force_noise_sd(grid.force[usable])))
+            noise = float(np.hypot(noise_sd, white_noise_sd(grid.force[usable])))
     var = np.zeros(len(grid))
     if cov is not None:
         if cov.shape != (A.shape[1], A.shape[1]):
@@ -231,17 +231,6 @@ def predict_band(
         predicted + at(half),
         filtered,
     )
-
-
-def force_noise_sd(force: Array) -> float:
-    """SD of white noise on a sampled force, N, from its second differences (robust
-    median): ``f[i+1] - 2 f[i] + f[i-1]`` carries ``6 sigma^2`` of noise and, unlike a
-    first difference, next to nothing of a grasp's force, which changes by several
-    noise SDs per sample at 1 kHz."""
-    d2 = np.diff(np.asarray(force, float), 2)
-    if d2.size == 0:
-        return 0.0
-    return 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
 
 
 def _grid(session: Session) -> tuple[Session, NDArray[np.bool_]]:
@@ -381,7 +370,7 @@ def _touching_by_closure(
     gain = ((f - off) ** 2 - (f - law) ** 2)[order]  # what reading a sample touched saves
     saved = np.cumsum(gain[::-1])[::-1]  # reading touched every sample from each on
     k = int(np.argmax(saved))
-    noise = force_noise_sd(grid.force)
+    noise = white_noise_sd(grid.force)
     if not noise > 0 or saved[k] <= TOUCH_BIC * noise**2 * np.log(f.size):
         return np.zeros(free.size, bool)
     return free & (grid.position >= x[order][k])

@@ -16,7 +16,7 @@ from ..core.timebase import sample_clock
 from .contact import DITHER_STEPS, Contact, find_contact, quantisation_step
 from .derivatives import Differentiator, Frozen, Kinematics
 from .design import held_closure
-from .spectrum import convolve_valid
+from .spectrum import convolve_valid, white_noise_sd
 
 MIN_SAMPLES = 200
 
@@ -292,11 +292,8 @@ def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np
     inside = contact.mask & np.isfinite(xs)
     if not inside.any():
         return np.zeros(x.size, bool)
-    steps = np.abs(np.diff(x))
-    step = float(np.min(steps[steps > 0])) if np.any(steps > 0) else 0.0
-    d2 = np.diff(x, 2)
-    sd = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0) if d2.size else 0.0
-    margin = OPEN_SD * sd * float(np.linalg.norm(kin.kernels[0])) + step
+    margin = OPEN_SD * white_noise_sd(x) * float(np.linalg.norm(kin.kernels[0]))
+    margin += quantisation_step(x)
     top = float(np.min(xs[inside])) - margin
     lowest = float(np.min(xs[np.isfinite(xs)]))
     # contact too weak for the detector lies just above the true touch, which is below

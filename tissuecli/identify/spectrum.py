@@ -214,3 +214,14 @@ def convolve_padded_every(padded: Array, kernel: Array, step: int, out: int) -> 
     for j in range(q):
         y += blocks[j, j : j + out]
     return y
+
+
+def white_noise_sd(y: NDArray[np.float64]) -> float:
+    """SD of white noise on a sampled signal ``y`` (shape (n,), its units), from its
+    second differences (robust median): ``y[i+1] - 2 y[i] + y[i-1]`` carries ``6 sigma^2``
+    of noise and, unlike a first difference, next to nothing of a slow change (a squeeze
+    sampled slowly, a grasp's force at 1 kHz). 0 for fewer than three samples."""
+    d2 = np.diff(np.asarray(y, float), 2)
+    if d2.size == 0:
+        return 0.0
+    return 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
