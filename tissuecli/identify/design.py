@@ -147,15 +147,20 @@ def _column(
             drive = kin.drive  # the tissue is not indented while the jaws are free
         dt, v_full = speed or raw_speed(kin, x_full)
         if term.memory:
-            # a branch's recursion commutes with the filter only ungated (the coarse
-            # grid's column): gated by the output's own sample alike on every grid
+            if kin.touching is not None:
+                # gated on the raw grid as the tissue's force is: the windows across a
+                # grasp's edge see the branch's force in contact and none beside it.
+                # (Gated at each output's own sample, the filtered branch carried its
+                # force onto the free side of an edge and left half of it out on the
+                # other: a bias along the edges that put Km, tau, S and M of random
+                # relaxation grasp sessions two posterior SDs off together.)
+                series = term.series(dt, drive, v_full, np.zeros_like(x_full))
+                return kin.smooth(kin.gated(series))
+            # ungated, a branch's recursion commutes with the filter
             recursion = term.recursion(kin.dt) if kin.stride > 1 else None
             if recursion is not None:  # on a long session's coarse grid: the same column
-                column = kin.smooth_recursion(*recursion, drive)
-            else:
-                column = kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
-            gate = kin.gate
-            return column if gate is None else column * gate
+                return kin.smooth_recursion(*recursion, drive)
+            return kin.smooth(term.series(dt, drive, v_full, np.zeros_like(x_full)))
         if term.closure_factor(x_full[:1]) is not None:
             if kin.stride > 1:
                 return kin.smooth_pointwise(term.closure_factor, x_full, v_full)  # type: ignore[arg-type]
