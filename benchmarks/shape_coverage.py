@@ -5,6 +5,7 @@ Usage::
     python benchmarks/shape_coverage.py --scenes 40                  # a fresh seed, printed
     python benchmarks/shape_coverage.py --scenes 40 --seed 9300      # repeat a run
     python benchmarks/shape_coverage.py --family "one branch" --scenes 20
+    python benchmarks/shape_coverage.py --family "two branches" --contact grasps
 
 Each scene is :func:`tissuecli.sim.scenes.random_scene` of one family (by default
 Hunt-Crossley: ``contact+contact*xdot+xddot``, its exponent and contact point shape
@@ -15,7 +16,9 @@ the RMS of ``(mean - truth) / sd`` (1 for calibrated intervals, huge where an in
 collapses to a point) and of the same z capped at 10 (what the bulk of the scenes
 says), and, pooled, the range a binomial count of that many calibrated intervals falls
 in 95 % of the time. Scenes whose true shape lies outside the prior's range over the
-shape are counted apart: no interval inside the prior can hold them.
+shape are counted apart: no interval inside the prior can hold them. ``--contact``
+draws only grasp sessions (free jaws between grasps) or only sessions in contact
+throughout.
 """
 
 from __future__ import annotations
@@ -35,10 +38,13 @@ from tissuecli.sim.scenes import FAMILIES, random_scene
 HOLD_OUT = 0.3
 
 
-def one(seed: int, family: str, max_samples: int) -> tuple[list[tuple[str, float, bool]], bool]:
+def one(
+    seed: int, family: str, max_samples: int, contact: str | None = None
+) -> tuple[list[tuple[str, float, bool]], bool]:
     """Per parameter of one scene: name, z of the truth, whether the interval holds it;
-    and whether every true shape parameter lies in the prior's range."""
-    scene = random_scene(seed, families=[family], max_samples=max_samples)
+    and whether every true shape parameter lies in the prior's range. ``contact``:
+    "grasps" or "continuous" (None: either, as drawn)."""
+    scene = random_scene(seed, families=[family], max_samples=max_samples, contact=contact)
     s = scene.session
     t = s.time
     i = int(np.searchsorted(t, t[0] + (1.0 - HOLD_OUT) * (t[-1] - t[0])))
@@ -73,6 +79,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--family", default="Hunt-Crossley", choices=sorted(FAMILIES))
     ap.add_argument("--max-samples", type=int, default=10_000,
                     help="longest session drawn (samples)")  # fmt: skip
+    ap.add_argument("--contact", choices=("grasps", "continuous"), default=None,
+                    help="only grasp sessions, or only sessions in contact throughout")  # fmt: skip
     args = ap.parse_args(argv)
     seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(3), "little")
     from scipy.stats import binom
@@ -84,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     refused = 0
     for k in range(args.scenes):
         try:
-            got, inside = one(seed + k, args.family, args.max_samples)
+            got, inside = one(seed + k, args.family, args.max_samples, args.contact)
         except TissueError:
             refused += 1
             continue
@@ -96,7 +104,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     pooled = [ok for v in rows.values() for _, ok in v]
     n = len(pooled)
     lo, hi = (binom.ppf(0.025, n, 0.95) / n, binom.ppf(0.975, n, 0.95) / n) if n else (0, 0)
-    print(f"{args.family}, {args.scenes} scenes from seed {seed}, each fitted with its own "
+    drawn = f" ({args.contact})" if args.contact else ""
+    print(f"{args.family}{drawn}, {args.scenes} scenes from seed {seed}, each fitted with its own "
           f"law; pooled cover {np.mean(pooled):.3f} of {n} [{lo:.2f},{hi:.2f}]; "
           f"refused {refused}")  # fmt: skip
     for name, v in rows.items():
