@@ -156,6 +156,11 @@ class Contact:
     kept_to_grasps : bool
         The fit kept to the grasps found; False where they left too few samples to fit
         and every sample was fitted instead (set by the fit, not by detection).
+    level_sd_n : float
+        SD of the smoothed force where the jaws are free, N: what the thresholds are
+        set in (NaN when the session has no free stretch).
+    rested : bool
+        The free-jaw level was read from jaws resting open (the force alone found none).
     """
 
     grasps: tuple[Grasp, ...]
@@ -164,6 +169,8 @@ class Contact:
     noise_n: float
     all_contact: bool
     kept_to_grasps: bool = True
+    level_sd_n: float = float("nan")
+    rested: bool = False
 
     def describe(self) -> str:
         if self.all_contact:
@@ -178,12 +185,18 @@ class Contact:
         )
 
 
-def find_contact(session: Session) -> Contact:
-    """Find the grasps of a session (on a regular or nearly regular sample grid)."""
+def find_contact(session: Session, levels: Contact | None = None) -> Contact:
+    """Find the grasps of a session (on a regular or nearly regular sample grid).
+
+    ``levels``: the contact found on a whole session this is a stretch of (a long
+    session's block, :class:`~tissuecli.identify.stream.StreamedFit`), whose free-jaw
+    level and noise are read here rather than from the stretch alone, so that the
+    stretch's grasps are the whole session's."""
     f = session.force
     n = f.size
     dt = float(np.median(np.diff(session.time))) if n > 1 else 1.0
-    noise = _noise_sd(f)
+    known = levels if levels is not None and not levels.all_contact else None
+    noise = known.noise_n if known is not None else _noise_sd(f)
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
@@ -193,14 +206,21 @@ def find_contact(session: Session) -> Contact:
     step_d = np.diff(session.position)
     resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
     still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
-    baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     rests = np.zeros(n, bool)  # jaws seen resting open: free, whatever the force does
+    q = quantisation_step(session.position) if not resolved else 0.0
+    if known is not None:
+        baseline, free = known.baseline_n, 1.0
+        if known.rested:
+            rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))[2]
+    else:
+        baseline, free = _baseline(smooth, closure, noise, dt, width, still)
+    rested = known is not None and known.rested
     if free < MIN_FREE_FRACTION:
         # the force alone found no free level: jaws resting open between grasps, told by
         # the closure (a damped tissue pulls the force below the free level on release,
         # and a soft law rests at the free level's force at small closure)
-        q = quantisation_step(session.position) if not resolved else 0.0
         baseline, free, rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))
+        rested = True
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -219,7 +239,10 @@ def find_contact(session: Session) -> Contact:
     # where the noise dithers the force's quantisation (a moving mean of a force quantised
     # coarser than that is a staircase whose error does not average out)
     dithered = noise >= DITHER_STEPS * quantisation_step(f)
-    level_sd = _free_sd(above, mask, noise, width) if dithered else noise
+    if known is not None:
+        level_sd = known.level_sd_n
+    else:
+        level_sd = _free_sd(above, mask, noise, width) if dithered else noise
     if level_sd < noise:
         mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
     # a break shorter than MIN_GAP_S ends no grasp, unless the jaws are seen resting open
@@ -248,7 +271,8 @@ def find_contact(session: Session) -> Contact:
                 float(np.max(above[start:stop])),
             )
         )
-    return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
+    return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False,
+                   level_sd_n=level_sd, rested=rested)  # fmt: skip
 
 
 def _extend(mask: NDArray[np.bool_], above: Array, noise: float, width: int) -> NDArray[np.bool_]:
