@@ -124,7 +124,7 @@ def test_a_long_grasp_session_streamed_gives_the_full_fits_law() -> None:
     from its own stretch, the grasps of every block from the block. The law is the full
     fit's, and so are its coefficients, to far less than an SD: both fit nearly the
     same rows with nearly the same filter (summing every sample, contact or not, put
-    the spring 9 SDs and the offset 5 SDs off)."""
+    the spring 9 SDs and the inertia 5 SDs off)."""
     session = grasp_session(90.0, 0.02, 0.05, 2e-3, seed=1)
     full = BayesianFit(forms="paper").fit(session)
     fit = StreamedFit(30_000, 20_000, bayes={"forms": "paper"}).fit(
