@@ -161,6 +161,8 @@ class Contact:
         set in (NaN when the session has no free stretch).
     rested : bool
         The free-jaw level was read from jaws resting open (the force alone found none).
+    scale_sd_n : tuple of float
+        Noise SD of each wider moving mean weak contact was sought with, N.
     """
 
     grasps: tuple[Grasp, ...]
@@ -171,6 +173,7 @@ class Contact:
     kept_to_grasps: bool = True
     level_sd_n: float = float("nan")
     rested: bool = False
+    scale_sd_n: tuple[float, ...] = ()
 
     def describe(self) -> str:
         if self.all_contact:
@@ -211,7 +214,8 @@ def find_contact(session: Session, levels: Contact | None = None) -> Contact:
     if known is not None:
         baseline, free = known.baseline_n, 1.0
         if known.rested:
-            rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))[2]
+            tol = max(still, q)
+            rests = _open_rest(smooth, closure, noise, dt, width, tol, known.baseline_n)[2]
     else:
         baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     rested = known is not None and known.rested
@@ -250,9 +254,12 @@ def find_contact(session: Session, levels: Contact | None = None) -> Contact:
     # keeps the smoothed force off the free level for part of its break)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
     mask = _sharpen(mask, f - baseline, width, noise)
+    scale_sd: tuple[float, ...] = ()
     if dithered:
         # contact too weak for the moving mean of one width, seen by longer ones
-        mask |= _weak_contact(f - baseline, mask, noise, width)
+        weak, scale_sd = _weak_contact(f - baseline, mask, noise, width,
+                                       None if known is None else known.scale_sd_n)  # fmt: skip
+        mask |= weak
         mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
         mask = _extend(mask, f - baseline, noise, width)
     mask &= ~rests
@@ -272,7 +279,7 @@ def find_contact(session: Session, levels: Contact | None = None) -> Contact:
             )
         )
     return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False,
-                   level_sd_n=level_sd, rested=rested)  # fmt: skip
+                   level_sd_n=level_sd, rested=rested, scale_sd_n=scale_sd)  # fmt: skip
 
 
 def _extend(mask: NDArray[np.bool_], above: Array, noise: float, width: int) -> NDArray[np.bool_]:
@@ -339,8 +346,12 @@ def _min_grasp(dt: float, width: int) -> int:
 
 
 def _weak_contact(
-    above: Array, mask: NDArray[np.bool_], noise: float, width: int
-) -> NDArray[np.bool_]:
+    above: Array,
+    mask: NDArray[np.bool_],
+    noise: float,
+    width: int,
+    known: tuple[float, ...] | None = None,
+) -> tuple[NDArray[np.bool_], tuple[float, ...]]:
     """Contact too weak for the moving mean of ``width`` samples, found by moving means
     :data:`SCALE_RATIO`, ``SCALE_RATIO**2``, ... times wider (at most
     :data:`COARSE_SCALES` of them): samples where the mean of the raw force ``above``
@@ -359,24 +370,29 @@ def _weak_contact(
     a scale whose free samples are too few to measure it, or longer than a sixteenth of
     the session, is not used. The false-alarm rate is that of the fine scale (about
     2e-9 per independent window at 6 SDs) per scale.
+
+    Returns the contact found and the noise SD of each scale used (N); ``known``: those
+    of the whole session this is a stretch of, used as they are.
     """
     found = mask.copy()
     out = np.zeros_like(mask)
     n = above.size
     w = width
-    for _ in range(COARSE_SCALES):
+    sds: list[float] = []
+    for k in range(COARSE_SCALES if known is None else len(known)):
         w *= SCALE_RATIO
-        if 16 * w > n:
+        if known is None and 16 * w > n:
             break
         smooth, count = _window_mean(np.where(found, 0.0, above), w)
-        sd = _scale_sd(smooth, found, noise, w)
+        sd = _scale_sd(smooth, found, noise, w) if known is None else known[k]
         if sd is None:
             break
+        sds.append(sd)
         # near the ends the window holds fewer samples, and its mean more noise
         new = (np.abs(smooth) > ENTER_SD * sd * np.sqrt(w / count)) & ~found
         out |= new
         found |= new
-    return out
+    return out, tuple(sds)
 
 
 def _window_mean(f: Array, w: int) -> tuple[Array, Array]:
@@ -572,7 +588,13 @@ def _baseline(
 
 
 def _open_rest(
-    smooth: Array, closure: Array, noise: float, dt: float, width: int, tol: float
+    smooth: Array,
+    closure: Array,
+    noise: float,
+    dt: float,
+    width: int,
+    tol: float,
+    known: float | None = None,
 ) -> tuple[float, float, NDArray[np.bool_]]:
     """The free-jaw level from jaws resting at their most open closure between grasps,
     the fraction of the session they rest there (0 when they do not), and where they
@@ -584,7 +606,9 @@ def _open_rest(
     within ``tol`` (m; its noise or quantisation step) of the smallest, held there
     through their middle half with the force flat, at least :data:`MIN_REST_STRETCHES`
     of them at one level (within :data:`ENTER_SD` noise SDs), covering
-    :data:`MIN_FREE_FRACTION` of the session.
+    :data:`MIN_FREE_FRACTION` of the session. With the ``known`` level (N) of the whole
+    session a stretch of it is part of, each such stretch at that level is a rest,
+    however few the stretch holds.
     """
     none = np.zeros(smooth.size, bool)
     if not tol > 0 or smooth.size < 2:
@@ -601,8 +625,13 @@ def _open_rest(
             continue
         if not _flat(smooth[middle], noise, step):
             continue
-        levels.append(float(np.median(smooth[middle])))
+        level = float(np.median(smooth[middle]))
+        if known is not None and abs(level - known) > ENTER_SD * noise:
+            continue
+        levels.append(level)
         rest[start:stop] = True
+    if known is not None:
+        return known, float(np.mean(rest)), rest
     if len(levels) < MIN_REST_STRETCHES:
         return float("nan"), 0.0, none
     level = float(np.median(levels))
