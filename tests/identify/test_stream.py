@@ -138,6 +138,17 @@ def test_a_long_grasp_session_streamed_gives_the_full_fits_law() -> None:
     assert fit.n_samples_ == pytest.approx(full.kinematics_.time.size, rel=0.005)
 
 
+def test_grasps_none_streamed_sums_every_sample() -> None:
+    """``--grasps none`` fits every sample in memory, and so streamed: no grasp rules,
+    every filtered sample of a grasp session summed once."""
+    session = grasp_session(30.0, 0.005, 0.0, 3e-4, seed=2)
+    fit = StreamedFit(10_000, 7_000, bayes={"forms": "paper", "grasps": "none"}).fit(
+        reader(session, []), len(session)
+    )
+    assert fit.pilot_.grasp_rules_ is None
+    assert fit.n_samples_ == len(session) - fit.pilot_.kinematics_.window + 1
+
+
 def test_grasp_numbers_are_refused_when_streamed(long_session: Session) -> None:
     """Grasps are numbered over the whole session, which a streamed fit never holds."""
     with pytest.raises(FitError, match="grasp numbers"):
