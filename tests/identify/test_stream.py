@@ -149,6 +149,23 @@ def test_grasps_none_streamed_sums_every_sample() -> None:
     assert fit.n_samples_ == len(session) - fit.pilot_.kinematics_.window + 1
 
 
+def test_free_jaws_beside_a_pilot_in_contact_throughout_are_named() -> None:
+    """A pilot inside one long grasp reads no free-jaw level, so no grasp rules: the
+    blocks with free jaws of their own are summed whole, and a warning names them."""
+    model = ForcepsModel(
+        operator=GraspingOperator(grasp_s=60.0, free_s=2.0, open_m=3e-4),
+        sensors=Sensors(bits=12, force_noise_n=0.005),
+        seed=4,
+    )
+    session, _ = synthesize(model, 90.0)
+    fit = StreamedFit(10_000, 20_000, bayes={"forms": "paper"}).fit(
+        reader(session, []), len(session)
+    )
+    assert fit.pilot_.contact_.all_contact and fit.pilot_.grasp_rules_ is None
+    assert fit.grasp_blocks_ == 2  # the free jaws at 0-2 s and 62-64 s
+    assert any("2 block(s) of the session hold free jaw motion" in w for w in fit.warnings_)
+
+
 def test_grasp_numbers_are_refused_when_streamed(long_session: Session) -> None:
     """Grasps are numbered over the whole session, which a streamed fit never holds."""
     with pytest.raises(FitError, match="grasp numbers"):

@@ -135,6 +135,9 @@ class StreamedFit:
         Effective independent samples (the pilot's weight per sample times n_samples_).
     skipped_blocks_ : int
         Blocks left out because their samples were too irregular for the filter.
+    grasp_blocks_ : int
+        Blocks whose own grasps the pilot, in contact throughout, could not read: every
+        sample of them summed, free jaws included (a warning says so).
     not_evaluated_ : list of (str, str)
         Candidates whose evidence over the whole session cannot be trusted, with the
         reason; never chosen.
@@ -194,6 +197,10 @@ class StreamedFit:
         progress.stage("summing the session block by block", len(starts))
         t_first: float | None = None
         self.skipped_blocks_ = 0
+        self.grasp_blocks_ = 0
+        # a pilot in contact throughout has no free-jaw level to read grasps against:
+        # a block that finds grasps of its own is then named, not silently summed whole
+        check = rules is None and pilot.contact_.all_contact and self.bayes.get("grasps") != "none"
         for i, s in enumerate(starts):
             e = rows if i == len(starts) - 1 else s + step
             first = max(0, s - warm - margin)
@@ -204,6 +211,8 @@ class StreamedFit:
             hi = float(block.time[e - first]) if e < rows else np.inf  # the next block's
             try:
                 kin, gx = self._kinematics(block, frozen, rules, pilot.contact_, dt, t_first)
+                if check and not find_contact(block).all_contact:
+                    self.grasp_blocks_ += 1
             except FitError:
                 self.skipped_blocks_ += 1
             else:
@@ -337,3 +346,9 @@ class StreamedFit:
             f"{name}: not evaluated over the whole session, so never chosen: {why}"
             for name, why in self.not_evaluated_
         ]
+        if self.grasp_blocks_:
+            self.warnings_.append(
+                f"the pilot stretch is in contact throughout, but {self.grasp_blocks_} "
+                "block(s) of the session hold free jaw motion, fitted as contact; fit a "
+                "part with grasps (--start, --end) to keep to them"
+            )
