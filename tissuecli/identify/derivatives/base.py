@@ -122,7 +122,7 @@ class Kinematics:
     touching: NDArray[np.bool_] | None = None
     #: the law's offset holds in contact alone (its column gated as the tissue's are):
     #: the free samples of a window across a grasp's edge read the free jaws' own level,
-    #: taken off the filtered force (:func:`~tissuecli.identify.prepare.with_open_jaws`)
+    #: taken off the filtered force (:func:`~tissuecli.identify.prepare.fit_grasps`)
     offset_gated: bool = False
 
     @property
