@@ -403,7 +403,7 @@ def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> 
     # the open jaws measure the offset: where their force is zero within its noise
     # they tell nothing the grasps need, and the fit keeps to the grasps
     level = session.force[free]
-    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
+    noise = _steady_noise(level)
     if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
         return False
     # a steady force read through an ADC whose noise does not dither it is off by up to
@@ -413,13 +413,18 @@ def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> 
     return _dithered(level, quantisation_step(session.force))
 
 
+def _steady_noise(level: NDArray[np.float64]) -> float:
+    """The noise SD (N) of a steady force ``level``, shape (m,), from its first
+    differences (a steady level has no drift for them to read)."""
+    return float(np.std(np.diff(level))) / np.sqrt(2.0)
+
+
 def _dithered(level: NDArray[np.float64], step: float) -> bool:
     """Whether a steady force's noise dithers the ADC's ``step`` (N)
     (:data:`~tissuecli.identify.contact.DITHER_STEPS`); True when too few samples to tell."""
     if level.size < 8:
         return True
-    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
-    return noise >= DITHER_STEPS * step
+    return _steady_noise(level) >= DITHER_STEPS * step
 
 
 def _differentiate(
