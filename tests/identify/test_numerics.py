@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import optimize, signal, stats
 
+from tissuecli.identify import spectrum
 from tissuecli.identify.noise import corrected_curvature, integrated_time
 from tissuecli.identify.orthant import (
     ABS_BAND,
@@ -50,6 +51,18 @@ def test_convolve_valid_is_the_valid_convolution(n: int, m: int, seed: int) -> N
     # FFT rounding grows like eps * log2(n) * sum |u_i k_j|; 1e-12 of the scale is generous
     scale = np.sqrt(m) * max(np.abs(ref).max(), 1.0)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize(("n", "m"), [(10_000, 173), (9_828, 301), (50_000, 65)])
+def test_convolve_valid_in_one_batch_is_the_batched_sums(
+    n: int, m: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the single-batch path adds each block's spill in place: the same sums, bit for bit
+    rng = np.random.default_rng(n + m)
+    u, k = rng.standard_normal(n), rng.standard_normal(m)
+    one = convolve_valid(u, k)
+    monkeypatch.setattr(spectrum, "BATCH_SAMPLES", 1)  # a batch per block
+    np.testing.assert_array_equal(one, convolve_valid(u, k))
 
 
 def test_convolve_valid_refuses_a_kernel_longer_than_the_signal() -> None:

@@ -150,6 +150,9 @@ class BayesianFit(Estimator):
         The session's typical closure, speed, acceleration and force behind the priors.
     contact_ : Contact
         The grasps found in the session.
+    grasp_rules_ : GraspRules or None
+        How the grasps were fitted (:func:`~tissuecli.identify.prepare.grasp_rules`),
+        for a long session's other stretches; None where every sample was fitted.
     expected_residual_sd_ : float
         Residual SD the best form expects (N): force noise plus position noise
         carried through the law.
@@ -385,6 +388,7 @@ class BayesianFit(Estimator):
         self.sigma_x_ = sigma_x
         self.scales_ = scales
         self.contact_ = contact
+        self.grasp_rules_ = ready.rules
         self.tau_ = tau * stride  # samples of the raw grid
         self.n_eff_ = y.size * weight
         self.results_ = results

@@ -156,6 +156,13 @@ class Contact:
     kept_to_grasps : bool
         The fit kept to the grasps found; False where they left too few samples to fit
         and every sample was fitted instead (set by the fit, not by detection).
+    level_sd_n : float
+        SD of the smoothed force where the jaws are free, N: what the thresholds are
+        set in (NaN when the session has no free stretch).
+    rested : bool
+        The free-jaw level was read from jaws resting open (the force alone found none).
+    scale_sd_n : tuple of float
+        Noise SD of each wider moving mean weak contact was sought with, N.
     """
 
     grasps: tuple[Grasp, ...]
@@ -164,6 +171,9 @@ class Contact:
     noise_n: float
     all_contact: bool
     kept_to_grasps: bool = True
+    level_sd_n: float = float("nan")
+    rested: bool = False
+    scale_sd_n: tuple[float, ...] = ()
 
     def describe(self) -> str:
         if self.all_contact:
@@ -178,12 +188,18 @@ class Contact:
         )
 
 
-def find_contact(session: Session) -> Contact:
-    """Find the grasps of a session (on a regular or nearly regular sample grid)."""
+def find_contact(session: Session, levels: Contact | None = None) -> Contact:
+    """Find the grasps of a session (on a regular or nearly regular sample grid).
+
+    ``levels``: the contact found on a whole session this is a stretch of (a long
+    session's block, :class:`~tissuecli.identify.stream.StreamedFit`), whose free-jaw
+    level and noise are read here rather than from the stretch alone, so that the
+    stretch's grasps are the whole session's."""
     f = session.force
     n = f.size
     dt = float(np.median(np.diff(session.time))) if n > 1 else 1.0
-    noise = _noise_sd(f)
+    known = levels if levels is not None and not levels.all_contact else None
+    noise = known.noise_n if known is not None else _noise_sd(f)
     width = max(1, int(round(SMOOTH_S / dt)))
     smooth = _moving_mean(f, width)
     closure = _moving_mean(session.position, width)
@@ -193,14 +209,22 @@ def find_contact(session: Session) -> Contact:
     step_d = np.diff(session.position)
     resolved = step_d.size > 0 and float(np.median(np.abs(step_d - np.median(step_d)))) > 0
     still = STILL_SD * _noise_sd(session.position) / np.sqrt(width) if resolved else -1.0
-    baseline, free = _baseline(smooth, closure, noise, dt, width, still)
     rests = np.zeros(n, bool)  # jaws seen resting open: free, whatever the force does
+    q = quantisation_step(session.position) if not resolved else 0.0
+    if known is not None:
+        baseline, free = known.baseline_n, 1.0
+        if known.rested:
+            tol = max(still, q)
+            rests = _open_rest(smooth, closure, noise, dt, width, tol, known.baseline_n)[2]
+    else:
+        baseline, free = _baseline(smooth, closure, noise, dt, width, still)
+    rested = known is not None and known.rested
     if free < MIN_FREE_FRACTION:
         # the force alone found no free level: jaws resting open between grasps, told by
         # the closure (a damped tissue pulls the force below the free level on release,
         # and a soft law rests at the free level's force at small closure)
-        q = quantisation_step(session.position) if not resolved else 0.0
         baseline, free, rests = _open_rest(smooth, closure, noise, dt, width, max(still, q))
+        rested = True
     if free < MIN_FREE_FRACTION:
         return Contact(
             grasps=(
@@ -219,7 +243,10 @@ def find_contact(session: Session) -> Contact:
     # where the noise dithers the force's quantisation (a moving mean of a force quantised
     # coarser than that is a staircase whose error does not average out)
     dithered = noise >= DITHER_STEPS * quantisation_step(f)
-    level_sd = _free_sd(above, mask, noise, width) if dithered else noise
+    if known is not None:
+        level_sd = known.level_sd_n
+    else:
+        level_sd = _free_sd(above, mask, noise, width) if dithered else noise
     if level_sd < noise:
         mask = _hysteresis(np.abs(above), ENTER_SD * level_sd, LEAVE_SD * level_sd)
     # a break shorter than MIN_GAP_S ends no grasp, unless the jaws are seen resting open
@@ -227,9 +254,12 @@ def find_contact(session: Session) -> Contact:
     # keeps the smoothed force off the free level for part of its break)
     mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
     mask = _sharpen(mask, f - baseline, width, noise)
+    scale_sd: tuple[float, ...] = ()
     if dithered:
         # contact too weak for the moving mean of one width, seen by longer ones
-        mask |= _weak_contact(f - baseline, mask, noise, width)
+        weak, scale_sd = _weak_contact(f - baseline, mask, noise, width,
+                                       None if known is None else known.scale_sd_n)  # fmt: skip
+        mask |= weak
         mask = _close_gaps(mask, int(round(MIN_GAP_S / dt)), keep=rests)
         mask = _extend(mask, f - baseline, noise, width)
     mask &= ~rests
@@ -248,7 +278,8 @@ def find_contact(session: Session) -> Contact:
                 float(np.max(above[start:stop])),
             )
         )
-    return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False)
+    return Contact(tuple(grasps), mask, float(baseline), noise, all_contact=False,
+                   level_sd_n=level_sd, rested=rested, scale_sd_n=scale_sd)  # fmt: skip
 
 
 def _extend(mask: NDArray[np.bool_], above: Array, noise: float, width: int) -> NDArray[np.bool_]:
@@ -315,8 +346,12 @@ def _min_grasp(dt: float, width: int) -> int:
 
 
 def _weak_contact(
-    above: Array, mask: NDArray[np.bool_], noise: float, width: int
-) -> NDArray[np.bool_]:
+    above: Array,
+    mask: NDArray[np.bool_],
+    noise: float,
+    width: int,
+    known: tuple[float, ...] | None = None,
+) -> tuple[NDArray[np.bool_], tuple[float, ...]]:
     """Contact too weak for the moving mean of ``width`` samples, found by moving means
     :data:`SCALE_RATIO`, ``SCALE_RATIO**2``, ... times wider (at most
     :data:`COARSE_SCALES` of them): samples where the mean of the raw force ``above``
@@ -335,24 +370,29 @@ def _weak_contact(
     a scale whose free samples are too few to measure it, or longer than a sixteenth of
     the session, is not used. The false-alarm rate is that of the fine scale (about
     2e-9 per independent window at 6 SDs) per scale.
+
+    Returns the contact found and the noise SD of each scale used (N); ``known``: those
+    of the whole session this is a stretch of, used as they are.
     """
     found = mask.copy()
     out = np.zeros_like(mask)
     n = above.size
     w = width
-    for _ in range(COARSE_SCALES):
+    sds: list[float] = []
+    for k in range(COARSE_SCALES if known is None else len(known)):
         w *= SCALE_RATIO
-        if 16 * w > n:
+        if known is None and 16 * w > n:
             break
         smooth, count = _window_mean(np.where(found, 0.0, above), w)
-        sd = _scale_sd(smooth, found, noise, w)
+        sd = _scale_sd(smooth, found, noise, w) if known is None else known[k]
         if sd is None:
             break
+        sds.append(sd)
         # near the ends the window holds fewer samples, and its mean more noise
         new = (np.abs(smooth) > ENTER_SD * sd * np.sqrt(w / count)) & ~found
         out |= new
         found |= new
-    return out
+    return out, tuple(sds)
 
 
 def _window_mean(f: Array, w: int) -> tuple[Array, Array]:
@@ -548,7 +588,13 @@ def _baseline(
 
 
 def _open_rest(
-    smooth: Array, closure: Array, noise: float, dt: float, width: int, tol: float
+    smooth: Array,
+    closure: Array,
+    noise: float,
+    dt: float,
+    width: int,
+    tol: float,
+    known: float | None = None,
 ) -> tuple[float, float, NDArray[np.bool_]]:
     """The free-jaw level from jaws resting at their most open closure between grasps,
     the fraction of the session they rest there (0 when they do not), and where they
@@ -560,7 +606,9 @@ def _open_rest(
     within ``tol`` (m; its noise or quantisation step) of the smallest, held there
     through their middle half with the force flat, at least :data:`MIN_REST_STRETCHES`
     of them at one level (within :data:`ENTER_SD` noise SDs), covering
-    :data:`MIN_FREE_FRACTION` of the session.
+    :data:`MIN_FREE_FRACTION` of the session. With the ``known`` level (N) of the whole
+    session a stretch of it is part of, each such stretch at that level is a rest,
+    however few the stretch holds.
     """
     none = np.zeros(smooth.size, bool)
     if not tol > 0 or smooth.size < 2:
@@ -577,8 +625,13 @@ def _open_rest(
             continue
         if not _flat(smooth[middle], noise, step):
             continue
-        levels.append(float(np.median(smooth[middle])))
+        level = float(np.median(smooth[middle]))
+        if known is not None and abs(level - known) > ENTER_SD * noise:
+            continue
+        levels.append(level)
         rest[start:stop] = True
+    if known is not None:
+        return known, float(np.mean(rest)), rest
     if len(levels) < MIN_REST_STRETCHES:
         return float("nan"), 0.0, none
     level = float(np.median(levels))

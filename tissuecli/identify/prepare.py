@@ -18,6 +18,8 @@ from .derivatives import Differentiator, Frozen, Kinematics
 from .design import held_closure
 from .spectrum import convolve_valid, white_noise_sd
 
+Array = NDArray[np.float64]
+
 MIN_SAMPLES = 200
 
 
@@ -69,6 +71,8 @@ class Prepared:
     trusted : ndarray of bool, shape (n,)
         Grid samples that hold measurements, neither lost nor clipped, in contact or
         not: what the sensors' noise is read from.
+    rules : GraspRules or None
+        How the grasps were fitted (:func:`grasp_rules`); None where every sample was.
     """
 
     session: Session
@@ -77,6 +81,7 @@ class Prepared:
     contact: Contact
     measured_fraction: float
     trusted: NDArray[np.bool_]
+    rules: GraspRules | None = None
 
 
 def prepare(
@@ -103,7 +108,7 @@ def prepare(
     Where the session alternates grasps with free jaw motion
     (:func:`~tissuecli.identify.contact.find_contact`), only filtered samples whose
     window touches a chosen grasp are fitted, the tissue's columns gated on the raw
-    grid by the samples in contact (:func:`with_open_jaws`): ``grasps="all"`` (every
+    grid by the samples in contact (:func:`fit_grasps`): ``grasps="all"`` (every
     grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers. With
     every grasp, the filtered samples of jaws near their most open are fitted too
     where they read an offset (:func:`open_jaws`), the tissue's columns zero there:
@@ -238,17 +243,11 @@ def prepare(
             "out for lost or clipped samples in their window"
         )
     measured = 1.0 - float(np.count_nonzero(bridged)) / len(session)
+    rules = None
     if by_grasp:
-        # a relaxation branch is strained only in contact: held across free jaw motion;
-        # and the jaws at their most open bound where contact may begin
-        # (:class:`~tissuecli.core.terms.ContactPoint`)
-        seen = session.position[trusted] if np.any(trusted) else session.position
-        kin = replace(kin, drive=held_closure(session.position, ~contact.mask),
-                      x_floor=float(np.percentile(seen, 2)))  # fmt: skip
-        free = valid & open_jaws(session, contact, kin) if grasps == "all" else None
-        kin = with_open_jaws(kin, session, valid, chosen, contact.mask, free,
-                             touching_by_closure(session, contact.mask, valid, free))  # fmt: skip
-    return Prepared(session, kin, warnings, contact, measured, trusted)
+        rules = grasp_rules(session, valid, trusted, chosen, contact.mask, kin, grasps == "all")
+        kin = fit_grasps(rules, Frozen(kin), session, valid, chosen, contact.mask)
+    return Prepared(session, kin, warnings, contact, measured, trusted, rules)
 
 
 #: jaws read open where their smoothed closure lies below the least closure seen in
@@ -267,6 +266,186 @@ OPEN_SE = 4.0
 MIN_OPEN_ROWS = 32
 
 
+@dataclass(frozen=True)
+class GraspRules:
+    """How a session's grasps are fitted: what :func:`grasp_rules` reads once from the
+    whole session, and :func:`fit_grasps` applies to it, or to any stretch of it (a
+    long session's blocks, :class:`~tissuecli.identify.stream.StreamedFit`), alike.
+
+    Attributes
+    ----------
+    x_floor : float
+        The closure's low end over the session, free jaws included (m): where contact
+        may begin (:attr:`Kinematics.x_floor`).
+    closed_m : float or None
+        Jaws closed at least this far hold the tissue, whatever the detector read
+        (:func:`touching_by_closure`, m); None: the contact flags alone.
+    open_m : float or None
+        Jaws a quarter of a filter's width from every grasp whose smoothed closure lies
+        below this are open (:func:`open_jaws`, m); None: none are read open.
+    open_fitted : bool
+        The open jaws are fitted, their tissue columns zero, for the sensor's offset
+        (:func:`fit_grasps`).
+    edges : bool
+        The windows across a grasp's edges are fitted: the free jaws' force beside the
+        grasps dithers its ADC.
+    free_level_n : float or None
+        The free jaws' level (N) taken off the force at a grasp's edges, where the
+        open jaws are not fitted; None: none to take off.
+    """
+
+    x_floor: float
+    closed_m: float | None
+    open_m: float | None
+    open_fitted: bool
+    edges: bool
+    free_level_n: float | None
+
+
+def grasp_rules(
+    session: Session,
+    valid: NDArray[np.bool_],
+    trusted: NDArray[np.bool_],
+    chosen: NDArray[np.bool_],
+    contact: NDArray[np.bool_],
+    kin: Kinematics,
+    read_open: bool = True,
+) -> GraspRules:
+    """What the fit of the ``chosen`` grasps (of the ``contact`` flags) decides over the
+    whole ``session`` (:class:`GraspRules`), ``kin`` filtered inside the grasps (its
+    kernels are the fit's); ``read_open``: the jaws near their most open are read for
+    the sensor's offset (every grasp chosen). See :func:`fit_grasps`."""
+    x = session.position
+    seen = x[trusted] if np.any(trusted) else x
+    open_m = open_limit(session, contact, kin) if read_open else None
+    free = None if open_m is None else valid & open_mask(x, contact, kin.kernels[0], open_m)
+    closed_m = closed_from(x, contact, valid)
+    touching = _touching(x, contact, closed_m, free)
+    w = kin.window
+    open_fitted = (
+        free is not None
+        and _offset_readable(session, free, w)
+        and np.count_nonzero(convolve_valid(free.astype(float), np.ones(w)) > w - 0.5)
+        >= MIN_OPEN_ROWS
+    )
+    chosen = chosen & valid
+    near = _near(chosen, w)
+    # the free jaws' steady force, read by an ADC its noise does not dither, is off the
+    # offset by up to half a step in every sample alike: the windows across a grasp's
+    # edges would pin the offset there (and the spring's intercept with it)
+    edges = _dithered(session.force[valid & ~contact & near], quantisation_step(session.force))
+    around = valid & (near if edges else chosen) & ~(contact & ~chosen)
+    free_near = around & ~touching
+    level = float(np.median(session.force[free_near])) if free_near.any() else None
+    return GraspRules(float(np.percentile(seen, 2)), closed_m, open_m, bool(open_fitted),
+                      bool(edges), level)  # fmt: skip
+
+
+def fit_grasps(
+    rules: GraspRules,
+    diff: Frozen,
+    session: Session,
+    valid: NDArray[np.bool_],
+    chosen: NDArray[np.bool_],
+    contact: NDArray[np.bool_],
+) -> Kinematics:
+    """The kinematics a fit of the ``chosen`` grasps fits (:func:`fit_grasps`), by
+    ``rules`` (:func:`grasp_rules`, of this session or of the session this is a stretch
+    of), filtered by ``diff``: every output whose window touches a chosen grasp and
+    holds only ``valid`` samples, and no sample of a grasp not chosen (of the
+    ``contact`` flags), each tissue column gated on the raw grid by the samples where
+    the jaws hold the tissue (:func:`touching_by_closure`), so each tissue column is
+    zero on the free samples of a window, as the tissue's force is.
+
+    The jaws close onto the tissue and leave it at a grasp's edges, where the speed is:
+    a fit kept wholly inside the grasps loses that half window at each edge, and with it
+    most of what damping's force tells. The free samples of those windows read the free
+    jaws' level (their median), which is taken off the force before it is filtered, and
+    the law's offset holds in contact alone (:attr:`Kinematics.offset_gated`): an
+    offset in contact may be the sensor's or a preload (a spring touched short of zero
+    closure), the free jaws read the sensor's alone.
+
+    Where the rules fit the open jaws (:func:`open_jaws`), the outputs whose window lies
+    wholly in them are added too, in time order: the tissue's columns are zero there
+    and the force is the sensor's offset, so a law's offset is measured where nothing
+    else can stand in for it (inside the grasps a spring's intercept trades with it).
+    They are not fitted when they give fewer than :data:`MIN_OPEN_ROWS` outputs, read
+    zero within :data:`OPEN_SE` standard errors of their mean (no offset to measure), or
+    are read by an ADC their noise does not dither
+    (:data:`~tissuecli.identify.contact.DITHER_STEPS`).
+
+    Raises
+    ------
+    FitError
+        Where too few outputs are left to filter (see :class:`Differentiator`).
+    """
+    x = session.position
+    k0 = diff.fitted.kernels[0]
+    w = k0.size
+    free = None if rules.open_m is None else valid & open_mask(x, contact, k0, rules.open_m)
+    touching = _touching(x, contact, rules.closed_m, free)
+    chosen = chosen & valid
+    # within a window's width of a chosen grasp: every sample an output touching it reads
+    near = _near(chosen, w) if rules.edges else chosen
+    around = valid & near & ~(contact & ~chosen)
+    extra = free if rules.open_fitted else None
+    mask = around if extra is None else around | extra
+    force = session.force
+    if extra is None and rules.free_level_n is not None:
+        # the free samples of the windows across the edges read the free jaws' level
+        # (with open jaws, the offset is that level itself)
+        force = force - np.where(touching, 0.0, rules.free_level_n)
+    both = diff(session.time, x, force, mask)
+    rows = np.arange(both.time.size) if both.rows is None else both.rows
+    ones = np.ones(w)
+    kept = convolve_valid(chosen.astype(float), ones)[rows] > 0.5
+    if extra is not None:
+        kept |= convolve_valid(extra.astype(float), ones)[rows] > w - 0.5
+    out = both.outputs(np.flatnonzero(kept))
+    # a relaxation branch is strained only in contact: held across free jaw motion
+    return replace(out, force_raw=session.force[out.keep], drive=held_closure(x, ~contact),
+                   x_floor=rules.x_floor, touching=touching,
+                   offset_gated=extra is None)  # fmt: skip
+
+
+def open_limit(session: Session, contact: NDArray[np.bool_], kin: Kinematics) -> float | None:
+    """The smoothed closure below which jaws away from every grasp are open (m) (see
+    :func:`open_jaws`); None where no closure in contact is seen."""
+    x = session.position
+    if not contact.any():
+        return None
+    smooth = convolve_valid(x, kin.kernels[0])
+    h = (x.size - smooth.size) // 2
+    inside = contact[h : h + smooth.size]
+    if not inside.any():
+        return None
+    margin = OPEN_SD * white_noise_sd(x) * float(np.linalg.norm(kin.kernels[0]))
+    margin += quantisation_step(x)
+    top = float(np.min(smooth[inside])) - margin
+    lowest = float(np.min(smooth))
+    # contact too weak for the detector lies just above the true touch, which is below
+    # the least closure the detector saw in contact: only the jaws near their most open
+    # are taken, however weak the contact it missed
+    return min(top, lowest + max(margin, REST_FRACTION * (top - lowest)))
+
+
+def open_mask(
+    x: Array, contact: NDArray[np.bool_], kernel: Array, limit: float
+) -> NDArray[np.bool_]:
+    """Samples a quarter of ``kernel``'s width (:data:`OPEN_MARGIN`) from every sample in
+    ``contact`` whose closure ``x`` (m), smoothed by ``kernel``, lies below ``limit``
+    (:func:`open_limit`), shape (n,)."""
+    reach = max(1, int(OPEN_MARGIN * kernel.size))
+    near = np.convolve(contact.astype(float), np.ones(2 * reach + 1), mode="same") > 0.5
+    if near.all() or x.size < kernel.size:
+        return np.zeros(x.size, bool)
+    smooth = convolve_valid(x, kernel)
+    h = (x.size - smooth.size) // 2
+    xs = np.full(x.size, np.inf)
+    xs[h : h + smooth.size] = smooth
+    return ~near & (xs < limit)
+
+
 def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np.bool_]:
     """Samples where the jaws are surely free of the tissue, shape (n,): outside every
     grasp by :data:`OPEN_MARGIN` of a filter's width, and near their most open: their
@@ -279,99 +458,34 @@ def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np
     the tissue is touched at one closure, below the least the detector saw in contact
     by however much contact it missed; jaws opened most of the way from there to their
     widest touch nothing, whatever the force reads there."""
-    x = session.position
-    w = kin.window
-    reach = max(1, int(OPEN_MARGIN * w))
-    near = np.convolve(contact.mask.astype(float), np.ones(2 * reach + 1), mode="same") > 0.5
-    if not contact.mask.any() or near.all():
-        return np.zeros(x.size, bool)
-    smooth = convolve_valid(x, kin.kernels[0])
-    h = (x.size - smooth.size) // 2
-    xs = np.full(x.size, np.inf)
-    xs[h : h + smooth.size] = smooth
-    inside = contact.mask & np.isfinite(xs)
-    if not inside.any():
-        return np.zeros(x.size, bool)
-    margin = OPEN_SD * white_noise_sd(x) * float(np.linalg.norm(kin.kernels[0]))
-    margin += quantisation_step(x)
-    top = float(np.min(xs[inside])) - margin
-    lowest = float(np.min(xs[np.isfinite(xs)]))
-    # contact too weak for the detector lies just above the true touch, which is below
-    # the least closure the detector saw in contact: only the jaws near their most open
-    # are taken, however weak the contact it missed
-    limit = min(top, lowest + max(margin, REST_FRACTION * (top - lowest)))
-    return ~near & (xs < limit)
+    limit = open_limit(session, contact.mask, kin)
+    if limit is None:
+        return np.zeros(len(session), bool)
+    return open_mask(session.position, contact.mask, kin.kernels[0], limit)
 
 
-def with_open_jaws(
-    kin: Kinematics,
-    session: Session,
-    valid: NDArray[np.bool_],
-    chosen: NDArray[np.bool_],
+def _near(chosen: NDArray[np.bool_], window: int) -> NDArray[np.bool_]:
+    """Samples within a window's width of a ``chosen`` one: every sample an output
+    whose window touches one reads."""
+    return np.convolve(chosen.astype(float), np.ones(2 * window - 1), mode="same") > 0.5
+
+
+def closed_from(x: Array, contact: NDArray[np.bool_], valid: NDArray[np.bool_]) -> float | None:
+    """The least closure of any grasp (m): the 1st percentile of ``x`` over the
+    ``valid`` samples in ``contact`` (against noise); None where there are none."""
+    inside = contact & valid
+    return float(np.percentile(x[inside], 1.0)) if inside.any() else None
+
+
+def _touching(
+    x: Array,
     contact: NDArray[np.bool_],
-    free: NDArray[np.bool_] | None = None,
-    touching: NDArray[np.bool_] | None = None,
-) -> Kinematics:
-    """``kin`` (filtered wholly inside the ``chosen`` grasps) filtered again over the
-    grasps and a window either side: every output whose window touches a chosen grasp
-    and holds only ``valid`` samples, and no sample of a grasp not chosen (of the
-    ``contact`` flags); with :attr:`Kinematics.touching` set to ``touching`` (by
-    default ``contact``: :func:`touching_by_closure`), so each tissue column is zero on
-    the free samples of a window, as the tissue's force is.
-    The jaws close onto the tissue and leave it at a grasp's edges, where the speed is:
-    a fit kept wholly inside the grasps loses that half window at each edge, and with it
-    most of what damping's force tells. The free samples of those windows read the free
-    jaws' level (their median), which is taken off the force before it is filtered, and
-    the law's offset holds in contact alone (:attr:`Kinematics.offset_gated`): an
-    offset in contact may be the sensor's or a preload (a spring touched short of zero
-    closure), the free jaws read the sensor's alone.
-
-    With ``free`` jaws, the outputs whose window lies wholly in them are added too, in
-    time order: the tissue's columns are zero there and the force is the sensor's
-    offset, so a law's offset is measured where nothing else can stand in for it
-    (inside the grasps a spring's intercept trades with it). Not added when the free
-    jaws give fewer than :data:`MIN_OPEN_ROWS` outputs, read zero within
-    :data:`OPEN_SE` standard errors of their mean (no offset to measure), or are read by
-    an ADC their noise does not dither
-    (:data:`~tissuecli.identify.contact.DITHER_STEPS`). ``free`` must lie a quarter of a
-    filter's width from every grasped sample (:func:`open_jaws`)."""
-    if free is not None and not _offset_readable(session, free, kin.window):
-        free = None
-    w = kin.window
-    chosen = chosen & valid
-    # within a window's width of a chosen grasp: every sample an output touching it reads
-    near = np.convolve(chosen.astype(float), np.ones(2 * w - 1), mode="same") > 0.5
-    step = quantisation_step(session.force)
-    if not _dithered(session.force[valid & ~contact & near], step):
-        # the free jaws' steady force, read by an ADC its noise does not dither, is off
-        # the offset by up to half a step in every sample alike: the windows across a
-        # grasp's edges would pin the offset there (and the spring's intercept with it)
-        near = chosen
-    around = valid & near & ~(contact & ~chosen)
-    ones = np.ones(w)
-    for extra in (free, None) if free is not None else (None,):
-        mask = around if extra is None else around | extra
-        both = Frozen(kin)(session.time, session.position, session.force, mask)
-        rows = np.arange(both.time.size) if both.rows is None else both.rows
-        touch = convolve_valid(chosen.astype(float), ones)[rows] > 0.5
-        kept = touch
-        if extra is not None:
-            alone = convolve_valid(extra.astype(float), ones)[rows] > w - 0.5
-            if np.count_nonzero(alone) < MIN_OPEN_ROWS:
-                continue
-            kept = touch | alone
-        flags = (contact if touching is None else touching).copy()
-        if extra is None:  # (with open jaws, the offset is the free jaws' level itself)
-            free_near = mask & ~flags
-            if free_near.any():
-                b = float(np.median(session.force[free_near]))
-                adj = session.force - np.where(flags, 0.0, b)
-                f = convolve_valid(adj, kin.kernels[0])
-                both = replace(both, force=f if both.rows is None else f[both.rows])
-        out = both.outputs(np.flatnonzero(kept))
-        return replace(out, drive=kin.drive, x_floor=kin.x_floor, touching=flags,
-                       offset_gated=extra is None)
-    return kin
+    closed_m: float | None,
+    free: NDArray[np.bool_] | None,
+) -> NDArray[np.bool_]:
+    """:func:`touching_by_closure` from its threshold ``closed_m`` (:func:`closed_from`)."""
+    out = contact.copy() if closed_m is None else contact | (x >= closed_m)
+    return out if free is None else out & ~free
 
 
 def touching_by_closure(
@@ -387,23 +501,20 @@ def touching_by_closure(
     force standing clear of its noise, so a soft grasp's ends and its weak stretches
     are read free, their tissue force small but not zero, and a column gated by the
     detector alone would set it to zero beside each grasp."""
-    inside = contact & valid
-    if not inside.any():
+    closed = closed_from(session.position, contact, valid)
+    if closed is None:
         return contact.copy()
-    x = session.position
-    closed = x >= float(np.percentile(x[inside], 1.0))
-    out = contact | closed
-    return out if free is None else out & ~free
+    return _touching(session.position, contact, closed, free)
 
 
 def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> bool:
-    """Whether the ``free`` jaws measure an offset (:func:`with_open_jaws`)."""
+    """Whether the ``free`` jaws measure an offset (:func:`fit_grasps`)."""
     if np.count_nonzero(free) < MIN_OPEN_ROWS + window:
         return False
     # the open jaws measure the offset: where their force is zero within its noise
     # they tell nothing the grasps need, and the fit keeps to the grasps
     level = session.force[free]
-    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
+    noise = _steady_noise(level)
     if abs(float(np.mean(level))) <= OPEN_SE * noise / np.sqrt(level.size):
         return False
     # a steady force read through an ADC whose noise does not dither it is off by up to
@@ -413,13 +524,18 @@ def _offset_readable(session: Session, free: NDArray[np.bool_], window: int) -> 
     return _dithered(level, quantisation_step(session.force))
 
 
+def _steady_noise(level: NDArray[np.float64]) -> float:
+    """The noise SD (N) of a steady force ``level``, shape (m,), from its first
+    differences (a steady level has no drift for them to read)."""
+    return float(np.std(np.diff(level))) / np.sqrt(2.0)
+
+
 def _dithered(level: NDArray[np.float64], step: float) -> bool:
     """Whether a steady force's noise dithers the ADC's ``step`` (N)
     (:data:`~tissuecli.identify.contact.DITHER_STEPS`); True when too few samples to tell."""
     if level.size < 8:
         return True
-    noise = float(np.std(np.diff(level))) / np.sqrt(2.0)
-    return noise >= DITHER_STEPS * step
+    return _steady_noise(level) >= DITHER_STEPS * step
 
 
 def _differentiate(

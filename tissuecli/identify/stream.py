@@ -13,7 +13,13 @@ evidence, and those sums add over blocks. So :class:`StreamedFit`
 2. reads the whole session block by block, each with margins so that every filtered
    sample sees its full window (and a law with memory its history, ten time constants
    back), differentiates it with the pilot's very filter and adds each candidate law's
-   sums;
+   sums. Where the pilot kept to the grasps, each block's grasps are found as the full
+   fit finds them (:func:`~tissuecli.identify.contact.find_contact`, on the block and a
+   margin either side, against the pilot's free-jaw level and noise) and fitted by the pilot's rules
+   (:func:`~tissuecli.identify.prepare.fit_grasps`, the full fit's own code): the
+   grasps' edges, each tissue column gated on the raw grid by the contact flags, the
+   free jaws' level taken off the force there, and the open jaws for the sensor's
+   offset; samples at an end of the ADC are holes, as in the full fit;
 3. scores the candidates on those sums, exactly as the default fit scores a law.
 
 Memory is set by the block and the pilot, not by the session's length.
@@ -33,16 +39,22 @@ from ..core.progress import Progress, as_progress
 from ..core.session import Session
 from ..core.terms import Law
 from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
-from .derivatives import Frozen
+from .contact import Contact, find_contact
+from .derivatives import Frozen, Kinematics
 from .design import design, eiv_correction
 from .noise import corrected_curvature
 from .posterior import ExactPosterior, SufficientStats, gram_lstsq
+from .prepare import GraspRules, adc_ends, fit_grasps
 
 Array = NDArray[np.float64]
 
 #: a law with memory is warmed up on this many of its longest time constants before a
 #: block's first counted sample (its history's weight falls to e^-10 = 5e-5)
 MEMORY_WARMUP = 10.0
+#: a block's grasps are found on it and this much more of the session either side (s),
+#: so that a grasp beside a seam is read as the full fit reads it (its onset, its
+#: baseline either side), and a whole filter window of samples beyond either way
+CONTACT_MARGIN_S = 2.0
 
 
 @dataclass
@@ -123,6 +135,9 @@ class StreamedFit:
         Effective independent samples (the pilot's weight per sample times n_samples_).
     skipped_blocks_ : int
         Blocks left out because their samples were too irregular for the filter.
+    grasp_blocks_ : int
+        Blocks whose own grasps the pilot, in contact throughout, could not read: every
+        sample of them summed, free jaws included (a warning says so).
     not_evaluated_ : list of (str, str)
         Candidates whose evidence over the whole session cannot be trusted, with the
         reason; never chosen.
@@ -143,13 +158,18 @@ class StreamedFit:
         """Fit a session of ``rows`` rows; ``read(start, stop)`` returns rows
         [start, stop) of it as a :class:`Session` (SI units)."""
         progress = as_progress(progress)
+        if not isinstance(self.bayes.get("grasps", "all"), str):
+            raise FitError(
+                "grasp numbers are not read in a session too long to hold: fit --grasps "
+                "all or none, or cut the session to the grasps wanted"
+            )
         a = max(0, rows // 2 - self.pilot_samples // 2)
         b = min(rows, a + self.pilot_samples)
         progress.stage(f"the pilot: samples {a:,} to {b:,} fitted in full")
         pilot = BayesianFit(**self.bayes).fit(read(a, b))
         self.pilot_, self.pilot_rows_ = pilot, (a, b)
         kin0 = pilot.kinematics_
-        dt = float(np.median(np.diff(kin0.time)))
+        dt = kin0.dt
         frozen = Frozen(kin0)
         weight = pilot.n_eff_ / max(kin0.force.size, 1)
         chosen = [r for r in pilot.results_ if r.posterior is not None and not r.model.shape_names][
@@ -158,6 +178,7 @@ class StreamedFit:
         if not chosen:
             raise FitError("the pilot stretch scored no law; fit a shorter session in full")
         sums = [_Sums.empty(r.model, r.correction is not None) for r in chosen]
+        rules: GraspRules | None = pilot.grasp_rules_
         half = kin0.window // 2
         # the times over which each term with memory forgets (a branch's tau)
         taus = [
@@ -168,35 +189,89 @@ class StreamedFit:
         # outgrow the memory the blocks are there to bound, and the branch is slower
         # than the pilot can tell apart from a spring anyway
         warm = half + min(int(np.ceil(MEMORY_WARMUP * max(taus, default=0.0) / dt)), 2 * step)
+        # the grasps are found on a margin beyond the samples read for the filter
+        margin = 0 if rules is None else max(2 * kin0.window, int(CONTACT_MARGIN_S / dt))
         starts = list(range(0, rows, step))
         if len(starts) > 1 and rows - starts[-1] < 2 * kin0.window:
             starts.pop()  # a tail too short to filter goes with the block before it
         progress.stage("summing the session block by block", len(starts))
         t_first: float | None = None
         self.skipped_blocks_ = 0
+        self.grasp_blocks_ = 0
+        # a pilot in contact throughout has no free-jaw level to read grasps against:
+        # a block that finds grasps of its own is then named, not silently summed whole
+        check = rules is None and pilot.contact_.all_contact and self.bayes.get("grasps") != "none"
         for i, s in enumerate(starts):
             e = rows if i == len(starts) - 1 else s + step
-            first = max(0, s - warm)
-            block = read(first, min(rows, e + half))
+            first = max(0, s - warm - margin)
+            block = read(first, min(rows, e + half + margin))
             if t_first is None:
                 t_first = float(block.time[0])
             lo = float(block.time[s - first])
             hi = float(block.time[e - first]) if e < rows else np.inf  # the next block's
             try:
-                self._add(block, frozen, pilot.sigma_x_, dt, t_first, lo, hi, e >= rows, sums)
+                kin, gx = self._kinematics(block, frozen, rules, pilot.contact_, dt, t_first)
+                if check and not find_contact(block).all_contact:
+                    self.grasp_blocks_ += 1
             except FitError:
                 self.skipped_blocks_ += 1
+            else:
+                if kin is not None:
+                    self._add(kin, gx, pilot.sigma_x_, dt, lo, hi, e >= rows, sums)
             progress.advance(i + 1, len(starts))
         self._score(sums, pilot, weight)
         return self
 
-    def _add(
-        self,
+    @staticmethod
+    def _kinematics(
         block: Session,
         frozen: Frozen,
-        sigma_x: float,
+        rules: GraspRules | None,
+        levels: Contact,
         dt: float,
         t_first: float,
+    ) -> tuple[Kinematics | None, Array]:
+        """A block on the whole session's grid (so that blocks meet without a seam),
+        filtered as the pilot was: every sample, or by the pilot's grasp ``rules``, its
+        grasps found against the pilot's free-jaw level and noise (``levels``); and
+        the closure on that grid (m). None for kinematics where the block holds nothing
+        to fit (no grasp, by the rules).
+
+        Raises
+        ------
+        FitError
+            Where the block's samples are too irregular for the filter.
+        """
+        t, x, f = block.time, block.position, block.force
+        ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(f)
+        if np.count_nonzero(ok) < 2:
+            raise FitError("block without finite samples")
+        t, x, f = t[ok], x[ok], f[ok]
+        k0 = int(np.ceil((t[0] - t_first) / dt - 1e-6))
+        k1 = int(np.floor((t[-1] - t_first) / dt + 1e-6))
+        grid = t_first + dt * np.arange(k0, k1 + 1)
+        after = np.clip(np.searchsorted(t, grid, side="right"), 1, t.size - 1)
+        valid = (t[after] - t[after - 1]) <= 2.0 * dt + 1e-12
+        gx, gf = np.interp(grid, t, x), np.interp(grid, t, f)
+        on_grid = block.replace(grid, gf, gx)
+        for _, clipped in adc_ends(on_grid):  # a clipped value is not a measurement
+            valid &= ~clipped
+        if rules is None:
+            return frozen(grid, gx, gf, valid), gx
+        contact = find_contact(on_grid, levels).mask
+        if not (rules.open_fitted or np.any(contact & valid)):
+            return None, gx
+        try:
+            return fit_grasps(rules, frozen, on_grid, valid, contact, contact), gx
+        except FitError:
+            return None, gx  # too few outputs touch a grasp to filter
+
+    def _add(
+        self,
+        kin: Kinematics,
+        gx: Array,
+        sigma_x: float,
+        dt: float,
         lo: float,
         hi: float,
         last: bool,
@@ -204,19 +279,6 @@ class StreamedFit:
     ) -> None:
         """Add one block's filtered samples with grid times in [lo, hi) (all to its end
         for the last block) to every candidate's sums."""
-        t, x, f = block.time, block.position, block.force
-        ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(f)
-        if np.count_nonzero(ok) < 2:
-            raise FitError("block without finite samples")
-        t, x, f = t[ok], x[ok], f[ok]
-        # the whole session's grid, so that blocks meet without a seam
-        k0 = int(np.ceil((t[0] - t_first) / dt - 1e-6))
-        k1 = int(np.floor((t[-1] - t_first) / dt + 1e-6))
-        grid = t_first + dt * np.arange(k0, k1 + 1)
-        after = np.clip(np.searchsorted(t, grid, side="right"), 1, t.size - 1)
-        valid = (t[after] - t[after - 1]) <= 2.0 * dt + 1e-12
-        gx, gf = np.interp(grid, t, x), np.interp(grid, t, f)
-        kin = frozen(grid, gx, gf, valid)
         counted = (kin.time >= lo - 0.5 * dt) & ((kin.time < hi - 0.5 * dt) | last)
         if not np.any(counted):
             return
@@ -284,3 +346,9 @@ class StreamedFit:
             f"{name}: not evaluated over the whole session, so never chosen: {why}"
             for name, why in self.not_evaluated_
         ]
+        if self.grasp_blocks_:
+            self.warnings_.append(
+                f"the pilot stretch is in contact throughout, but {self.grasp_blocks_} "
+                "block(s) of the session hold free jaw motion, fitted as contact; fit a "
+                "part with grasps (--start, --end) to keep to them"
+            )
