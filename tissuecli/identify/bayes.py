@@ -56,6 +56,7 @@ from .scoring import (
     ModelResult,
     exact_result,
     first_pass,
+    kept_correction,
     prepared,
     weigh,
 )
@@ -285,7 +286,8 @@ class BayesianFit(Estimator):
         if A is not None:
             residual = y - A @ firsts[best_name].beta
             tau_ls = residual_tau(residual)
-            weight_ls = data_weight(A, residual, tau_ls) * measured
+            fp = firsts[best_name]
+            weight_ls = data_weight(A, residual, tau_ls, kept_correction(fp), fp.beta) * measured
             if weight_ls >= weight_filter / WEIGHT_SLACK:
                 tau, weight = tau_ls, weight_ls
         del A
@@ -585,9 +587,15 @@ class BayesianFit(Estimator):
     ) -> tuple[float, float]:
         """The residual autocorrelation time (samples) of the law with the most evidence
         and the data weight its residuals support (:func:`data_weight`)."""
-        A, residual = self._residual_of(self._top(results), fit)
+        top = self._top(results)
+        law = top.least_squares[0] if top.least_squares is not None else top.model
+        fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths)
+        A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
+        residual = fit.y - A @ fp.beta
         tau = residual_tau(residual)
-        return tau, data_weight(A, residual, tau) * measured
+        # the variances of the estimator the posterior reports (errors-in-variables
+        # corrected where the fit corrects it)
+        return tau, data_weight(A, residual, tau, kept_correction(fp), fp.beta) * measured
 
     def _set_aside(self, results: list[ModelResult], warnings: list[str]) -> list[ModelResult]:
         """The laws whose evidence was evaluated; the others go to ``not_evaluated_``

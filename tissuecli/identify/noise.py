@@ -44,7 +44,13 @@ def integrated_time(x: Array, c: float = 5.0) -> float:
     return float(taus[window])
 
 
-def data_weight(A: Array, r: Array, tau: float) -> float:
+def data_weight(
+    A: Array,
+    r: Array,
+    tau: float,
+    correction: Array | None = None,
+    beta: Array | None = None,
+) -> float:
     """How much one sample counts, ``n_eff / n``, for honest intervals.
 
     Starts from ``1 / tau`` (residuals correlated over tau samples) and lowers it
@@ -52,18 +58,54 @@ def data_weight(A: Array, r: Array, tau: float) -> float:
     (robust to any residual correlation and to noise in the regressors) exceeds
     what the tempered Gaussian likelihood implies: the curvature adjustment of
     a misspecified likelihood (Ribatet et al. 2012), kept O(n).
+
+    With the errors-in-variables ``correction`` ``C`` (shape (p, p), position noise's
+    expected share of ``A^T A``) and the least-squares coefficients ``beta`` (shape
+    (p,)) that ``r`` is the residual of, both variances are those of the estimator the
+    posterior reports, ``beta_c = (A^T A - C)^-1 A^T y``: the likelihood's is the
+    sandwich ``s^2 (A^T A - C)^-1 A^T A (A^T A - C)^-1`` of
+    :func:`corrected_curvature`, the batch means' are of its estimating equation
+    ``A_b^T (y_b - A_b beta_c) + C_b beta_c``. Compared with the least-squares
+    variance instead, an inertia whose column is mostly noise read its own
+    attenuation-inflated scatter as correlation and, through the one weight every
+    coefficient shares, widened a stiffness's interval by 1.5-2x.
     """
     n = r.size
     block = max(int(np.ceil(5 * tau)), 1)
     if n // block < 30:
         block = max(n // 30, 1)
     nb = n // block
-    scores = (A[: nb * block] * r[: nb * block, None]).reshape(nb, block, -1).sum(axis=1)
-    G_inv = gram_pinv(A.T @ A)  # on unit-norm columns: x^3 beside an offset is 1e-8 of it
-    v_robust = np.diag(G_inv @ (scores.T @ scores) @ G_inv)
-    v_model = (r @ r / n) * np.diag(G_inv)
+    gram = A.T @ A
+    corrected = _corrected_inverse(gram, correction) if correction is not None else None
+    if corrected is not None and beta is not None:
+        gc_inv = corrected
+        beta_c = gc_inv @ (gram @ beta)  # A^T y = A^T A beta: r is beta's residual
+        r_c = r - A @ (beta_c - beta)
+        share = (correction @ beta_c) * (block / n)  # each block's share of C beta_c
+        scores = (A[: nb * block] * r_c[: nb * block, None]).reshape(nb, block, -1).sum(axis=1)
+        scores = scores + share
+        v_robust = np.diag(gc_inv @ (scores.T @ scores) @ gc_inv)
+        v_model = (r @ r / n) * np.diag(gc_inv @ gram @ gc_inv)
+    else:
+        scores = (A[: nb * block] * r[: nb * block, None]).reshape(nb, block, -1).sum(axis=1)
+        G_inv = gram_pinv(gram)  # on unit-norm columns: x^3 beside an offset is 1e-8 of it
+        v_robust = np.diag(G_inv @ (scores.T @ scores) @ G_inv)
+        v_model = (r @ r / n) * np.diag(G_inv)
     ratio = float(np.min(v_model / np.where(v_robust > 0, v_robust, np.inf)))
     return min(1.0 / tau, ratio) if ratio > 0 else 1.0 / tau
+
+
+def _corrected_inverse(gram: Array, correction: Array) -> Array | None:
+    """``(A^T A - C)^-1`` (p, p), taken on unit-norm columns, or None where ``A^T A - C``
+    is not positive definite (the correction is then left out, as a fit leaves it)."""
+    d = np.sqrt(np.maximum(gram.diagonal(), 1e-300))
+    dd = d[:, None] * d
+    gc_s = (gram - correction) / dd
+    gc_s = 0.5 * (gc_s + gc_s.T)
+    lam = np.linalg.eigvalsh(gc_s)
+    if not lam[0] > 1e-12 * lam[-1]:
+        return None
+    return np.asarray(np.linalg.inv(gc_s) / dd)
 
 
 def corrected_curvature(

@@ -230,6 +230,14 @@ def law_stats(
     return st, prior, corr, flags
 
 
+def kept_correction(fp: FirstPass) -> Array | None:
+    """The errors-in-variables correction (p, p) the law's posterior is centred and
+    curved by, or None: none applied, or left out as noise dominates a column."""
+    if fp.untempered is None:
+        fp.untempered = _untempered(fp)
+    return fp.untempered[4]
+
+
 def _untempered(fp: FirstPass) -> tuple[Array, Array, float, float, Array | None, bool]:
     """:func:`law_stats`' statistics before the data weight: the Gram matrix, moment
     vector, ``yy`` and residual sum of squares (corrected for position noise where the
