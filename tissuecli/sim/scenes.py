@@ -421,6 +421,7 @@ def random_scene(
     *,
     families: Sequence[str] | None = None,
     max_samples: int = 200_000,
+    noise_seed: int | None = None,
     **fixed: Any,
 ) -> Scene:
     """One scene drawn from the wide space (see the module's docstring).
@@ -433,6 +434,9 @@ def random_scene(
         Draw among these names of :data:`FAMILIES` only.
     max_samples : int
         The session is cut shorter where it would have more samples.
+    noise_seed : int, optional
+        Draw the force and position noise from this seed instead: the same tissue,
+        motion and settings under another realisation of the noise.
     **fixed
         Settings to impose rather than draw: ``family``, ``rate_hz``, ``bits``,
         ``noise_frac``, ``contact`` (``"continuous"`` or ``"grasps"``), ``tempo``,
@@ -488,14 +492,15 @@ def random_scene(
     t = np.arange(n) / rate
     x, v, a = motion.kinematics(t)
     tissue = _coefficients(names, x, v, a, rate, duration, float(draw["force_span_n"]), rng)
+    position_noise_frac = _log_uniform(rng, 1e-4, 1e-3)
     scene = render(
         tissue,
         motion,
         rate_hz=rate,
         duration_s=duration,
-        rng=rng,
+        rng=rng if noise_seed is None else np.random.default_rng(noise_seed),
         noise_frac=float(draw["noise_frac"]),
-        position_noise_frac=_log_uniform(rng, 1e-4, 1e-3),
+        position_noise_frac=position_noise_frac,
         quantisation=int(draw["bits"]),
         settings={**draw, "seed": seed},
     )
