@@ -40,8 +40,10 @@ For each it reports, overall and by family group:
 ``--families paper`` draws the paper's four forms alone; ``--contact N`` adds N noisy
 paper-form sessions in contact throughout (``continuous_contact.noisy_contact_scene``:
 an ``x^3`` law, 8-bit ADC, 250-2000 Hz, force noise up to 10 % of the range), grouped
-as ``noisy contact``. The scenes where the default's structure is wrong and the
-reference's right are listed after the summary.
+as ``noisy contact``. ``--bits 8-10`` (or ``8,12,16``) draws each scene's ADC depth
+among those (from a generator of its own, so the scene's other draws stay as they were).
+The scenes where the default's structure is wrong and the reference's right are listed
+after the summary.
 
 Every scene prints a line as it goes; the summary follows. Timings are on whatever the
 machine gives; compare columns within one run.
