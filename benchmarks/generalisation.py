@@ -40,8 +40,10 @@ For each it reports, overall and by family group:
 ``--families paper`` draws the paper's four forms alone; ``--contact N`` adds N noisy
 paper-form sessions in contact throughout (``continuous_contact.noisy_contact_scene``:
 an ``x^3`` law, 8-bit ADC, 250-2000 Hz, force noise up to 10 % of the range), grouped
-as ``noisy contact``. The scenes where the default's structure is wrong and the
-reference's right are listed after the summary.
+as ``noisy contact``. ``--bits 8-10`` (or ``8,12,16``) draws each scene's ADC depth
+among those (from a generator of its own, so the scene's other draws stay as they were).
+The scenes where the default's structure is wrong and the reference's right are listed
+after the summary.
 
 Every scene prints a line as it goes; the summary follows. Timings are on whatever the
 machine gives; compare columns within one run.
@@ -325,6 +327,11 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
         default=0,
         help="also this many noisy paper-form sessions in contact throughout",
     )
+    ap.add_argument(
+        "--bits",
+        default="",
+        help="draw each scene's ADC bits among these (e.g. 8-10 or 8,12,16); default 8-16",
+    )
     ap.add_argument("--quiet", action="store_true", help="the summary alone")
     ap.add_argument("--likelihood", choices=sorted(LIKELIHOODS), help="the fits' likelihood")
     args = ap.parse_args(argv)
@@ -339,6 +346,9 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
         unknown = set(families) - set(FAMILIES)
         if unknown:
             ap.error(f"unknown families {sorted(unknown)}; choose among {list(FAMILIES)}")
+    bits = _bit_depths(args.bits) if args.bits else None
+    if bits is not None and not all(2 <= b <= 24 for b in bits):
+        ap.error(f"--bits {args.bits!r}: choose depths between 2 and 24, as 8-10 or 8,12")
     print(f"seed {seed} (repeat with --seed {seed}); load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)  # fmt: skip
     rows: list[Row] = []
@@ -351,7 +361,11 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
 
             scene = noisy_contact_scene(seed + i)
         else:
-            scene = random_scene(seed + i, families=families, max_samples=args.max_samples)
+            fixed = {}
+            if bits is not None:  # drawn apart from the scene's own draws, which stay as they were
+                fixed["bits"] = int(np.random.default_rng([seed + i, 8]).choice(bits))
+            scene = random_scene(seed + i, families=families, max_samples=args.max_samples,
+                                 **fixed)  # fmt: skip
         got = run_scene(scene, seed=seed + i)
         rows += got
         if not args.quiet:
@@ -376,6 +390,15 @@ def main(argv: Sequence[str] | None = None) -> list[Row]:
                   f"{scene.tissue.law.name}; default {default.law or 'REFUSED'} "
                   f"P={default.probability:.3f}; paper {paper.law}")  # fmt: skip
     return rows
+
+
+def _bit_depths(text: str) -> list[int]:
+    """ADC depths from ``8-10`` or ``8,12,16`` (ranges and single depths, commas between)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.strip().partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
 
 
 def losses(rows: list[Row]) -> list[tuple[Scene, Row, Row]]:
