@@ -46,7 +46,9 @@ class SessionSpan:
     (s), and its fitted closure's low end (2nd percentile) and span (m); ``x_floor``,
     the low end (2nd percentile) of the closure over the whole session, free jaw
     motion included, where the fit keeps to the grasps (m; NaN where it fits every
-    sample)."""
+    sample); ``f_ratio``, the force at the fitted closure's low end over that at its
+    high end (medians over the lowest and the highest twentieth of the closures), and
+    ``x_ends``, those twentieths' median closures (m; NaN where not read)."""
 
     dt: float
     cutoff_hz: float
@@ -54,6 +56,8 @@ class SessionSpan:
     x_low: float
     x_span: float
     x_floor: float = math.nan
+    f_ratio: float = math.nan
+    x_ends: tuple[float, float] = (math.nan, math.nan)
 
 
 @dataclass(frozen=True)
@@ -165,7 +169,27 @@ class ContactPoint(ShapeParameter):
         lo = span.x_low - 0.25 * width
         if math.isfinite(span.x_floor):
             lo = min(lo, span.x_floor)
+        reach = self.reach(span)
+        if math.isfinite(reach):
+            lo = min(lo, max(reach - 0.25 * width, span.x_low - 3.0 * width))
         return lo, span.x_low + 0.5 * width
+
+    @staticmethod
+    def reach(span: SessionSpan) -> float:
+        """The lowest contact point (m) the force across the fitted closures allows a
+        contact law of the steepest exponent in :data:`EXPONENT`'s prior: where the
+        force at the closure's low end is a share ``r`` of that at its high end,
+        ``(x_lo - x0) = r^(1/n) (x_hi - x0)``. A tissue held throughout (the jaws never
+        open) leaves the fitted closures far above the touch, its force well clear of
+        zero at the lowest; a quarter span below them held the contact point from its
+        truth, and an offset and friction took its place. NaN where the force does not
+        rise across the closures."""
+        r = span.f_ratio
+        lo, hi = span.x_ends
+        if not (math.isfinite(r) and 0.0 < r < 1.0 and hi > lo):
+            return math.nan
+        s = r ** (1.0 / EXPONENT.prior[1])
+        return (lo - s * hi) / (1.0 - s)
 
 
 #: the Hunt-Crossley exponent, uniform on [1, 2.5]
@@ -689,15 +713,17 @@ def _erfc(z: Array) -> Array:
     poly = -1.26551223 + t * (1.00002368 + t * (0.37409196 + t * (0.09678418 + t * (
         -0.18628806 + t * (0.27886807 + t * (-1.13520398 + t * (1.48851587 + t * (
             -0.82215223 + t * 0.17087277))))))))  # fmt: skip
-    return t * np.exp(-np.minimum(z, 1e3) ** 2 + poly)
+    return t * np.exp(-(np.minimum(z, 1e3) ** 2) + poly)
 
 
 def _erf_pair(z: Array) -> tuple[Array, Array]:
     """``erf(z)`` and ``erfc(z)`` of ``z >= 0``: below 0.5 erf by its Taylor series (to
     a fractional 3e-8; ``1 - erfc`` would keep only the absolute error of erfc there)."""
     z2 = z * z
-    series = (2.0 / math.sqrt(math.pi)) * z * (
-        1.0 - z2 / 3.0 + z2**2 / 10.0 - z2**3 / 42.0 + z2**4 / 216.0 - z2**5 / 1320.0
+    series = (
+        (2.0 / math.sqrt(math.pi))
+        * z
+        * (1.0 - z2 / 3.0 + z2**2 / 10.0 - z2**3 / 42.0 + z2**4 / 216.0 - z2**5 / 1320.0)
     )
     tail = _erfc(z)
     return np.where(z < 0.5, series, 1.0 - tail), tail

@@ -300,9 +300,7 @@ class GreedySearch(Search):
                     break
         return res
 
-    def _grow(
-        self, best: ModelResult, score: Score, scope: Scope, notes: list[str]
-    ) -> int | None:
+    def _grow(self, best: ModelResult, score: Score, scope: Scope, notes: list[str]) -> int | None:
         """The search's steps from one linear law: how many branches raised the
         evidence, None if the session resolves no relaxation (no other stem will
         either)."""
@@ -327,17 +325,17 @@ class GreedySearch(Search):
         most ``most``; a contact law takes one, its exponent and contact point already
         make it the costliest to sample), pruning after each; how many did."""
         current = base
-        for k in range(1, most + 1):
+        k = 0
+        while k < most:
+            k += 1
             why = self.too_narrow(scope, k)
             if why:
                 if why not in notes:
                     notes.append(why)
                 break
-            names = [t.name for t in (current.family or current.model).terms]
-            grow = [g for g in self.terms("grow") if names.count(g) < term(g).max_count]
-            if not grow:
+            trial = self._grown(current, score)
+            if trial is None:
                 break
-            trial = max((score([*names, g]) for g in grow), key=lambda r: r.ln_evidence)
             if not math.isfinite(trial.ln_evidence):
                 # a stem whose missing branches drove a coefficient far below zero (a
                 # negative mass or hardening standing in for relaxation) has no evidence
@@ -345,11 +343,19 @@ class GreedySearch(Search):
                 # more: pruned of the term it need not hold, or with a further branch, it
                 # may; from no evidence to none is no step down, and the search goes on
                 trial = self._prune(trial, score)
-                if not math.isfinite(trial.ln_evidence) and not math.isfinite(
-                    current.ln_evidence
-                ):
-                    current = trial
-                    continue
+                if not math.isfinite(trial.ln_evidence):
+                    if not math.isfinite(current.ln_evidence):
+                        current = trial
+                        continue
+                    # from a law with evidence to one without, look one branch further
+                    # before stopping: two branches of far apart time constants, one
+                    # alone drives the spring or the mass below zero (the other's force
+                    # unexplained), and a stem that kept an offset in their place has
+                    # evidence all the same
+                    if k < most and not self.too_narrow(scope, k + 1):
+                        deeper = self._grown(trial, score)
+                        if deeper is not None and math.isfinite(deeper.ln_evidence):
+                            trial, k = deeper, k + 1
             if not trial.ln_evidence > current.ln_evidence:
                 break
             current = self._prune(trial, score)
@@ -361,6 +367,15 @@ class GreedySearch(Search):
             return sum(t.name in grown for t in (r.family or r.model).terms)
 
         return count(current) - count(base)
+
+    def _grown(self, law: ModelResult, score: Score) -> ModelResult | None:
+        """``law`` with the ``"grow"`` term that raises its evidence most (None where no
+        more of any may be added)."""
+        names = [t.name for t in (law.family or law.model).terms]
+        grow = [g for g in self.terms("grow") if names.count(g) < term(g).max_count]
+        if not grow:
+            return None
+        return max((score([*names, g]) for g in grow), key=lambda r: r.ln_evidence)
 
 
 @register

@@ -135,6 +135,7 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
     gate = kin.gate
     x = kin.x_raw if gate is None else kin.x_raw[gate > 0]  # the closures in contact
     x = x if x.size else kin.x_raw
+    ratio, ends = _force_ratio(kin) if closure else (math.nan, (math.nan, math.nan))
     return SessionSpan(
         dt=kin.dt,
         cutoff_hz=float(kin.cutoff_hz),
@@ -142,7 +143,26 @@ def session_span(kin: Kinematics, closure: bool = True) -> SessionSpan:
         x_low=float(np.percentile(x, 2)) if closure else math.nan,
         x_span=float(np.ptp(x)) if closure else math.nan,
         x_floor=kin.x_floor if closure and kin.x_floor is not None else math.nan,
+        f_ratio=ratio,
+        x_ends=ends,
     )
+
+
+def _force_ratio(kin: Kinematics) -> tuple[float, tuple[float, float]]:
+    """The filtered force at the fitted closure's low end over that at its high end
+    (medians over the outputs in contact of the lowest and the highest twentieth of the
+    closures), and those twentieths' median closures (m): NaN where too few outputs."""
+    gate = kin.gate
+    inside = np.ones(kin.x.size, dtype=bool) if gate is None else gate > 0
+    x, f = kin.x[inside], kin.force[inside]
+    if x.size < 20:
+        return math.nan, (math.nan, math.nan)
+    a, b = np.percentile(x, [5.0, 95.0])
+    low, high = x <= a, x >= b
+    f_hi = float(np.median(f[high]))
+    if not f_hi > 0:
+        return math.nan, (math.nan, math.nan)
+    return float(np.median(f[low])) / f_hi, (float(np.median(x[low])), float(np.median(x[high])))
 
 
 def tau_range(kin: Kinematics) -> tuple[float, float]:
