@@ -27,7 +27,7 @@ def test_the_inertia_column_is_the_gated_acceleration_filtered_at_the_edges() ->
     """With the true (noise-free) closure, the column at the outputs within a quarter
     window of an edge equals the filtered gated true acceleration to 5 % of its RMS
     there (the sampled Gaussian's second derivative against the second difference;
-    gating the half window's own acceleration was off by 41 %), and where the whole
+    gating the half window's own acceleration was off by 19 %), and where the whole
     window is in contact the column is the plain ``g'' * x`` to rounding."""
     scene, n, ready = _scene_and_fit()
     kin = ready.kinematics

@@ -367,8 +367,8 @@ class Kinematics:
         window's span about it (the jaws move smoothly through the touch; a single
         sample's closure, over ``dt^2``, would carry its noise into the column).
         Gating the half window's own acceleration ``g_h'' * x`` instead smooths the
-        step of the flags once too few: at 3.7 kHz its column was off by 14 % of its
-        size at the edges, where a relaxation branch took up the misfit."""
+        step of the flags once too few: at 3.7 kHz its column was off by 19 % of its
+        RMS within a quarter window of the edges, where a relaxation branch took up the misfit."""
         assert self.half is not None and self.touching is not None
         gh, _, gh2, _ = self.half
         m = self.touching[: x_full.size].astype(float)
