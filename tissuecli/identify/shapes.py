@@ -12,7 +12,8 @@ within 10 ms to 100 s); several branches' time constants are ordered, tau1 < tau
 uniform over that triangle; the Hunt-Crossley exponent n is uniform on [1, 2.5]; the
 contact point x0 uniform from a quarter of the closure's span below its lowest fitted
 value (or from the lowest closure of the whole session, where the fit keeps to the
-grasps) to half the span above it.
+grasps, or from where the force across the closures lets the steepest exponent touch:
+:meth:`~tissuecli.core.terms.ContactPoint.reach`) to half the span above it.
 """
 
 from __future__ import annotations
