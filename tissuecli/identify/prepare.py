@@ -111,7 +111,7 @@ def prepare(
     grid by the samples in contact (:func:`fit_grasps`): ``grasps="all"`` (every
     grasp), ``"none"`` (every sample, contact or not) or 1-based grasp numbers. With
     every grasp, the filtered samples of jaws near their most open are fitted too
-    where they read an offset (:func:`open_jaws`), the tissue's columns zero there:
+    where they read an offset (:func:`open_limit`), the tissue's columns zero there:
     they read the force sensor's offset alone.
 
     ``refuse_constant=False`` lets jaws that never move through (to predict a hold: a
@@ -282,7 +282,7 @@ class GraspRules:
         (:func:`touching_by_closure`, m); None: the contact flags alone.
     open_m : float or None
         Jaws a quarter of a filter's width from every grasp whose smoothed closure lies
-        below this are open (:func:`open_jaws`, m); None: none are read open.
+        below this are open (:func:`open_limit`, m); None: none are read open.
     open_fitted : bool
         The open jaws are fitted, their tissue columns zero, for the sensor's offset
         (:func:`fit_grasps`).
@@ -365,7 +365,7 @@ def fit_grasps(
     offset in contact may be the sensor's or a preload (a spring touched short of zero
     closure), the free jaws read the sensor's alone.
 
-    Where the rules fit the open jaws (:func:`open_jaws`), the outputs whose window lies
+    Where the rules fit the open jaws (:func:`open_mask`), the outputs whose window lies
     wholly in them are added too, in time order: the tissue's columns are zero there
     and the force is the sensor's offset, so a law's offset is measured where nothing
     else can stand in for it (inside the grasps a spring's intercept trades with it).
@@ -409,8 +409,16 @@ def fit_grasps(
 
 
 def open_limit(session: Session, contact: NDArray[np.bool_], kin: Kinematics) -> float | None:
-    """The smoothed closure below which jaws away from every grasp are open (m) (see
-    :func:`open_jaws`); None where no closure in contact is seen."""
+    """The smoothed closure below which jaws away from every grasp are surely free of the
+    tissue (m; :func:`open_mask`): within :data:`REST_FRACTION` of the way from the
+    session's most open to the least closure of any grasp (less :data:`OPEN_SD` noise
+    SDs and a quantisation step); None where no closure in contact is seen.
+
+    The closure test guards against contact too weak for the grasp detector (a soft
+    tissue, or a noisy session's loose grasp, a few noise SDs above the free level):
+    the tissue is touched at one closure, below the least the detector saw in contact
+    by however much contact it missed; jaws opened most of the way from there to their
+    widest touch nothing, whatever the force reads there."""
     x = session.position
     if not contact.any():
         return None
@@ -444,24 +452,6 @@ def open_mask(
     xs = np.full(x.size, np.inf)
     xs[h : h + smooth.size] = smooth
     return ~near & (xs < limit)
-
-
-def open_jaws(session: Session, contact: Contact, kin: Kinematics) -> NDArray[np.bool_]:
-    """Samples where the jaws are surely free of the tissue, shape (n,): outside every
-    grasp by :data:`OPEN_MARGIN` of a filter's width, and near their most open: their
-    smoothed closure within :data:`REST_FRACTION` of the way from the session's most
-    open to the least closure of any grasp (less :data:`OPEN_SD` noise SDs and a
-    quantisation step).
-
-    The closure test guards against contact too weak for the grasp detector (a soft
-    tissue, or a noisy session's loose grasp, a few noise SDs above the free level):
-    the tissue is touched at one closure, below the least the detector saw in contact
-    by however much contact it missed; jaws opened most of the way from there to their
-    widest touch nothing, whatever the force reads there."""
-    limit = open_limit(session, contact.mask, kin)
-    if limit is None:
-        return np.zeros(len(session), bool)
-    return open_mask(session.position, contact.mask, kin.kernels[0], limit)
 
 
 def _near(chosen: NDArray[np.bool_], window: int) -> NDArray[np.bool_]:
