@@ -557,10 +557,15 @@ class BayesianFit(Estimator):
         return max(ranked, key=lambda r: r.ln_evidence)
 
     @staticmethod
-    def _residual_of(result: ModelResult, fit: Context) -> tuple[Array, Array]:
+    def _least_squares_law(result: ModelResult) -> Law:
+        """The law as least squares fits it (its shape at the least-squares optimum,
+        where that differs from the posterior's)."""
+        return result.least_squares[0] if result.least_squares is not None else result.model
+
+    def _residual_of(self, result: ModelResult, fit: Context) -> tuple[Array, Array]:
         """A law's design at the fitted rows and its least-squares residuals (N),
         unfiltered: the law as least squares fits it where that differs."""
-        law = result.least_squares[0] if result.least_squares is not None else result.model
+        law = self._least_squares_law(result)
         A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
         return A, fit.y - A @ lstsq_scaled_cond(A, fit.y)[0]
 
@@ -587,8 +592,7 @@ class BayesianFit(Estimator):
     ) -> tuple[float, float]:
         """The residual autocorrelation time (samples) of the law with the most evidence
         and the data weight its residuals support (:func:`data_weight`)."""
-        top = self._top(results)
-        law = top.least_squares[0] if top.least_squares is not None else top.model
+        law = self._least_squares_law(self._top(results))
         fp = first_pass(law, fit.kin, fit.x_full, fit.y, fit.sigma_x, fit.columns, fit.paths)
         A = design(law, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
         residual = fit.y - A @ fp.beta
