@@ -10,7 +10,7 @@ like with like, but predicts a smoothed force: what the filter removed is lost, 
 on held-out data of known law that put the prediction 2-20 times further from the
 true force than the measured force's noise floor.
 
-Three things make the law's force the best estimate of the true one:
+Four things make the law's force the best estimate of the true one:
 
 - **Each derivative its own smoothing.** Position noise reaches the law through x, xdot
   and xddot, amplified by the derivative's order, and a law weighs each by its own
@@ -26,6 +26,12 @@ Three things make the law's force the best estimate of the true one:
   motion (:func:`~tissuecli.identify.contact.find_contact`, as a fit finds them), the
   tissue's terms are zero outside the grasps and the force is the law's offset alone
   (the sensor's): the law was fitted in contact and says nothing of open jaws.
+- **Breaks in the motion.** A ramp that starts or stops steps the acceleration (a
+  constant-speed ramp kinks the closure), and a centred window across the step spreads
+  it over the whole window, which a law's inertia carries into the force. Where a
+  window's residual shows a break, the window bends there (a polynomial with a kink
+  in its slope and a step in its curvature at the break, averaged over the break's
+  likely places); whether that helps each derivative is chosen as the windows are.
 - **Dry friction at a turn.** Near zero speed the estimated speed has either sign; the
   friction column is the mean of its two directions over the speed estimate's error
   (:meth:`~tissuecli.core.terms.Term.expected`), not the sign of the estimate.
@@ -37,6 +43,7 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -407,7 +414,9 @@ WIDEST = 16.0
 #: the smoothers are chosen on at most this many samples (the last of those given)
 TUNE_SAMPLES = 200_000
 
-Smoother = tuple[int, int]  # (degree, window in samples)
+#: (degree, window in samples, whether a window across a break in the motion bends
+#: there: :func:`_bend_at_breaks`)
+Smoother = tuple[int, int, bool]
 
 
 def _tuned_design(
@@ -431,7 +440,7 @@ def _tuned_design(
             f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
         )
     sigma_x = position_noise_sd(x, 1.0 / dt, usable)
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, False)] * 3
     ref = chooses & np.isfinite(grid.force)
     if np.count_nonzero(ref) > 4 * w0:  # enough measured force to choose on
         last = int(np.flatnonzero(ref)[-1]) + 1
@@ -464,7 +473,7 @@ def _choose(
             continue
         grid_w = {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)} | {w0}
         candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
-    cache: dict[tuple[int, Smoother], tuple[Array, float]] = {}
+    cache: dict[Any, Any] = {}
 
     terms = tissue.law.terms
     # the derivatives each term's column reads: it is recomputed only when they change
@@ -487,11 +496,12 @@ def _choose(
     reads = {term.variable for term in tissue.law.terms}
     needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
               if reads & what]  # fmt: skip
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, False)] * 3
     best = error(chosen)
     for _ in range(2):
         for k in needed:
-            for c in candidates:
+            # each window as it is, and bending at the motion's breaks
+            for c in [(*c, hinged) for c in candidates for hinged in (False, True)]:
                 trial = [c if j == k else chosen[j] for j in range(3)]
                 e = error(trial)
                 if e < best:
@@ -516,10 +526,12 @@ def _columns(
     dt = float(np.median(np.diff(grid.time)))
     cache = {} if cache is None else cache
     est = []
-    for k, (degree, w) in enumerate(smoothers):
-        if (k, (degree, w)) not in cache:
-            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt, sigma_x)
-        est.append(cache[k, (degree, w)])
+    for k, smoother in enumerate(smoothers):
+        if (k, smoother) not in cache:
+            degree, w, hinged = smoother
+            memo = cache.setdefault("breaks", {})  # type: ignore[call-overload]
+            cache[k, smoother] = _smoothed(x, w, degree, k, dt, sigma_x, hinged, memo)
+        est.append(cache[k, smoother])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
     var_v = (sigma_x * gain_v) ** 2
@@ -530,7 +542,7 @@ def _columns(
         for term in terms
     ]  # fmt: skip
     A = np.column_stack(cols)
-    A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
+    A[_reaches_hole(usable, max(w for _, w, _ in smoothers))] = np.nan
     return A
 
 
@@ -555,12 +567,20 @@ def _fit_matrix(w: int, degree: int) -> Array:
 
 
 def _smoothed(
-    x: Array, w: int, degree: int, k: int, dt: float, sigma_x: float = 0.0
+    x: Array,
+    w: int,
+    degree: int,
+    k: int,
+    dt: float,
+    sigma_x: float = 0.0,
+    hinged: bool = False,
+    memo: dict[Any, Array] | None = None,
 ) -> tuple[Array, float]:
     """The ``k``-th derivative's Savitzky-Golay estimate at every sample (centred windows;
     in the half window at either end the end window's polynomial, its degree chosen by
     :func:`_end_values` for position noise of SD ``sigma_x``, m) and the norm of its
-    kernel (the gain of white noise)."""
+    kernel (the gain of white noise). With ``hinged``, a window across a break in the
+    motion bends there (:func:`_bend_at_breaks`)."""
     h = w // 2
     fit = _fit_matrix(w, degree)
     scale = math.factorial(k) / (max(h, 1) * dt) ** k
@@ -572,7 +592,160 @@ def _smoothed(
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
         u = (where - (lo + h)) / max(h, 1)
         out[where] = unit * _end_values(x[lo : lo + w], u, degree, k, sigma_x)
+    if hinged and 0 < k < fit.shape[0]:  # a closure's own estimate barely bends at one
+        _bend_at_breaks(out, x, fit, k, scale, memo)
     return out, float(np.linalg.norm(kernel))
+
+
+#: a window's residual about its polynomial marks a break in the motion where it stands
+#: beyond this quantile of its chi-square (scaled to the session's median window): once
+#: in a thousand windows of smooth motion
+BREAK_QUANTILE = 0.999
+
+
+def _bend_at_breaks(
+    out: Array,
+    x: Array,
+    fit: Array,
+    k: int,
+    scale: float,
+    memo: dict[Any, Array] | None = None,
+) -> None:
+    """Replace in ``out`` the ``k``-th derivative of the samples whose centred window
+    holds a break in the motion (a step in acceleration at a ramp's start, a kink in
+    a constant-speed ramp) by that of a polynomial with a hinge at the break, in place.
+
+    A centred window across a step in acceleration spreads the step over the window
+    (a ramp of its full height), and a law's inertia carries that error into the
+    predicted force. A centred window whose residual sum of squares about its
+    polynomial is improbable for smooth motion (:data:`BREAK_QUANTILE` of a chi-square
+    with the window's residual degrees of freedom, scaled so the median window is its
+    median) holds a break, and each run of such windows holds one. Its place is known
+    to a few samples at best: each place between two samples within a half window of
+    the run is weighed by the likelihood of a window twice as long about it, fitted by
+    the polynomial plus a kink in its slope and a step in its curvature there (a
+    change point). Each sample whose window reaches a likely place takes the mean, over
+    the places, of the derivative of its own window's polynomial and hinge. Elsewhere
+    the centred window, whose noise is the least, stays. Runs too long to hold one
+    break, or breaks in most windows (a window too wide for the motion), are left.
+
+    Parameters
+    ----------
+    out : ndarray, shape (n,)
+        The centred estimates, in the derivative's SI unit; changed in place.
+    x : ndarray, shape (n,)
+        Closure, m.
+    fit : ndarray, shape (d + 1, w)
+        The window's polynomial fit (:func:`_fit_matrix`).
+    k : int
+        The derivative's order.
+    scale : float
+        From the ``k``-th polynomial coefficient to the derivative (``k! / (h dt)^k``).
+    memo : dict, optional
+        The windows' residuals, kept for the other derivatives of the same ``x``.
+    """
+    from scipy.special import gammaincinv  # chi-square quantiles, without scipy.stats
+
+    d1, w = fit.shape
+    n, h = x.size, w // 2
+    dof = w - d1
+    if dof < 2 or n < 3 * w or h < 2:
+        return
+    xc = x - float(np.median(x))  # sums of squares without cancellation
+    memo = {} if memo is None else memo
+    if ("rss", h, d1) not in memo:
+        memo["rss", h, d1] = _window_rss(xc, h, d1)
+    rss = memo["rss", h, d1]  # by window start
+    typical = float(np.median(rss)) / (2.0 * float(gammaincinv(dof / 2, 0.5)))  # variance
+    if not typical > 0:
+        return
+    flagged = np.flatnonzero(rss > typical * 2.0 * float(gammaincinv(dof / 2, BREAK_QUANTILE)))
+    if flagged.size == 0 or flagged.size > BREAKS_AT_MOST * rss.size:
+        return
+    # a window centred on a kink can fit it better than its neighbours: one run of
+    # windows about a break may have holes, closed here up to a window's length
+    runs = np.split(flagged, np.flatnonzero(np.diff(flagged) > w) + 1)
+    # the misfit of a hinge between samples c - 1 and c, on the 4 h + 1 samples about c
+    if ("hinged", h, d1) not in memo:
+        memo["hinged", h, d1] = _window_rss(xc, 2 * h, d1, hinged=True)
+    misfit = memo["hinged", h, d1]  # by centre - 2 h
+    kernels = _hinge_kernels(h, d1, k) * (scale / math.factorial(k))
+    windows = np.lib.stride_tricks.sliding_window_view(x, w)  # by start
+    for run in runs:
+        if run[-1] - run[0] > 2 * w:
+            continue  # more than one break
+        lo, hi = max(int(run[0]) + h, 2 * h), min(int(run[-1]) + h, n - 2 * h - 1)
+        if hi < lo:
+            continue
+        centres = np.arange(lo, hi + 1)
+        m = misfit[centres - 2 * h]
+        weight = np.exp(-(m - m.min()) / (2.0 * typical))
+        likely = weight > 1e-4 * weight.max()
+        places, weight = centres[likely], weight[likely] / weight[likely].sum()
+        at = np.arange(max(int(places[0]) - h - 1, h), min(int(places[-1]) + h, n - h - 1) + 1)
+        values = np.zeros(at.size)
+        for c, p in zip(places, weight, strict=True):
+            # the hinge at c - 1/2, seen from each sample's window: kernel row c - i + h
+            row = np.clip(c - at + h, 0, 2 * h + 1)
+            values += p * np.einsum("mw,mw->m", kernels[row], windows[at - h])
+        out[at] = values
+
+
+#: at most this fraction of windows may hold a break for them to be mended
+BREAKS_AT_MOST = 0.2
+
+
+def _window_rss(xc: Array, h: int, d1: int, hinged: bool = False) -> Array:
+    """Residual sum of squares of each window of ``2 h + 1`` samples of ``xc`` about
+    its least-squares polynomial of ``d1`` coefficients, shape (n - 2 h,), by the
+    window's first sample; ``hinged``: about that polynomial plus a kink in its slope
+    and a step in its curvature between its centre and the sample before. By
+    convolutions: the polynomial part's projection is that of an orthonormal basis,
+    the hinge's that of its columns made orthogonal to the polynomials."""
+    w = 2 * h + 1
+    u = (np.arange(w) - h) / h
+    basis = np.linalg.qr(np.vander(u, d1, increasing=True))[0]  # (w, d1), orthonormal
+    rss = convolve_valid(xc**2, np.ones(w))
+    for q in basis.T:
+        rss -= convolve_valid(xc, q[::-1]) ** 2
+    if hinged:
+        r = np.clip(u + 0.5 / h, 0.0, None)
+        hinge = np.column_stack([r, r**2])
+        hinge -= basis @ (basis.T @ hinge)
+        hinge = np.linalg.qr(hinge)[0]
+        for q in hinge.T:
+            rss -= convolve_valid(xc, q[::-1]) ** 2
+    return np.clip(rss, 0.0, None)
+
+
+@functools.lru_cache(maxsize=64)
+def _hinge_kernels(h: int, d1: int, k: int) -> Array:
+    """The ``k``-th derivative (in the window's time over its half-width) at the centre
+    of a window of ``2 h + 1`` samples, fitted by a polynomial of ``d1`` coefficients
+    plus a kink in its slope and a step in its curvature between samples ``j - 1`` and
+    ``j`` of the window, as weights on its samples: row ``j``, shape (2 h + 2, 2 h + 1).
+    Rows 0 and 2 h + 1 put the hinge outside the window (the polynomial alone)."""
+    w = 2 * h + 1
+    u = (np.arange(w) - h) / h
+    j = np.arange(1, w)[:, None]  # the hinges inside the window, between j - 1 and j
+    r = np.clip((np.arange(w)[None, :] - j + 0.5) / h, 0.0, None)  # (w - 1, w)
+    poly = np.vander(u, d1, increasing=True)
+    A = np.concatenate([np.broadcast_to(poly, (w - 1, w, d1)), r[..., None], (r**2)[..., None]],
+                       axis=2)  # fmt: skip
+    coef = np.linalg.pinv(A)  # (w - 1, d1 + 2, w)
+    # the derivative at u = 0 (sample h), on its own side of the hinge
+    rc = np.clip((h - j[:, 0] + 0.5) / h, 0.0, None)[:, None]
+    past = (j[:, 0] <= h).astype(float)[:, None]
+    inside = coef[:, k] * math.factorial(k) if k < d1 else np.zeros((w - 1, w))
+    if k == 0:
+        inside = inside + coef[:, d1] * rc + coef[:, d1 + 1] * rc**2
+    elif k == 1:
+        inside = inside + coef[:, d1] * past + 2.0 * coef[:, d1 + 1] * rc
+    elif k == 2:
+        inside = inside + 2.0 * coef[:, d1 + 1] * past
+    plain = np.linalg.pinv(poly)[k] * math.factorial(k) if k < d1 else np.zeros(w)
+    out = np.vstack([plain, inside, plain])
+    return out
 
 
 #: a lower degree at a session's ends must agree with every higher one within this many
