@@ -272,7 +272,8 @@ def test_a_window_across_a_step_in_acceleration_bends_there(degree: int) -> None
 
 
 @pytest.mark.parametrize(
-    ("seed", "was"), [(7265007, 1.71), (9820720, 1.62), (9820730, 5.26), (6630410, 2.50)]
+    ("seed", "was"),
+    [(7265007, 1.71), (9820720, 1.62), (9820730, 5.26), (6630410, 2.50), (6630420, 2.34)],
 )
 def test_the_true_law_predicts_a_held_out_end_within_the_floor(seed: int, was: float) -> None:
     """Sessions whose held-out end was lost to the end windows, to the grasp detector
@@ -281,9 +282,11 @@ def test_the_true_law_predicts_a_held_out_end_within_the_floor(seed: int, was: f
     edge; a Hunt-Crossley tissue in contact throughout whose closure dips short of its
     contact point, read free by the detector with the small force past that point; and
     grasps at 6.7 kHz whose squeeze starts and stops with a step of 20 m/s^2 in
-    acceleration, spread over the window by a centred one. The true law through
+    acceleration, spread over the window by a centred one; and two relaxation branches
+    in grasps whose loose part the detector reads free (54 % of the samples, where 33 %
+    are), where a law with memory kept its tissue's force at zero. The true law through
     ``predict_band`` lands within the 1.5 times the floor the generalisation benchmark
-    asks of a fit (0.98, 1.28, 0.12 and 1.09 today)."""
+    asks of a fit (0.98, 1.28, 0.12, 1.09 and 0.28 today)."""
     rms, floor = _true_law_held_out(seed)
     assert rms < 1.5 * floor, (rms, was)
 

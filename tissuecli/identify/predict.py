@@ -212,8 +212,12 @@ def predict_band(
         if past.any() and not _law_reads_contact(A, tissue.coef, kept, grid.force, past & judged):
             free = detected  # terms with memory are held across these samples too
             A = regressors(free)
-        if free.any() and not any(t.memory for t in tissue.law.terms):
-            free = free & ~_touching_by_closure(A, tissue.coef, kept, grid, free)
+        if free.any():
+            touched = _touching_by_closure(A, tissue.coef, kept, grid, free & judged)
+            if touched.any():
+                free = free & ~(grid.position >= grid.position[touched].min())
+                if any(t.memory for t in tissue.law.terms):
+                    A = regressors(free)  # the branches see the closure where it touches
         A[free] *= kept
         predicted_grid, measured_grid = A @ tissue.coef, grid.force
         noise = None
@@ -364,10 +368,13 @@ def _touching_by_closure(
     The detector reads contact from the force standing clear of its noise, so a grasp's
     loose part (a noisy session's light taps, a soft law at small closure) is read
     free, and its force predicted as the sensor's offset alone. The tissue is touched
-    past one closure, though: over the samples read free, the threshold c that best
-    splits them into contact (closure >= c, the law's force) and free jaws (below, the
-    offset's) is taken, where it beats reading them all free by :data:`TOUCH_BIC`
-    times the noise variance times ln(samples); none otherwise."""
+    past one closure, though: over the samples read free (``free``: those of the part
+    that chooses the smoothers, so a held-out part's force is never read), the
+    threshold c that best splits them into contact (closure >= c, the law's force) and
+    free jaws (below, the offset's) is taken, where it beats reading them all free by
+    :data:`TOUCH_BIC` times the noise variance times ln(samples); none otherwise. A law
+    with memory is formed again with its branches driven through the samples so
+    touched."""
     rows = free & np.all(np.isfinite(A), axis=1) & np.isfinite(grid.force)
     if np.count_nonzero(rows) < 8:
         return np.zeros(free.size, bool)
