@@ -133,3 +133,55 @@ def test_a_session_on_every_sample_never_uses_the_spans(scored: list[tuple[Any, 
     assert shaped.ShapedPass(law, fit).reduced.usable
     full = replace(fit, kin=replace(fit.kin, stride=1), spans={})
     assert not shaped.ShapedPass(law, full).reduced.usable
+
+
+def test_a_few_rows_against_many_are_products_row_by_row() -> None:
+    rng = np.random.default_rng(7)
+    B = rng.standard_normal((40, 3000))
+    for rows in (1, 2, 3, 5):
+        A = rng.standard_normal((rows, 3000))
+        for got, want in ((reduced.product(A, B), A @ B.T), (reduced.product(B, A), B @ A.T)):
+            # the same sums, in another order at most: rounding of 3000 terms of size 1
+            assert got.shape == want.shape
+            assert np.max(np.abs(got - want)) <= 1e-12
+        # up to THIN rows, each row the numbers of its own product, whatever rows stand
+        # beside it
+        one = reduced.product(A, B)
+        for i in range(rows if rows <= reduced.THIN else 0):
+            assert np.array_equal(one[i], (A[i : i + 1] @ B.T)[0])
+
+
+def test_a_shape_seen_before_is_not_projected_again(
+    scored: list[tuple[Any, Any]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(reduced, "level_basis", lambda *a, **k: None)
+    laws = {law.name: (law, fit) for law, fit in scored}
+    law, fit = laws["contact+contact*xdot+xddot"]
+    sibling = laws["contact+maxwell+contact*xdot+xddot"][0]
+    fresh = replace(fit, spans={})
+    calls: list[int] = []
+    many, one = reduced.ClosureSpan.coordinates_many, reduced.RowSpan.coordinates
+    monkeypatch.setattr(reduced.ClosureSpan, "coordinates_many",
+                        lambda self, v, t: calls.append(len(v)) or many(self, v, t))  # fmt: skip
+    monkeypatch.setattr(reduced.RowSpan, "coordinates",
+                        lambda self, c: calls.append(1) or one(self, c))  # fmt: skip
+    node = shape_grid(law, fit.kin).nodes[7]
+    first = shaped.ShapedPass(law, fresh).reduced(law.bind(node))
+    assert first is not None and calls
+    # the sibling at the same contact: only its relaxation branch is new, once per
+    # time constant whatever the contact's shape
+    light = shaped.ShapedPass(sibling, fresh)
+    taus = [1.0, 1.0, 3.0]
+    for k, tau in enumerate(taus):
+        calls.clear()
+        at = {**node, "n": node["n"] + 0.01 * k, "tau1": tau} if k else {**node, "tau1": tau}
+        got = light.reduced(sibling.bind(at))
+        assert got is not None
+        want = light._filtered([sibling.bind(at)])[0]
+        for name in ("gram", "b", "correction"):
+            a, b = np.asarray(getattr(got, name)), np.asarray(getattr(want, name))
+            assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(b)), name
+        new_contact = k > 0
+        new_branch = tau not in taus[:k]
+        # the contact's stiffness and slope (one call) and contact damping (another)
+        assert len(calls) == 2 * new_contact + new_branch, (k, calls)

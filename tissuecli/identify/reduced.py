@@ -83,9 +83,14 @@ class ClosureSpan:
         self.rows = kin.force.size
         self.most = int(min(self.levels.size, MAX_BYTES // (8 * max(self.rows, 1))))
         self._Q = np.zeros((0, self.levels.size))  # basis vectors, weighted coordinates
-        self._C = np.zeros((0, self.rows))  # their filtered columns, one a row
+        # their filtered columns, one a row: room for all at once (zeros the system
+        # hands out as rows are written), where doubling copied all before
+        self._C = np.zeros((self.most, self.rows))
         self.size = 0
         self.misses = 0
+        #: coordinates found before, by what the function hangs on (kept by
+        #: :class:`ReducedPass`): a node of one law's grid is a node of its siblings'
+        self.known: dict[Any, Array] = {}
         self._lock = threading.Lock()
 
     @property
@@ -116,7 +121,7 @@ class ClosureSpan:
             # gated by the contact flags on the raw grid (Kinematics.smooth_pointwise)
             column = self.kin.smooth_pointwise(lambda _: q * self.inverse, self.x_full,
                                                self.speed)  # fmt: skip
-            self._Q, self._C = _room(self._Q, self.size), _room(self._C, self.size)
+            self._Q = _room(self._Q, self.size)
             self._Q[self.size] = q
             self._C[self.size] = column
             self.size += 1
@@ -133,8 +138,9 @@ class ClosureSpan:
             return [self.coordinates(v, t) for v, t in zip(values, tolerances, strict=True)]
         with self._lock:
             Q = self._Q[: self.size]
-            c = V @ Q.T
-            rest = V - c @ Q
+            # row by row (matrix-vector products, see :func:`product`)
+            c = product(V, Q)
+            rest = np.concatenate([V[i : i + 1] - c[i : i + 1] @ Q for i in range(len(V))])
         left = np.sqrt(np.einsum("ij,ij->i", rest, rest))
         norm = np.sqrt(np.einsum("ij,ij->i", V, V))
         return [c[i] if left[i] <= tolerances[i] * norm[i]
@@ -157,6 +163,24 @@ def _project(Q: Array, v: Array, tolerance: float) -> tuple[Array, Array | None,
     c += again
     left = float(np.sqrt(rest @ rest))
     return (c, None, left) if left <= tolerance * norm else (c, rest, left)
+
+
+#: most rows of the thinner stack :func:`product` takes one at a time
+THIN = 3
+
+
+def product(A: Array, B: Array) -> Array:
+    """``A @ B.T`` of two stacks of rows, shape (r, s), one matrix-vector product per
+    row of the thinner where it has 2 to :data:`THIN` rows. A matrix product of a few
+    rows by many packs (copies) the many first, and costs about twice as much as a
+    pass over them per row; a stack of one row is already a matrix-vector product, so
+    each row's numbers are those of that row's product alone."""
+    r, s = A.shape[0], B.shape[0]
+    if 1 < r <= THIN and r <= s:
+        return np.concatenate([A[i : i + 1] @ B.T for i in range(r)])
+    if 1 < s <= THIN:
+        return np.concatenate([A @ B[j : j + 1].T for j in range(s)], axis=1)
+    return A @ B.T
 
 
 def _room(stack: Array, size: int) -> Array:
@@ -202,12 +226,12 @@ class Grown:
         out = np.empty((A.shape[0], B.shape[0]))
         out[:r0, :s0] = self.value
         if r0 < A.shape[0]:
-            out[r0:, :] = A[r0:] @ B.T
+            out[r0:, :] = product(A[r0:], B)
         if s0 < B.shape[0]:
             if self.right is None:
                 out[:r0, s0:] = out[s0:, :r0].T
             else:
-                out[:r0, s0:] = A[:r0] @ B[s0:].T
+                out[:r0, s0:] = product(A[:r0], B[s0:])
         self.value = out
         return out
 
@@ -275,9 +299,12 @@ class RowSpan:
     def __init__(self, rows: int) -> None:
         self.rows = rows
         self.most = int(MAX_BYTES // (8 * max(rows, 1)))
-        self._B = np.zeros((0, rows))
+        self._B = np.zeros((self.most, rows))  # as ClosureSpan's columns
         self.size = 0
         self.misses = 0
+        #: coordinates found before, by the term and shape of the column (a relaxation
+        #: branch's time constant recurs at each node of the other shapes)
+        self.known: dict[Any, Array] = {}
         self._lock = threading.Lock()
 
     @property
@@ -297,7 +324,6 @@ class RowSpan:
                 return c
             if self.size >= self.most:
                 return None
-            self._B = _room(self._B, self.size)
             self._B[self.size] = rest / left
             self.size += 1
             self.misses += 1
@@ -305,6 +331,11 @@ class RowSpan:
 
 
 Span = ClosureSpan | RowSpan
+
+
+def shaped_term(term: Term) -> tuple[str, str, tuple[float, ...]]:
+    """What a shaped term's column hangs on, as a key: its kind, name and shape."""
+    return (type(term).__qualname__, term.name, tuple(term.shape[n] for n in term.shapes))
 
 
 def level_span(
@@ -462,30 +493,48 @@ class ReducedPass:
         o, fit = self.owner, self.owner.fit
         fixed, moving = o.fixed, o.moving
         var = fit.sigma_x**2
-        # each function of the closure a span is asked about, by span: (slot, values)
-        asked: dict[int, tuple[ClosureSpan, list[tuple[tuple[str, int], Array, float]]]] = {}
+        # each function of the closure a span is asked about, by span: (slot, its key
+        # in the span's known coordinates, values, tolerance)
+        asked: dict[int, tuple[ClosureSpan, list[tuple[tuple[str, int], Any, Array, float]]]] = {}
         found: dict[tuple[str, int], Array | None] = {}
         for i, (kind, j, span, slope_span) in enumerate(self.plan):
             t = bound.terms[j]
+            name = shaped_term(t)
             if kind == "level":
                 assert isinstance(span, ClosureSpan)
-                how = column_function(t, var)
-                assert how is not None
-                asked.setdefault(id(span), (span, []))[1].append(
-                    (("c", i), how[0](span.levels), TOLERANCE)
-                )
+                key = ("c", name, var)
+                if key in span.known:
+                    found["c", i] = span.known[key]
+                else:
+                    how = column_function(t, var)
+                    assert how is not None
+                    asked.setdefault(id(span), (span, []))[1].append(
+                        (("c", i), key, how[0](span.levels), TOLERANCE)
+                    )
             else:
                 assert isinstance(span, RowSpan)
-                column = term_column(t, fit.kin, fit.x_full, fit.sigma_x, raw_speed=o.speed)
-                found["c", i] = span.coordinates(o._white(column))
+                got = span.known.get((name, var))
+                if got is None:
+                    column = term_column(t, fit.kin, fit.x_full, fit.sigma_x, raw_speed=o.speed)
+                    got = span.coordinates(o._white(column))
+                    if got is not None:
+                        span.known[name, var] = got
+                found["c", i] = got
             if slope_span is not None and fit.sigma_x > 0:
-                values = t.derivative(slope_span.levels)
-                asked.setdefault(id(slope_span), (slope_span, []))[1].append(
-                    (("e", i), values, SLOPE_TOLERANCE)
-                )
+                key = ("e", name, var)
+                if key in slope_span.known:
+                    found["e", i] = slope_span.known[key]
+                else:
+                    values = t.derivative(slope_span.levels)
+                    asked.setdefault(id(slope_span), (slope_span, []))[1].append(
+                        (("e", i), key, values, SLOPE_TOLERANCE)
+                    )
         for span, items in asked.values():
-            got = span.coordinates_many([v for _, v, _ in items], [t for *_, t in items])
-            found.update(zip([key for key, *_ in items], got, strict=True))
+            got = span.coordinates_many([v for *_, v, _ in items], [t for *_, t in items])
+            for (slot, key, *_), c in zip(items, got, strict=True):
+                found[slot] = c
+                if c is not None:
+                    span.known[key] = c
         if any(c is None for c in found.values()):
             return None
         coords = [pad(found["c", i], span.size)  # type: ignore[arg-type]
