@@ -22,6 +22,12 @@ Three things make the law's force the best estimate of the true one:
   truth. An estimator chooses on the force it was fitted to (a held-out part's own
   force is never read); a parameter file with another recording chooses on that
   recording.
+- **A coarse ADC's staircase read by its crossings.** At 8-10 bits and kilohertz rates
+  the closure holds a level for tens of samples, a sawtooth of one step that no
+  window averages out; each derivative may read instead the closure rebuilt through
+  the times it crosses each level
+  (:func:`~tissuecli.identify.derivatives.staircase.staircase`), chosen, as the window
+  is, where the law agrees best with the measured force.
 - **Free jaws carry no tissue.** Where the session alternates grasps with free jaw
   motion (:func:`~tissuecli.identify.contact.find_contact`, as a fit finds them), the
   tissue's terms are zero outside the grasps and the force is the law's offset alone
@@ -48,6 +54,7 @@ from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
 from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
+from .derivatives.staircase import staircase
 from .design import design, held_closure, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare, touching_by_closure
 from .spectrum import convolve_valid, white_noise_sd
@@ -407,7 +414,31 @@ WIDEST = 16.0
 #: the smoothers are chosen on at most this many samples (the last of those given)
 TUNE_SAMPLES = 200_000
 
-Smoother = tuple[int, int]  # (degree, window in samples)
+#: (degree, window in samples, source): source 0 smooths the closure as read, 1 the
+#: closure rebuilt from its level crossings where it is a staircase
+#: (:func:`~tissuecli.identify.derivatives.staircase.staircase`)
+Smoother = tuple[int, int, int]
+
+#: a closure to smooth and the SD of its white noise (m)
+Source = tuple[Array, float]
+
+
+def _sources(grid: Session, usable: NDArray[np.bool_], dt: float) -> list[Source]:
+    """The closures a smoother may read: as read, and where it is a staircase also
+    rebuilt from its level crossings, each with its noise's SD (m).
+
+    A coarse ADC's staircase leaves the position a slow sawtooth of one step that a
+    polynomial smoother follows into its speed and acceleration unless its window
+    spans many steps; the rebuilt closure passes through each crossing, known within a
+    sample. Which of the two each derivative reads is chosen as its window is, by the
+    law's agreement with the measured force, so a dithered staircase (whose crossings
+    chatter) keeps the closure as read where that agrees better."""
+    x = grid.position
+    out: list[Source] = [(x, position_noise_sd(x, 1.0 / dt, usable))]
+    rebuilt = staircase(x, dt, usable)
+    if rebuilt is not None:
+        out.append(rebuilt)
+    return out
 
 
 def _tuned_design(
@@ -418,10 +449,10 @@ def _tuned_design(
     chooses: NDArray[np.bool_],
 ) -> Array:
     """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a smoother
-    (degree and window) for each derivative (x, xdot, xddot), chosen where the law's
-    force is closest to the measured force over the ``chooses`` samples: derivative by
-    derivative, the acceleration first, twice over. Tissue terms are zero on ``free``
-    samples."""
+    (degree, window and closure, :data:`Smoother`) for each derivative (x, xdot,
+    xddot), chosen where the law's force is closest to the measured force over the
+    ``chooses`` samples: derivative by derivative, the acceleration first, twice over.
+    Tissue terms are zero on ``free`` samples."""
     t, x = grid.time, grid.position
     n = x.size
     dt = float(np.median(np.diff(t)))
@@ -430,14 +461,14 @@ def _tuned_design(
         raise FitError(
             f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
         )
-    sigma_x = position_noise_sd(x, 1.0 / dt, usable)
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    sources = _sources(grid, usable, dt)
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, 0)] * 3
     ref = chooses & np.isfinite(grid.force)
     if np.count_nonzero(ref) > 4 * w0:  # enough measured force to choose on
         last = int(np.flatnonzero(ref)[-1]) + 1
         part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
-        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
-    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x, free=free)
+        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sources)
+    return _columns(tissue.law.terms, grid, usable, chosen, sources, free=free)
 
 
 def _choose(
@@ -448,12 +479,13 @@ def _choose(
     ref: NDArray[np.bool_],
     part: slice,
     w0: int,
-    sigma_x: float,
+    sources: Sequence[Source],
 ) -> list[Smoother]:
     """The smoothers of :func:`_tuned_design`, chosen on the samples ``part``."""
     n = part.stop - part.start
     sub = grid.replace(grid.time[part], grid.force[part], grid.position[part])
     use, off, keep = usable[part], free[part], ref[part]
+    own = [(u[part], sd) for u, sd in sources]
     kept_free = _kept_free(tissue)
     f = sub.force
     candidates = []
@@ -463,7 +495,8 @@ def _choose(
         if least > top:
             continue
         grid_w = {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)} | {w0}
-        candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
+        candidates += [(degree, w, s) for s in range(len(own))
+                       for w in sorted(grid_w) if least <= w <= n]  # fmt: skip
     cache: dict[tuple[int, Smoother], tuple[Array, float]] = {}
 
     terms = tissue.law.terms
@@ -476,7 +509,7 @@ def _choose(
         for j, term in enumerate(terms):
             key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
             if key not in forces:
-                col = _columns((term,), sub, use, smoothers, sigma_x, cache, off)[:, 0]
+                col = _columns((term,), sub, use, smoothers, own, cache, off)[:, 0]
                 col[off] *= kept_free[j]
                 forces[key] = tissue.coef[j] * col
             total += forces[key]
@@ -487,7 +520,7 @@ def _choose(
     reads = {term.variable for term in tissue.law.terms}
     needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
               if reads & what]  # fmt: skip
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0)] * 3
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, 0)] * 3
     best = error(chosen)
     for _ in range(2):
         for k in needed:
@@ -504,25 +537,26 @@ def _columns(
     grid: Session,
     usable: NDArray[np.bool_],
     smoothers: list[Smoother],
-    sigma_x: float,
+    sources: Sequence[Source],
     cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
     free: NDArray[np.bool_] | None = None,
 ) -> Array:
     """The regressors of ``terms`` on the kinematics of ``smoothers`` (x, xdot, xddot),
-    shape (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
-    sample not ``usable``. Terms with memory are driven by the closure held across the
-    ``free`` samples (:func:`~tissuecli.identify.design.held_closure`)."""
-    x = grid.position
+    shape (n, p), each smoothing one of the ``sources`` (a closure, m, and its noise's
+    SD, m); NaN rows where a window reaches a sample not ``usable``. Terms with memory
+    are driven by the closure held across the ``free`` samples
+    (:func:`~tissuecli.identify.design.held_closure`)."""
     dt = float(np.median(np.diff(grid.time)))
     cache = {} if cache is None else cache
     est = []
-    for k, (degree, w) in enumerate(smoothers):
-        if (k, (degree, w)) not in cache:
-            cache[k, (degree, w)] = _smoothed(x, w, degree, k, dt, sigma_x)
-        est.append(cache[k, (degree, w)])
+    for k, (degree, w, s) in enumerate(smoothers):
+        if (k, (degree, w, s)) not in cache:
+            x, sigma = sources[s]
+            cache[k, (degree, w, s)] = _smoothed(x, w, degree, k, dt, sigma)
+        est.append(cache[k, (degree, w, s)])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
-    var_v = (sigma_x * gain_v) ** 2
+    var_v = (sources[smoothers[1][2]][1] * gain_v) ** 2
     held = held_closure(xs, free) if free is not None and any(t.memory for t in terms) else xs
     cols = [
         term.expected(vs, var_v) if term.variable == "v"
@@ -530,7 +564,7 @@ def _columns(
         for term in terms
     ]  # fmt: skip
     A = np.column_stack(cols)
-    A[_reaches_hole(usable, max(w for _, w in smoothers))] = np.nan
+    A[_reaches_hole(usable, max(w for _, w, _ in smoothers))] = np.nan
     return A
 
 
