@@ -291,6 +291,19 @@ def test_the_true_law_predicts_a_held_out_end_within_the_floor(seed: int, was: f
     assert rms < 1.5 * floor, (rms, was)
 
 
+@pytest.mark.parametrize(("seed", "was"), [(6630428, 8.95)])
+def test_a_coarse_adcs_staircase_is_predicted_from_its_level_crossings(
+    seed: int, was: float
+) -> None:
+    """friction+offset squeeze, 8 bits at 8.4 kHz: the closure holds each level some 12
+    samples, a sawtooth no Savitzky-Golay window averages out, and the true law on
+    those kinematics was ``was`` times the floor off the true force. Read through the
+    level crossings (where that agrees better with the measured force) it lands within
+    the 1.5 times the floor the benchmark asks of a fit (1.30 today)."""
+    rms, floor = _true_law_held_out(seed)
+    assert rms < 1.5 * floor, (rms / floor, was)
+
+
 @pytest.mark.parametrize(("seed", "was"), [(6587724, 5.66), (6587716, 3.88)])
 def test_a_grasps_loose_part_read_free_is_predicted_in_contact(seed: int, was: float) -> None:
     """friction+offset fast taps (8 bits, 654 Hz, 8 % noise) and friction grasps (9

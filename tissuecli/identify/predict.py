@@ -10,7 +10,7 @@ like with like, but predicts a smoothed force: what the filter removed is lost, 
 on held-out data of known law that put the prediction 2-20 times further from the
 true force than the measured force's noise floor.
 
-Four things make the law's force the best estimate of the true one:
+Five things make the law's force the best estimate of the true one:
 
 - **Each derivative its own smoothing.** Position noise reaches the law through x, xdot
   and xddot, amplified by the derivative's order, and a law weighs each by its own
@@ -22,6 +22,12 @@ Four things make the law's force the best estimate of the true one:
   truth. An estimator chooses on the force it was fitted to (a held-out part's own
   force is never read); a parameter file with another recording chooses on that
   recording.
+- **A coarse ADC's staircase read by its crossings.** At 8-10 bits and kilohertz rates
+  the closure holds a level for tens of samples, a sawtooth of one step that no
+  window averages out; each derivative may read instead the closure rebuilt through
+  the times it crosses each level
+  (:func:`~tissuecli.identify.derivatives.staircase.staircase`), chosen, as the window
+  is, where the law agrees best with the measured force.
 - **Free jaws carry no tissue.** Where the session alternates grasps with free jaw
   motion (:func:`~tissuecli.identify.contact.find_contact`, as a fit finds them), the
   tissue's terms are zero outside the grasps and the force is the law's offset alone
@@ -55,6 +61,7 @@ from ..core.timebase import sample_clock
 from ..core.tissue import Tissue
 from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
+from .derivatives.staircase import staircase
 from .design import design, held_closure, position_noise_sd
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare, touching_by_closure
 from .spectrum import convolve_valid, white_noise_sd
@@ -421,9 +428,32 @@ WIDEST = 16.0
 #: the smoothers are chosen on at most this many samples (the last of those given)
 TUNE_SAMPLES = 200_000
 
-#: (degree, window in samples, whether a window across a break in the motion bends
-#: there: :func:`_bend_at_breaks`)
-Smoother = tuple[int, int, bool]
+#: (degree, window in samples, source, bent): source 0 smooths the closure as read, 1
+#: the closure rebuilt from its level crossings where it is a staircase
+#: (:func:`~tissuecli.identify.derivatives.staircase.staircase`); bent, whether a
+#: window across a break in the motion bends there (:func:`_bend_at_breaks`)
+Smoother = tuple[int, int, int, bool]
+
+#: a closure to smooth and the SD of its white noise (m)
+Source = tuple[Array, float]
+
+
+def _sources(grid: Session, usable: NDArray[np.bool_], dt: float) -> list[Source]:
+    """The closures a smoother may read: as read, and where it is a staircase also
+    rebuilt from its level crossings, each with its noise's SD (m).
+
+    A coarse ADC's staircase leaves the position a slow sawtooth of one step that a
+    polynomial smoother follows into its speed and acceleration unless its window
+    spans many steps; the rebuilt closure passes through each crossing, known within a
+    sample. Which of the two each derivative reads is chosen as its window is, by the
+    law's agreement with the measured force, so a dithered staircase (whose crossings
+    chatter) keeps the closure as read where that agrees better."""
+    x = grid.position
+    out: list[Source] = [(x, position_noise_sd(x, 1.0 / dt, usable))]
+    rebuilt = staircase(x, dt, usable)
+    if rebuilt is not None:
+        out.append(rebuilt)
+    return out
 
 
 def _tuned_design(
@@ -434,10 +464,10 @@ def _tuned_design(
     chooses: NDArray[np.bool_],
 ) -> Array:
     """The law's regressors, shape (n, p), on Savitzky-Golay kinematics with a smoother
-    (degree and window) for each derivative (x, xdot, xddot), chosen where the law's
-    force is closest to the measured force over the ``chooses`` samples: derivative by
-    derivative, the acceleration first, twice over. Tissue terms are zero on ``free``
-    samples."""
+    (degree, window and closure, :data:`Smoother`) for each derivative (x, xdot,
+    xddot), chosen where the law's force is closest to the measured force over the
+    ``chooses`` samples: derivative by derivative, the acceleration first, twice over.
+    Tissue terms are zero on ``free`` samples."""
     t, x = grid.time, grid.position
     n = x.size
     dt = float(np.median(np.diff(t)))
@@ -446,14 +476,14 @@ def _tuned_design(
         raise FitError(
             f"{n} samples are too few for a {w0}-sample smoother; predict a longer session"
         )
-    sigma_x = position_noise_sd(x, 1.0 / dt, usable)
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, False)] * 3
+    sources = _sources(grid, usable, dt)
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, 0, False)] * 3
     ref = chooses & np.isfinite(grid.force)
     if np.count_nonzero(ref) > 4 * w0:  # enough measured force to choose on
         last = int(np.flatnonzero(ref)[-1]) + 1
         part = slice(max(0, last - TUNE_SAMPLES - 2 * int(WIDEST * w0)), last)
-        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sigma_x)
-    return _columns(tissue.law.terms, grid, usable, chosen, sigma_x, free=free)
+        chosen = _choose(tissue, grid, usable, free, ref, part, w0, sources)
+    return _columns(tissue.law.terms, grid, usable, chosen, sources, free=free)
 
 
 def _choose(
@@ -464,12 +494,13 @@ def _choose(
     ref: NDArray[np.bool_],
     part: slice,
     w0: int,
-    sigma_x: float,
+    sources: Sequence[Source],
 ) -> list[Smoother]:
     """The smoothers of :func:`_tuned_design`, chosen on the samples ``part``."""
     n = part.stop - part.start
     sub = grid.replace(grid.time[part], grid.force[part], grid.position[part])
     use, off, keep = usable[part], free[part], ref[part]
+    own = [(u[part], sd) for u, sd in sources]
     kept_free = _kept_free(tissue)
     f = sub.force
     candidates = []
@@ -479,7 +510,8 @@ def _choose(
         if least > top:
             continue
         grid_w = {int(w) | 1 for w in np.geomspace(least, top, WINDOWS)} | {w0}
-        candidates += [(degree, w) for w in sorted(grid_w) if least <= w <= n]
+        candidates += [(degree, w, s) for s in range(len(own))
+                       for w in sorted(grid_w) if least <= w <= n]  # fmt: skip
     cache: dict[Any, Any] = {}
 
     terms = tissue.law.terms
@@ -492,7 +524,7 @@ def _choose(
         for j, term in enumerate(terms):
             key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
             if key not in forces:
-                col = _columns((term,), sub, use, smoothers, sigma_x, cache, off)[:, 0]
+                col = _columns((term,), sub, use, smoothers, own, cache, off)[:, 0]
                 col[off] *= kept_free[j]
                 forces[key] = tissue.coef[j] * col
             total += forces[key]
@@ -503,12 +535,12 @@ def _choose(
     reads = {term.variable for term in tissue.law.terms}
     needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
               if reads & what]  # fmt: skip
-    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, False)] * 3
+    chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, 0, False)] * 3
     best = error(chosen)
     for _ in range(2):
         for k in needed:
             # each window as it is, and bending at the motion's breaks
-            for c in [(*c, hinged) for c in candidates for hinged in (False, True)]:
+            for c in [(*c, bent) for c in candidates for bent in (False, True)]:
                 trial = [c if j == k else chosen[j] for j in range(3)]
                 e = error(trial)
                 if e < best:
@@ -521,27 +553,28 @@ def _columns(
     grid: Session,
     usable: NDArray[np.bool_],
     smoothers: list[Smoother],
-    sigma_x: float,
-    cache: dict[tuple[int, Smoother], tuple[Array, float]] | None = None,
+    sources: Sequence[Source],
+    cache: dict[Any, Any] | None = None,
     free: NDArray[np.bool_] | None = None,
 ) -> Array:
     """The regressors of ``terms`` on the kinematics of ``smoothers`` (x, xdot, xddot),
-    shape (n, p), for position noise of SD ``sigma_x`` (m); NaN rows where a window reaches a
-    sample not ``usable``. Terms with memory are driven by the closure held across the
-    ``free`` samples (:func:`~tissuecli.identify.design.held_closure`)."""
-    x = grid.position
+    shape (n, p), each smoothing one of the ``sources`` (a closure, m, and its noise's
+    SD, m); NaN rows where a window reaches a sample not ``usable``. Terms with memory
+    are driven by the closure held across the ``free`` samples
+    (:func:`~tissuecli.identify.design.held_closure`)."""
     dt = float(np.median(np.diff(grid.time)))
     cache = {} if cache is None else cache
     est = []
     for k, smoother in enumerate(smoothers):
         if (k, smoother) not in cache:
-            degree, w, hinged = smoother
-            memo = cache.setdefault("breaks", {})  # type: ignore[call-overload]
-            cache[k, smoother] = _smoothed(x, w, degree, k, dt, sigma_x, hinged, memo)
+            degree, w, s, bent = smoother
+            x, sigma = sources[s]
+            memo = cache.setdefault(("breaks", s), {})  # the windows' residuals, by closure
+            cache[k, smoother] = _smoothed(x, w, degree, k, dt, sigma, bent, memo)
         est.append(cache[k, smoother])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
-    var_v = (sigma_x * gain_v) ** 2
+    var_v = (sources[smoothers[1][2]][1] * gain_v) ** 2
     held = held_closure(xs, free) if free is not None and any(t.memory for t in terms) else xs
     cols = [
         term.expected(vs, var_v) if term.variable == "v"
@@ -549,7 +582,7 @@ def _columns(
         for term in terms
     ]  # fmt: skip
     A = np.column_stack(cols)
-    A[_reaches_hole(usable, max(w for _, w, _ in smoothers))] = np.nan
+    A[_reaches_hole(usable, max(w for _, w, _, _ in smoothers))] = np.nan
     return A
 
 
