@@ -316,3 +316,25 @@ def test_a_grasps_loose_part_read_free_is_predicted_in_contact(seed: int, was: f
     generalisation benchmark asks of a fit (0.39 and 1.39 today)."""
     rms, floor = _true_law_held_out(seed)
     assert rms < 1.5 * floor, (rms, was)
+
+
+def test_a_bend_is_taken_only_where_it_agrees_clearly_better() -> None:
+    """Two smoothers whose residuals differ by noise alone: the mean of 20 block means
+    of the squared residuals' difference beats twice its standard error 2.8 % of the
+    time (Student's t with 19 degrees of freedom), so of 400 such pairs at most 5.6 %
+    (three binomial SDs above) may pass; a smoother whose residual is truly smaller
+    (by half the noise's SD, one sample in two) passes almost always."""
+    from tissuecli.identify.predict import _clearly_better
+
+    rng = np.random.default_rng(11)
+    passed = 0
+    for _ in range(400):
+        noise = rng.normal(0.0, 1.0, 2000)
+        a = noise + rng.normal(0.0, 0.1, noise.size)
+        b = noise + rng.normal(0.0, 0.1, noise.size)
+        passed += _clearly_better(a, b)
+    assert passed / 400 <= 0.056, passed
+    noise = rng.normal(0.0, 1.0, 2000)
+    worse = noise + np.where(np.arange(noise.size) % 2 == 0, 0.5, 0.0)
+    assert _clearly_better(noise, worse)
+    assert not _clearly_better(worse, noise)

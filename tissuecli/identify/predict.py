@@ -220,9 +220,9 @@ def predict_band(
             free = detected  # terms with memory are held across these samples too
             A = regressors(free)
         if free.any():
-            touched = _touching_by_closure(A, tissue.coef, kept, grid, free & judged)
+            touched = _touching_by_closure(A, tissue.coef, kept, grid, free)
             if touched.any():
-                free = free & ~(grid.position >= grid.position[touched].min())
+                free = free & ~touched
                 if any(t.memory for t in tissue.law.terms):
                     A = regressors(free)  # the branches see the closure where it touches
         A[free] *= kept
@@ -375,13 +375,12 @@ def _touching_by_closure(
     The detector reads contact from the force standing clear of its noise, so a grasp's
     loose part (a noisy session's light taps, a soft law at small closure) is read
     free, and its force predicted as the sensor's offset alone. The tissue is touched
-    past one closure, though: over the samples read free (``free``: those of the part
-    that chooses the smoothers, so a held-out part's force is never read), the
-    threshold c that best splits them into contact (closure >= c, the law's force) and
-    free jaws (below, the offset's) is taken, where it beats reading them all free by
-    :data:`TOUCH_BIC` times the noise variance times ln(samples); none otherwise. A law
-    with memory is formed again with its branches driven through the samples so
-    touched."""
+    past one closure, though: over the samples read free (whose force, as the
+    detector's, is read to tell where the jaws touch), the threshold c that best splits
+    them into contact (closure >= c, the law's force) and free jaws (below, the
+    offset's) is taken, where it beats reading them all free by :data:`TOUCH_BIC` times
+    the noise variance times ln(samples); none otherwise. A law with memory is formed
+    again with its branches driven through the samples so touched."""
     rows = free & np.all(np.isfinite(A), axis=1) & np.isfinite(grid.force)
     if np.count_nonzero(rows) < 8:
         return np.zeros(free.size, bool)
@@ -519,7 +518,9 @@ def _choose(
     reads_of = {"x": (0,), "v": (1,), "a": (2,), "xv": (0, 1), "h": (0, 1), "1": ()}
     forces: dict[tuple[int, tuple[Smoother, ...]], Array] = {}
 
-    def error(smoothers: list[Smoother]) -> float:
+    def residual(smoothers: list[Smoother]) -> Array:
+        """The law's force minus the measured one on the ``keep`` samples (NaN where
+        the kinematics cannot reach)."""
         total = np.zeros(n)
         for j, term in enumerate(terms):
             key = (j, tuple(smoothers[k] for k in reads_of.get(term.variable, (0, 1, 2))))
@@ -528,7 +529,9 @@ def _choose(
                 col[off] *= kept_free[j]
                 forces[key] = tissue.coef[j] * col
             total += forces[key]
-        r = (total - f)[keep]
+        return (total - f)[keep]
+
+    def error(r: Array) -> float:
         r = r[np.isfinite(r)]
         return float(np.mean(r**2)) if r.size else np.inf
 
@@ -536,16 +539,41 @@ def _choose(
     needed = [k for k, what in ((2, {"a"}), (1, {"v", "xv", "h"}), (0, {"x", "xv", "h"}))
               if reads & what]  # fmt: skip
     chosen: list[Smoother] = [(SavitzkyGolay().polyorder, w0, 0, False)] * 3
-    best = error(chosen)
+    best_r = residual(chosen)
+    best = error(best_r)
     for _ in range(2):
         for k in needed:
-            # each window as it is, and bending at the motion's breaks
+            # each window as it is, and bending at the motion's breaks. A bend (two more
+            # parameters about each break) must agree clearly better than a straight
+            # window, or the force's noise on the part that chooses would pick it where
+            # it does not help
             for c in [(*c, bent) for c in candidates for bent in (False, True)]:
                 trial = [c if j == k else chosen[j] for j in range(3)]
-                e = error(trial)
-                if e < best:
-                    best, chosen = e, trial
+                r = residual(trial)
+                e = error(r)
+                bends = c[3] and not chosen[k][3]
+                if e < best and (not bends or _clearly_better(r, best_r)):
+                    best, best_r, chosen = e, r, trial
     return chosen
+
+
+#: blocks of the choosing samples whose means judge whether one smoother agrees clearly
+#: better than another (:func:`_clearly_better`)
+BLOCKS = 20
+
+
+def _clearly_better(new: Array, old: Array) -> bool:
+    """Whether the residuals ``new`` agree with the measured force better than ``old``
+    by more than twice the standard error of the mean difference of their squares,
+    that error from the means of :data:`BLOCKS` contiguous blocks (the residuals of a
+    smoothed force are correlated from sample to sample; blocks far longer than that
+    correlation are nearly independent)."""
+    ok = np.isfinite(new) & np.isfinite(old)
+    d = (new[ok] ** 2) - (old[ok] ** 2)
+    if d.size < 4 * BLOCKS:
+        return False
+    means = np.array([b.mean() for b in np.array_split(d, BLOCKS)])
+    return bool(-means.mean() > 2.0 * means.std(ddof=1) / math.sqrt(BLOCKS))
 
 
 def _columns(
