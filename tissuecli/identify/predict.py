@@ -597,8 +597,13 @@ def _columns(
         if (k, smoother) not in cache:
             degree, w, s, bent = smoother
             x, sigma = sources[s]
-            memo = cache.setdefault(("breaks", s), {})  # the windows' residuals, by closure
-            cache[k, smoother] = _smoothed(x, w, degree, k, dt, sigma, bent, memo)
+            straight = (degree, w, s, False)
+            if (k, straight) not in cache:
+                cache[k, straight] = _smoothed(x, w, degree, k, dt, sigma)
+            if bent:  # the straight estimate, bent where the motion breaks
+                memo = cache.setdefault(("breaks", s), {})  # the windows' residuals
+                est0, gain = cache[k, straight]
+                cache[k, smoother] = (_bent(est0, x, w, degree, k, dt, memo), gain)
         est.append(cache[k, smoother])
     (xs, _), (vs, gain_v), (acc, _) = est
     # the speed estimate's error, for terms that bend on its scale (dry friction)
@@ -660,9 +665,28 @@ def _smoothed(
     for lo, where in ((0, np.arange(h)), (x.size - w, np.arange(x.size - h, x.size))):
         u = (where - (lo + h)) / max(h, 1)
         out[where] = unit * _end_values(x[lo : lo + w], u, degree, k, sigma_x)
-    if hinged and 0 < k < fit.shape[0]:  # a closure's own estimate barely bends at one
-        _bend_at_breaks(out, x, fit, k, scale, memo)
+    if hinged:
+        out = _bent(out, x, w, degree, k, dt, memo)
     return out, float(np.linalg.norm(kernel))
+
+
+def _bent(
+    est: Array,
+    x: Array,
+    w: int,
+    degree: int,
+    k: int,
+    dt: float,
+    memo: dict[Any, Array] | None = None,
+) -> Array:
+    """A copy of the ``k``-th derivative's estimate ``est`` from ``w``-sample windows of
+    ``degree`` bent at the breaks in the motion (:func:`_bend_at_breaks`), shape (n,)."""
+    out = est.copy()
+    fit = _fit_matrix(w, degree)
+    if 0 < k < fit.shape[0]:  # a closure's own estimate barely bends at one
+        scale = math.factorial(k) / (max(w // 2, 1) * dt) ** k
+        _bend_at_breaks(out, x, fit, k, scale, memo)
+    return out
 
 
 #: a window's residual about its polynomial marks a break in the motion where it stands
@@ -786,7 +810,7 @@ def _window_rss(xc: Array, h: int, d1: int, hinged: bool = False) -> Array:
     return np.clip(rss, 0.0, None)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=512)
 def _hinge_kernels(h: int, d1: int, k: int) -> Array:
     """The ``k``-th derivative (in the window's time over its half-width) at the centre
     of a window of ``2 h + 1`` samples, fitted by a polynomial of ``d1`` coefficients
