@@ -67,6 +67,26 @@ def test_a_contact_law_nests_a_spring_and_an_offset():
     assert both.flags[-1] == "not chosen: Kc not identified; its probability counts for x+offset"
 
 
+def test_a_relaxation_branch_nests_a_spring_and_an_offset():
+    # a branch that never relaxes is, from rest, Km (x - x(0)): a spring and an offset
+    import numpy as np
+
+    x = 2e-3 + 1e-3 * np.sin(np.arange(2000) * 0.01)
+    never = Law.of(["x", "maxwell"]).bind({"tau1": 1e12}).terms[1]
+    column = never.series(1e-3, x, np.gradient(x, 1e-3), np.zeros_like(x))
+    np.testing.assert_allclose(column, x - x[0], rtol=0, atol=1e-12)
+    # so the spring with an offset is one of its law's sub-laws: a continuous session
+    # whose branch and inertia are not identified, where the offset is what the data need
+    both = _result(["x", "maxwell", "xdot", "xddot"], 10.0, 0.9, ["Km1 not identified (...)"])
+    plain = _result(["x", "xdot", "xddot"], 8.0, 0.1)
+    offset = _result(["x", "xdot", "xddot", "offset"], 9.0, 0.0)
+    BayesianFit()._drop_unidentified([both, plain, offset], fit=None)  # type: ignore[arg-type]
+    assert both.probability == 0.0 and offset.probability == 0.9 and plain.probability == 0.1
+    assert both.flags[-1] == (
+        "not chosen: Km1 not identified; its probability counts for x+xdot+xddot+offset"
+    )
+
+
 def _cv(names: list[str], ln_z: float, p: float, cv: float) -> ModelResult:
     r = _result(names, ln_z, p)
     r.cv_rms = cv

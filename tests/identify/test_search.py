@@ -270,16 +270,25 @@ def test_smaller_laws_keep_a_stiffness_and_what_a_term_requires():
     names = ["contact", "maxwell", "contact*xdot", "xddot", "offset"]
     fewer = {"+".join(f) for f in GreedySearch().smaller(names)}
     # contact goes with contact damping, and gives way to what it equals at n = 1, a
-    # spring (the offset is there already)
+    # spring (the offset is there already); the branch to what it equals never
+    # relaxing, a spring and an offset
     assert fewer == {
         "maxwell+xddot+offset+x",
+        "contact+contact*xdot+xddot+offset+x",
         "contact+contact*xdot+xddot+offset",
         "contact+maxwell+xddot+offset",
         "contact+maxwell+contact*xdot+offset",
         "contact+maxwell+contact*xdot+xddot",
     }
-    assert GreedySearch().smaller(["x", "maxwell", "maxwell"]) == [["x", "maxwell"]]
-    assert GreedySearch().smaller(["x", "maxwell", "xdot"]) == [["x", "xdot"], ["x", "maxwell"]]
+    assert GreedySearch().smaller(["x", "maxwell", "maxwell"]) == [
+        ["x", "maxwell", "offset"],
+        ["x", "maxwell"],
+    ]
+    assert GreedySearch().smaller(["x", "maxwell", "xdot"]) == [
+        ["x", "xdot", "offset"],
+        ["x", "xdot"],
+        ["x", "maxwell"],
+    ]
 
 
 def test_a_contact_law_gives_way_to_the_laws_it_nests():
@@ -327,9 +336,10 @@ def test_descent_scores_the_sub_laws_of_the_choice_while_it_moves_to_one():
     # each law named once, then the choice stays: x+maxwell's own sub-law (x) is scored
     assert calls[-1] == calls[-2] == "x+maxwell"
     assert "x" in scored and start.name in scored
-    # only the sub-laws of the laws named: nothing with an offset, nothing bigger
-    assert all("offset" not in n for n in scored)
-    assert len(scored) <= 1 + 3 + 2 + 1
+    # only the sub-laws of the laws named, nothing bigger: an offset only beside the
+    # spring in the branch's place (a branch that never relaxes is Km (x - x(0)))
+    assert all("maxwell" not in n for n in scored if "offset" in n)
+    assert len(scored) <= 1 + 4 + 3 + 2
 
 
 def test_a_stem_with_evidence_looks_two_branches_further_when_one_has_none() -> None:

@@ -833,11 +833,15 @@ class Maxwell(Term):
     """A relaxation branch (generalised Maxwell, or Prony, series): a spring Km in series
     with a damper Km tau. Its force obeys ``F' = Km xdot - F / tau`` from rest, so a
     step in closure gives ``Km e^(-t/tau)``: the stress relaxation of soft tissue. One
-    branch with a spring ``x`` is the standard linear solid. Km in N/m, tau in s."""
+    branch with a spring ``x`` is the standard linear solid. Km in N/m, tau in s.
+
+    A branch that never relaxes (tau without bound) is, from rest, ``Km (x - x(0))``: a
+    spring and an offset, the law it nests."""
 
     name, label, role, variable = "maxwell", "relax", "relaxation", "h"
     unit = "N/m"
     memory = True
+    nests = ("x", "offset")
     order, display, max_count, search = 40.0, "relaxation", 3, "grow"
     parameters = (TIME_CONSTANT,)
 
