@@ -41,6 +41,21 @@ def test_constant_speed_is_one_column_and_no_acceleration():
     assert reduced == {"x+offset", "x^3+offset", "x+x^3+offset", "x", "x^3", "x+x^3"}
 
 
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(force_unit=st.sampled_from([1e-3, 1.0, 1e3]), length_unit=st.sampled_from([1.0, 1e3, 1e6]))
+def test_what_is_excited_does_not_hang_on_the_units(force_unit: float, length_unit: float):
+    """A sine sweep (x+xdot+xddot) excites speed and acceleration whatever units its
+    file is in. Speed was judged rounding against the RMS of the last column whose
+    variable is the closure (x^3, which in um^3 dwarfs the closure itself): in mN and
+    um the sweep's damping was left out of every law, and the fit chose
+    x+maxwell+xdot|xdot|+xddot with M 66 % off."""
+    scene = random_protocol(7000096, "sine sweep", max_samples=20_000)
+    s = scene.session
+    si = s.replace(s.time, s.force / scene.units[0], s.position / scene.units[1])
+    scaled = si.replace(si.time, si.force * force_unit, si.position * length_unit)
+    assert _design(scaled).unexcited == []
+
+
 def test_ramp_and_hold_makes_friction_the_other_speed_terms_together():
     """A ramp at one speed and a hold: friction's smoothed step lies in the span of
     xdot and xdot|xdot| (its own part is below what the prior could make visible), so

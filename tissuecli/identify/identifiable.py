@@ -203,13 +203,16 @@ def examine(
         weight = kin.stride / filter_tau(kin.kernels[0])  # a kept row stands for stride
         prior = np.array([scales.force / t.typical(scales) for t in terms])
         design.floor = DETECT_SDS**2 * var / (weight * np.maximum(prior, 1e-300) ** 2)
-    rms = {t.variable: float(np.sqrt(gram[j, j] / max(n, 1))) for j, t in enumerate(terms)}
+    # the kinematics' own RMS: a term's column is not its variable (x^3 in um^3 dwarfs
+    # the closure, sign(xdot) is no speed), and read as one it called speed unexcited
+    rms = {v: float(np.sqrt(np.mean(np.square(u)))) if u.size else 0.0
+           for v, u in (("x", kin.x), ("v", kin.v), ("a", kin.a))}  # fmt: skip
     dt = kin.dt
     below = {"a": "v", "v": "x"}
     for j, t in enumerate(terms):
         ms = gram[j, j] / max(n, 1)
         lower = below.get(t.variable)
-        rounding = lower is not None and np.sqrt(ms) * dt <= ROUNDING * rms.get(lower, 0.0)
+        rounding = lower is not None and rms[t.variable] * dt <= ROUNDING * rms[lower]
         if ms <= NOISE_RATIO * noise[j] or rounding or not ms > 0:
             design.unexcited.append(t.name)
     live = [j for j in range(len(terms)) if terms[j].name not in design.unexcited]
