@@ -438,10 +438,17 @@ class BayesianFit(Estimator):
         # the search's to reach, and one met here only because a bigger law's terms
         # were not identified (contact in a spring's place on a ramp-and-hold of
         # x+maxwell) is no finding of the search
-        lead = provisional_choice(results).ln_evidence
+        choice = provisional_choice(results)
+        lead = choice.ln_evidence
+        # a term the choice identifies stays in every other law's stand-in: a law that
+        # cannot tell it (a relaxation branch beside inertia) says nothing of it that
+        # the choice does not say better
+        vague = unidentified_in(choice)
+        told = {t.name for j, t in enumerate(choice.model.terms) if j not in vague}
         for r in sorted(evaluated(results), key=lambda r: -r.ln_evidence):
             for _ in range(len(PREFERENCE)):
-                bad = unidentified_in(r)
+                bad = {j for j in unidentified_in(r)
+                       if r is choice or r.model.terms[j].name not in told}  # fmt: skip
                 names = stand_in(r, bad)
                 if names is None or Law.of(names).shape_names:
                     break
