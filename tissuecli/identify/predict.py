@@ -719,7 +719,8 @@ def _bend_at_breaks(
     change point). Each sample whose window reaches a likely place takes the mean, over
     the places, of the derivative of its own window's polynomial and hinge. Elsewhere
     the centred window, whose noise is the least, stays. Runs too long to hold one
-    break, or breaks in most windows (a window too wide for the motion), are left.
+    break, or breaks in more than :data:`BREAKS_AT_MOST` of the windows (a window too
+    wide for the motion), are left.
 
     Parameters
     ----------
