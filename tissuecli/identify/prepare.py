@@ -3,6 +3,7 @@ frames and clipped samples as holes, and differentiated without looking through 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -13,7 +14,7 @@ from ..core.errors import FitError
 from ..core.plausible import unit_warnings
 from ..core.session import Session
 from ..core.timebase import sample_clock
-from .contact import DITHER_STEPS, Contact, find_contact, quantisation_step
+from .contact import Contact, find_contact, quantisation_step
 from .derivatives import Differentiator, Frozen, Kinematics
 from .design import held_closure
 from .spectrum import convolve_valid, white_noise_sd
@@ -262,6 +263,9 @@ OPEN_MARGIN = 0.25
 #: open jaws are fitted only where their mean force stands beyond this many standard
 #: errors from zero (an offset to measure)
 OPEN_SE = 4.0
+#: a steady force dithers its ADC where the bias of its mean lies within this fraction
+#: of the mean's standard error (:func:`_dithered`)
+DITHER_SE = 0.25
 #: free jaws are fitted only where they give at least this many filtered outputs
 MIN_OPEN_ROWS = 32
 
@@ -372,7 +376,7 @@ def fit_grasps(
     They are not fitted when they give fewer than :data:`MIN_OPEN_ROWS` outputs, read
     zero within :data:`OPEN_SE` standard errors of their mean (no offset to measure), or
     are read by an ADC their noise does not dither
-    (:data:`~tissuecli.identify.contact.DITHER_STEPS`).
+    (:func:`_dithered`).
 
     Raises
     ------
@@ -521,11 +525,23 @@ def _steady_noise(level: NDArray[np.float64]) -> float:
 
 
 def _dithered(level: NDArray[np.float64], step: float) -> bool:
-    """Whether a steady force's noise dithers the ADC's ``step`` (N)
-    (:data:`~tissuecli.identify.contact.DITHER_STEPS`); True when too few samples to tell."""
+    """Whether a steady force's noise dithers the ADC's ``step`` (N) enough for its mean:
+    True when too few samples to tell.
+
+    A Gaussian noise of SD ``s`` before an ADC of ``step`` leaves the mean of what the
+    ADC reads off its own by at most ``step / pi exp(-2 pi^2 s^2 / step^2)`` (the first
+    term of the quantiser's characteristic function; Widrow & Kollar, *Quantization
+    Noise*, 2008, ch. 5). The force is dithered where that bias lies within
+    :data:`DITHER_SE` of the level's standard error ``s / sqrt(m)``: a level read by
+    many samples needs more noise than one read by few. ``s`` is the SD read after the
+    ADC less its own rounding, ``step^2 / 12``."""
     if level.size < 8:
         return True
-    return _steady_noise(level) >= DITHER_STEPS * step
+    if step <= 0:
+        return True
+    sd = math.sqrt(max(_steady_noise(level) ** 2 - step**2 / 12.0, 0.0))
+    bias = step / math.pi * math.exp(-2.0 * (math.pi * sd / step) ** 2)
+    return bias <= DITHER_SE * sd / math.sqrt(level.size)
 
 
 def _differentiate(
