@@ -164,6 +164,8 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
             for r in est.results_
         }
         doc["probabilities"] = {r.name: r.probability for r in est.results_}
+        # the laws whose evidence could not be evaluated: never chosen, each with why
+        doc["not_evaluated"] = {r.name: r.reason for r in getattr(est, "not_evaluated_", [])}
         doc["laws"] = {
             r.name: {
                 "terms": _result_law(r)["terms"],
@@ -190,6 +192,10 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
                 "residual_tau_samples": est.tau_,
                 "effective_samples": est.n_eff_,
                 "position_noise_sd_m": est.sigma_x_,
+                # the columns' closure: as read, or a coarse ADC's staircase rebuilt
+                "closure": "read"
+                if np.array_equal(est.closure_, est.session_.position)
+                else "rebuilt",
             }
         )
     if pinv is not None:
@@ -487,6 +493,7 @@ _TOP_LEVEL: dict[str, type | None] = {
     "noise": dict,
     "evidence": dict,
     "probabilities": dict,
+    "not_evaluated": dict,
     "laws": dict,
     "warnings": list,
     "pinv": dict,

@@ -46,6 +46,7 @@ from .estimator import Estimator
 from .forms import linear_laws, parse_forms
 from .identifiable import PREFERENCE, examine
 from .noise import data_weight, filter_tau, residual_tau
+from .prepare import Prepared
 from .priors import law_prior, prior_conflict, scales_from, session_scales
 from .sampling import DECISIVE, sample_posteriors, sample_shape_posteriors
 from .scoring import (
@@ -131,6 +132,11 @@ class BayesianFit(Estimator):
         a likelihood tempered by the data weight, or the exact likelihood of
         autoregressive residuals (force and design through its whitening filter). By
         default :data:`~tissuecli.identify.whiten.DEFAULT_LIKELIHOOD`.
+    closure : {"rebuilt", "read"}
+        ``"rebuilt"``: where a coarse ADC reads the closure as a staircase, the columns
+        are formed from the closure rebuilt through its level crossings, with the filter
+        chosen on the closure as read (:func:`~tissuecli.identify.prepare.prepare`);
+        ``"read"``: from the closure as read.
 
     Attributes
     ----------
@@ -177,6 +183,7 @@ class BayesianFit(Estimator):
         progress: Progress | Callable[[str, int, float], None] | None = None,
         search: str | Search = "greedy",
         likelihood: str | Likelihood | None = None,
+        closure: str = "rebuilt",
     ) -> None:
         self.forms = forms
         self.grasps = grasps
@@ -189,6 +196,7 @@ class BayesianFit(Estimator):
         self.progress = progress
         self.search = search
         self.likelihood = likelihood
+        self.closure = closure
 
     def fit(self, session: Session) -> BayesianFit:
         """Fit every candidate law to ``session``; returns self with the fitted
@@ -219,7 +227,7 @@ class BayesianFit(Estimator):
             ready.warnings,
             ready.contact,
         )
-        sigma_x = self._position_noise(session, ready.trusted) if self.eiv else 0.0
+        sigma_x = self._position_noise(ready) if self.eiv else 0.0
         rng = np.random.default_rng(self.seed)
         scales = session_scales(kin, self.force_scale)
         # a long session's laws are scored on every stride-th filtered sample, the
@@ -238,7 +246,7 @@ class BayesianFit(Estimator):
         # no law here has would only puzzle)
         present = {t.name for m in models for t in m.terms}
         names = PREFERENCE if whole_search else [n for n in PREFERENCE if n in present]
-        design_ = examine(kin, session.position, sigma_x, columns, names, scales=scales)
+        design_ = examine(kin, ready.closure, sigma_x, columns, names, scales=scales)
         self.design_ = design_
         if design_.summary:
             warnings.append(design_.summary)
@@ -247,7 +255,7 @@ class BayesianFit(Estimator):
         paths: dict[str, tuple[Array, Array]] = {}  # and their noise paths
         linear = [m for m in models if not m.shape_names]
         shaped = [m for m in models if m.shape_names]
-        x_full = session.position
+        x_full = ready.closure
         firsts = {m.name: first_pass(m, kin, x_full, y, sigma_x, columns, paths) for m in linear}
         if not firsts:  # shaped laws only: their middle node stands in for the residuals
             m0 = shaped[0]
@@ -382,10 +390,11 @@ class BayesianFit(Estimator):
             weight *= ratio
             tau = measured / weight
         kin = full_kin
-        fitted = design(best.model, kin, session.position, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
+        fitted = design(best.model, kin, x_full, sigma_x) @ best.posterior.mean  # type: ignore[union-attr]
         warnings.extend(outlier_warnings(kin, fitted))
 
         self.session_ = session
+        self.closure_ = x_full
         self.kinematics_ = kin
         self.sigma_x_ = sigma_x
         self.scales_ = scales
@@ -653,9 +662,10 @@ class BayesianFit(Estimator):
                 r.ln_evidence = -1e300
         return results
 
-    def _position_noise(self, session: Session, trusted: NDArray[np.bool_]) -> float:
-        """Position noise SD (m) from the spectrum's flat top over the ``trusted``
-        samples, floored by the ADC step.
+    def _position_noise(self, ready: Prepared) -> float:
+        """Position noise SD (m) of the closure the fit's columns are formed from: a
+        rebuilt staircase's own (:attr:`Prepared.rebuilt_sd`), else from the spectrum's
+        flat top over the trusted samples, floored by the ADC step.
 
         Quantisation with little dither is not white and hides from the flat top, so
         the ADC step sets a floor: step / sqrt(12). Clipped and lost samples are left
@@ -663,9 +673,12 @@ class BayesianFit(Estimator):
         clipped for 31 % of a grasping session read the noise 20 % low, and left M 2 %
         low, 5 posterior SDs).
         """
+        if ready.rebuilt_sd is not None:
+            return ready.rebuilt_sd
+        session = ready.session
         fs = 1.0 / float(np.median(np.diff(session.time)))
         step = session.adc.step("position") if session.adc is not None else 0.0
-        return max(position_noise_sd(session.position, fs, trusted), step / np.sqrt(12))
+        return max(position_noise_sd(session.position, fs, ready.trusted), step / np.sqrt(12))
 
     def _tick(self, name: str) -> None:
         """One more law scored: the progress counts it against the laws known so far

@@ -29,10 +29,11 @@ class Estimator:
 
     Subclasses take their hyperparameters as keyword arguments of ``__init__`` and store
     each under its own name, unchanged (so :meth:`get_params` and :meth:`set_params`
-    read and set them, as in scikit-learn); among them ``differentiator`` and
-    ``grasps``. After ``fit`` they set ``session_``, ``kinematics_``, ``contact_`` and
-    ``warnings_``, and what :meth:`_coefficients`, :meth:`_uncertainty` and
-    :meth:`_position_noise_sd` read.
+    read and set them, as in scikit-learn); among them ``differentiator``, ``grasps``
+    and ``closure`` (:func:`~tissuecli.identify.prepare.prepare`). After ``fit`` they
+    set ``session_``, ``kinematics_``, ``closure_`` (the closure the kinematics are
+    formed from, m), ``contact_`` and ``warnings_``, and what :meth:`_coefficients`,
+    :meth:`_uncertainty` and :meth:`_position_noise_sd` read.
 
     Every fitted estimator then answers in one vocabulary: ``law_`` (the law chosen or
     given), ``coef_`` (its coefficients, SI), ``coef_sd_`` and ``coef_ci95_`` (their
@@ -42,8 +43,10 @@ class Estimator:
 
     differentiator: str | Differentiator | None
     grasps: str | Sequence[int]
+    closure: str
     session_: Session
     kinematics_: Kinematics
+    closure_: Array
 
     @classmethod
     def _param_names(cls) -> list[str]:
@@ -129,7 +132,7 @@ class Estimator:
         diff = Frozen(fitted) if fitted is not None else self._diff()
         # chosen grasp numbers belong to the fitted session: another is cut to its own
         grasps = self.grasps if fitted is None or isinstance(self.grasps, str) else "all"
-        return prepare(session, diff, grasps)
+        return prepare(session, diff, grasps, closure=getattr(self, "closure", "read"))
 
     def _coefficients(self) -> tuple[Law, Array]:
         """The fitted law and its coefficients (SI)."""
@@ -184,10 +187,10 @@ class Estimator:
         """Filtered force (N) at the fitted samples, or at the samples of another
         ``session`` this estimator would fit; shape (m,)."""
         if session is None:
-            kin, position = self.kinematics_, self.session_.position
+            kin, position = self.kinematics_, self.closure_
         else:
             ready = self.prepare(session)
-            kin, position = ready.kinematics, ready.session.position
+            kin, position = ready.kinematics, ready.closure
         law, coef = self._coefficients()
         return design(law, kin, position, self._position_noise_sd()) @ coef
 

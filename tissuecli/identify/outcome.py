@@ -79,7 +79,7 @@ def held_out(est: Estimator, whole: Session, split_s: float) -> HeldOut:
         ) from None
     kin = ready.kinematics
     law, coef = est._coefficients()
-    predicted = design(law, kin, ready.session.position, est._position_noise_sd()) @ coef
+    predicted = design(law, kin, ready.closure, est._position_noise_sd()) @ coef
     dt = float(np.median(np.diff(ready.session.time)))
     after = kin.time >= split_s + (kin.window // 2 - 0.5) * dt
     if np.count_nonzero(after) < MIN_HELD_OUT:

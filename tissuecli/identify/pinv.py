@@ -31,6 +31,7 @@ class WindowedPinv(Estimator):
         Window length in s (n+1 = window_s * rate).
     differentiator : str or Differentiator
     grasps : {"all", "none"} or list of int
+    closure : {"rebuilt", "read"}
         As :class:`~tissuecli.identify.bayes.BayesianFit`.
 
     Attributes
@@ -62,11 +63,13 @@ class WindowedPinv(Estimator):
         window_s: float = 1.0,
         differentiator: str | Differentiator = "gaussian",
         grasps: str | Sequence[int] = "all",
+        closure: str = "rebuilt",
     ) -> None:
         self.forms = forms
         self.window_s = window_s
         self.differentiator = differentiator
         self.grasps = grasps
+        self.closure = closure
 
     def fit(self, session: Session) -> WindowedPinv:
         """Fit the form to each window of ``session``; returns self."""
@@ -82,7 +85,7 @@ class WindowedPinv(Estimator):
             ready.warnings,
             ready.contact,
         )
-        A, y = design(model, kin, session.position), kin.force
+        A, y = design(model, kin, ready.closure), kin.force
         n = max(int(round(self.window_s / np.median(np.diff(kin.time)))), 10)
         m = A.shape[0] // n
         if m < 1:
@@ -98,6 +101,7 @@ class WindowedPinv(Estimator):
         best = int(np.argmin(resid))
         Ab = A[best * n : (best + 1) * n]
         self.session_ = session
+        self.closure_ = ready.closure
         self.contact_ = contact
         self.warnings_ = warnings
         self.model_ = model

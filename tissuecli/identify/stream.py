@@ -41,6 +41,7 @@ from ..core.terms import Law
 from .bayes import CUT_THRESHOLD, BayesianFit, ModelResult, law_prior
 from .contact import Contact, find_contact
 from .derivatives import Frozen, Kinematics
+from .derivatives.staircase import staircase
 from .design import design, eiv_correction
 from .noise import corrected_curvature
 from .posterior import ExactPosterior, SufficientStats, gram_lstsq
@@ -168,6 +169,8 @@ class StreamedFit:
         progress.stage(f"the pilot: samples {a:,} to {b:,} fitted in full")
         pilot = BayesianFit(**self.bayes).fit(read(a, b))
         self.pilot_, self.pilot_rows_ = pilot, (a, b)
+        # where the pilot's closure is a staircase it fitted rebuilt, each block's is too
+        rebuild = not np.array_equal(pilot.closure_, pilot.session_.position)
         kin0 = pilot.kinematics_
         dt = kin0.dt
         frozen = Frozen(kin0)
@@ -210,7 +213,8 @@ class StreamedFit:
             lo = float(block.time[s - first])
             hi = float(block.time[e - first]) if e < rows else np.inf  # the next block's
             try:
-                kin, gx = self._kinematics(block, frozen, rules, pilot.contact_, dt, t_first)
+                kin, gx = self._kinematics(block, frozen, rules, pilot.contact_, dt, t_first,
+                                           rebuild)  # fmt: skip
                 if check and not find_contact(block).all_contact:
                     self.grasp_blocks_ += 1
             except FitError:
@@ -230,12 +234,14 @@ class StreamedFit:
         levels: Contact,
         dt: float,
         t_first: float,
+        rebuild: bool = False,
     ) -> tuple[Kinematics | None, Array]:
         """A block on the whole session's grid (so that blocks meet without a seam),
         filtered as the pilot was: every sample, or by the pilot's grasp ``rules``, its
         grasps found against the pilot's free-jaw level and noise (``levels``); and
-        the closure on that grid (m). None for kinematics where the block holds nothing
-        to fit (no grasp, by the rules).
+        the closure on that grid (m), a staircase rebuilt through its level crossings
+        where ``rebuild`` (as the pilot's was). None for kinematics where the block
+        holds nothing to fit (no grasp, by the rules).
 
         Raises
         ------
@@ -256,13 +262,19 @@ class StreamedFit:
         on_grid = block.replace(grid, gf, gx)
         for _, clipped in adc_ends(on_grid):  # a clipped value is not a measurement
             valid &= ~clipped
+        formed = on_grid
+        # rebuilt from the samples as read (the grid's interpolation leaves the levels)
+        stair = staircase(x, dt) if rebuild else None
+        if stair is not None:
+            gx = np.interp(grid, t, stair[0])
+            formed = block.replace(grid, gf, gx)
         if rules is None:
             return frozen(grid, gx, gf, valid), gx
-        contact = find_contact(on_grid, levels).mask
+        contact = find_contact(on_grid, levels).mask  # read on the closure as read
         if not (rules.open_fitted or np.any(contact & valid)):
             return None, gx
         try:
-            return fit_grasps(rules, frozen, on_grid, valid, contact, contact), gx
+            return fit_grasps(rules, frozen, formed, valid, contact, contact), gx
         except FitError:
             return None, gx  # too few outputs touch a grasp to filter
 

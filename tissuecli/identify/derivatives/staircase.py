@@ -31,6 +31,7 @@ reading, and the closure is left as read.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -77,7 +78,7 @@ def staircase(
     dt : float
         Sample interval, s.
     valid : ndarray of bool, shape (n,), optional
-        Samples to trust; a step between two samples is read only where both are.
+        Samples to trust; a step across untrusted ones is read at their middle.
 
     Returns
     -------
@@ -103,17 +104,24 @@ def staircase(
         return None
     base = float(np.min(x[ok]))
     codes = np.round((x - base) / step)
-    pair = ok[:-1] & ok[1:]
-    moved = (codes[1:] != codes[:-1]) & pair
-    steps, pairs = np.count_nonzero(moved), np.count_nonzero(pair)
+    if not ok.all():
+        # an untrusted sample reads as the nearer trusted one: a step across a hole is
+        # read at its middle (left out, it went unread, and the rebuilt closure stayed
+        # a step off until the next crossing)
+        kept = np.flatnonzero(ok)
+        after = np.clip(np.searchsorted(kept, np.arange(n)), 0, kept.size - 1)
+        before = np.clip(after - 1, 0, kept.size - 1)
+        here = np.arange(n)
+        nearer = np.where(here - kept[before] <= kept[after] - here, kept[before], kept[after])
+        codes = codes[np.where(ok, here, nearer)]
+    moved = codes[1:] != codes[:-1]
+    steps, pairs = np.count_nonzero(moved), n - 1
     if steps < 4 or pairs < STAIR_SAMPLES * steps:
         return None
     t, v = _crossings(codes, moved, dt)
     if t.size < 4:
         return None
-    from scipy.interpolate import PchipInterpolator  # only for a staircase
-
-    curve = PchipInterpolator(t, v, extrapolate=False)
+    curve = _through(t, v)
     time = np.arange(n) * dt
     u = curve(time)
     # before the first crossing and after the last the closure goes on at the speed it
@@ -123,6 +131,30 @@ def staircase(
         line = v[i] + slope[i] * (time[ends] - t[i])
         u[ends] = np.clip(line, codes[ends] - 0.5, codes[ends] + 0.5)
     return base + step * u, step / math.sqrt(12.0 * pairs / steps)
+
+
+def _through(t: Array, v: Array) -> Any:
+    """A monotone cubic (PCHIP) through the points ``t`` (s), ``v`` (steps), shape (m,),
+    but for the spans either side of a turn (a point beyond both its neighbours): there
+    the parabola with its vertex at the turn, the shape of a smooth closure near it.
+
+    PCHIP enters a turn at the harmonic mean of the chords about the crossing before
+    it, short of the parabola's slope (three quarters of it at even spacing): through a
+    slow 8-bit squeeze's turns the rebuilt speed fell short of the truth's, a misfit a
+    friction term took up (paper scene 5520345, x^3+xdot+sign(xdot)+xddot 2.1 nats
+    ahead of the truth, 0.5 with the parabola). Slopes from the parabola through every
+    point and its neighbours as well took the rebuilt acceleration's shortfall through
+    the fit's filter only from 0.6 to 0.5 %, and put predict's true law on an 8.4 kHz
+    8-bit squeeze (scene 6630428) 4.6 times the noise floor off, where this is 1.3."""
+    from scipy.interpolate import CubicHermiteSpline, PchipInterpolator  # only here
+
+    slope = PchipInterpolator(t, v).derivative()(t)
+    if t.size >= 3:
+        i = 1 + np.flatnonzero((v[1:-1] - v[:-2]) * (v[1:-1] - v[2:]) > 0)  # the turns
+        for j in (i - 1, i + 1):  # the parabola's slope at each neighbour: twice the chord
+            slope[j] = 2.0 * (v[j] - v[i]) / (t[j] - t[i])
+        slope[i] = 0.0
+    return CubicHermiteSpline(t, v, slope, extrapolate=False)
 
 
 def _crossings(codes: Array, moved: NDArray[np.bool_], dt: float) -> tuple[Array, Array]:
