@@ -320,7 +320,7 @@ def test_a_grasps_loose_part_read_free_is_predicted_in_contact(seed: int, was: f
 
 def test_a_bend_is_taken_only_where_it_agrees_clearly_better() -> None:
     """Two smoothers whose residuals differ by noise alone: the mean of 20 block means
-    of the squared residuals' difference beats twice its standard error 3.0 % of the
+    of the squared residuals' difference beats twice its standard error 2.8 % of the
     time (Student's t with 19 degrees of freedom), so of 400 such pairs at most 5.6 %
     (three binomial SDs above) may pass; a smoother whose residual is truly smaller
     (by half the noise's SD, one sample in two) passes almost always."""

@@ -35,7 +35,6 @@ from .derivatives import Differentiator
 from .design import design, lstsq_scaled_cond, position_noise_sd
 from .diagnostics import (
     blocked_cv_rms,
-    clearly_better,
     cv_scores,
     expected_residual_sd,
     identifiability,
@@ -552,9 +551,8 @@ class BayesianFit(Estimator):
     def _parsimony(self, results: list[ModelResult], fit: Context) -> None:
         """A law must predict as well as it explains: while the most probable law leads a
         law with fewer parameters (coefficients and shape parameters) by less than
-        ``decisive`` nats and predicts held-out blocks (:func:`blocked_cv_rms`) not
-        clearly better than it (:func:`clearly_better`: by more than twice the standard
-        error of the difference), its probability passes to the best such law by evidence.
+        ``decisive`` nats and predicts held-out blocks (:func:`blocked_cv_rms`) no
+        better than it, its probability passes to the best such law by evidence.
 
         Within ``decisive`` nats the evidence alone is no decision (odds below 100:1),
         and a term that buys them by following a misfit (grasps read as one contact, a
@@ -577,7 +575,7 @@ class BayesianFit(Estimator):
                 r for r in results
                 if r is not best and r.status != NOT_EVALUATED and not unidentified(r)
                 and size(r) < size(best) and math.isfinite(r.cv_rms)
-                and not clearly_better(best.cv_parts, r.cv_parts)
+                and r.cv_rms <= best.cv_rms
                 and best.ln_evidence - r.ln_evidence < self.decisive
             ]  # fmt: skip
             if not rivals:
@@ -588,8 +586,7 @@ class BayesianFit(Estimator):
             best.flags.append(
                 f"not chosen: {rival.name} has fewer parameters, is within "
                 f"{best.ln_evidence - rival.ln_evidence:.2g} nats of its evidence and "
-                f"predicts held-out blocks as well, within twice the standard error (blocked "
-                f"cross-validation RMS "
+                f"predicts held-out blocks as well (blocked cross-validation RMS "
                 f"{rival.cv_rms:.3g} N against {best.cv_rms:.3g} N); its probability counts "
                 f"for {rival.name}"
             )

@@ -173,58 +173,31 @@ def blocked_cv_rms(A: Array, y: Array, blocks: int = CV_BLOCKS) -> float:
     y : ndarray, shape (m,)
         The filtered force, N.
     """
-    parts = blocked_cv_parts(A, y, blocks)
-    return math.sqrt(float(parts.sum()) / y.size) if parts.size else float("nan")
-
-
-#: parts the held-out residuals of the blocked cross-validation are summed over, to
-#: judge whether one law predicts them clearly better than another (:func:`clearly_better`)
-CV_PARTS = 20
-
-
-def blocked_cv_parts(A: Array, y: Array, blocks: int = CV_BLOCKS, parts: int = CV_PARTS) -> Array:
-    """The squared held-out residuals of :func:`blocked_cv_rms` summed over ``parts``
-    contiguous parts of the samples (N^2), shape (parts,); empty where the samples are
-    too few for the blocks."""
     m = y.size
-    if m < 2 * blocks * max(A.shape[1], 1) or m < parts:
-        return np.zeros(0)
+    if m < 2 * blocks * max(A.shape[1], 1):
+        return float("nan")
     edges = np.linspace(0, m, blocks + 1).astype(int)
     d = np.linalg.norm(A, axis=0)
     d[d == 0] = 1.0
     As = A / d
-    grams = [(As[a:b].T @ As[a:b], As[a:b].T @ y[a:b]) for a, b in itertools.pairwise(edges)]
-    G = sum(g for g, _ in grams)
-    c = sum(v for _, v in grams)
-    r = np.empty(m)
-    for (a, b), (g, v) in zip(itertools.pairwise(edges), grams, strict=True):
+    parts = [(As[a:b].T @ As[a:b], As[a:b].T @ y[a:b]) for a, b in itertools.pairwise(edges)]
+    G = sum(g for g, _ in parts)
+    c = sum(v for _, v in parts)
+    ss = 0.0
+    for (a, b), (g, v) in zip(itertools.pairwise(edges), parts, strict=True):
         beta = np.linalg.lstsq(G - g, c - v, rcond=1e-12)[0]
-        r[a:b] = y[a:b] - As[a:b] @ beta
-    cuts = np.linspace(0, m, parts + 1).astype(int)
-    return np.add.reduceat(r**2, cuts[:-1])
-
-
-def clearly_better(new: Array, old: Array) -> bool:
-    """Whether the held-out squared residuals ``new`` (per part, :func:`blocked_cv_parts`)
-    lie below ``old`` by more than twice the standard error of their mean difference:
-    parts far longer than the filtered residuals' correlation are nearly independent,
-    so a law that predicts better by chance alone passes one time in 33 (Student's t)."""
-    if new.size != old.size or new.size < 4:
-        return False
-    d = new - old
-    return bool(-d.mean() > 2.0 * d.std(ddof=1) / math.sqrt(d.size))
+        r = y[a:b] - As[a:b] @ beta
+        ss += float(r @ r)
+    return math.sqrt(ss / m)
 
 
 def cv_scores(results: list[ModelResult], fit: Context) -> None:
-    """Set ``cv_rms`` and ``cv_parts`` (:func:`blocked_cv_parts`) of every evaluated law
-    that has none yet."""
+    """Set ``cv_rms`` (:func:`blocked_cv_rms`) of every evaluated law that has none yet."""
     for r in results:
         if r.status == NOT_EVALUATED or math.isfinite(r.cv_rms):
             continue
         A = design(r.model, fit.kin, fit.x_full, fit.sigma_x, fit.columns)
-        r.cv_parts = blocked_cv_parts(A, fit.y)
-        ss = float(r.cv_parts.sum())
-        r.cv_rms = math.sqrt(ss / fit.y.size) if r.cv_parts.size else float("nan")
+        r.cv_rms = blocked_cv_rms(A, fit.y)
 
 
 def predictive_guard(results: list[ModelResult], fit: Context) -> list[str]:

@@ -63,7 +63,6 @@ from .contact import find_contact
 from .derivatives import Differentiator, SavitzkyGolay, differentiator
 from .derivatives.staircase import staircase
 from .design import design, held_closure, position_noise_sd
-from .diagnostics import clearly_better
 from .prepare import BRIDGE_SAMPLES, _short_runs, on_grid, prepare, touching_by_closure
 from .spectrum import convolve_valid, white_noise_sd
 
@@ -565,15 +564,16 @@ BLOCKS = 20
 
 def _clearly_better(new: Array, old: Array) -> bool:
     """Whether the residuals ``new`` agree with the measured force better than ``old``
-    (:func:`~tissuecli.identify.diagnostics.clearly_better`), their squares' means taken
-    over :data:`BLOCKS` contiguous blocks (the residuals of a smoothed force are
-    correlated from sample to sample; blocks far longer than that correlation are nearly
-    independent)."""
+    by more than twice the standard error of the mean difference of their squares,
+    that error from the means of :data:`BLOCKS` contiguous blocks (the residuals of a
+    smoothed force are correlated from sample to sample; blocks far longer than that
+    correlation are nearly independent)."""
     ok = np.isfinite(new) & np.isfinite(old)
-    if ok.sum() < 4 * BLOCKS:
+    d = (new[ok] ** 2) - (old[ok] ** 2)
+    if d.size < 4 * BLOCKS:
         return False
-    means = [np.array([b.mean() for b in np.array_split(u[ok] ** 2, BLOCKS)]) for u in (new, old)]
-    return clearly_better(*means)
+    means = np.array([b.mean() for b in np.array_split(d, BLOCKS)])
+    return bool(-means.mean() > 2.0 * means.std(ddof=1) / math.sqrt(BLOCKS))
 
 
 def _columns(

@@ -48,8 +48,6 @@ class ModelResult:
     #: blocked cross-validation: RMS of the force each of CV_BLOCKS contiguous blocks
     #: leaves to the law fitted (least squares) to the others, N
     cv_rms: float = float("nan")
-    #: its squared held-out residuals summed over CV_PARTS contiguous parts, N^2
-    cv_parts: Array = field(default_factory=lambda: np.zeros(0), repr=False)
     flags: list[str] = field(default_factory=list)
     gram: Array = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # A^T A
     correction: Array | None = field(default=None, repr=False)  # errors-in-variables, if applied
