@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tissuecli.identify.derivatives.staircase import staircase
 from tissuecli.identify.predict import _smoothed
@@ -136,3 +138,39 @@ def test_a_turn_is_rebuilt_as_the_parabola_through_it() -> None:
     fine = np.linspace(-1.0, 1.0, 201)
     assert np.max(np.abs(_through(t, v)(fine) - (1.0 - fine**2))) < 1e-12
     assert np.max(np.abs(PchipInterpolator(t, v)(fine) - (1.0 - fine**2))) > 0.05
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    bits=st.integers(6, 11),
+    noise_steps=st.floats(0.0, 0.3),
+    tempo=st.floats(0.2, 5.0),
+    holes=st.floats(0.0, 0.05),
+)
+def test_a_rebuilt_closure_stays_within_its_readings(
+    seed: int, bits: int, noise_steps: float, tempo: float, holes: float
+) -> None:
+    """Any squeeze (two tones at any tempo) read through an ADC of 6-11 bits after noise
+    of up to 0.3 steps, with up to 5 % of its samples left out: the rebuilt closure,
+    where the reading is a staircase, is finite and never further from the reading than
+    a step and a half plus four noise SDs (it passes through the crossings, between
+    the readings either side of each, and the turns' parabolas stay within the level
+    they turn in). About a third of the draws read as a staircase; the worst of 300 lay
+    0.94 step beyond the noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(1.5 * FS)) * DT
+    x = 2e-3 + 1e-3 * np.sin(2 * np.pi * 1.3 * tempo * t + rng.uniform(0, 6.3))
+    x += 0.4e-3 * np.sin(2 * np.pi * 2.9 * tempo * t + rng.uniform(0, 6.3))
+    step = 1.2 * float(np.ptp(x)) / 2**bits
+    q = np.round((x + rng.normal(0.0, noise_steps * step, x.size)) / step) * step
+    valid = rng.random(x.size) >= holes
+    valid[[0, -1]] = True
+    held = np.interp(t, t[valid], q[valid])
+    rebuilt = staircase(held, DT, valid)
+    if rebuilt is None:
+        return
+    closure, sd = rebuilt
+    assert np.all(np.isfinite(closure)) and sd > 0
+    off = np.abs(closure - q)[valid]
+    assert float(np.max(off)) <= (1.5 + 4 * noise_steps) * step
