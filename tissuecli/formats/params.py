@@ -193,9 +193,7 @@ def document(outcome: FitOutcome) -> dict[str, Any]:
                 "effective_samples": est.n_eff_,
                 "position_noise_sd_m": est.sigma_x_,
                 # the columns' closure: as read, or a coarse ADC's staircase rebuilt
-                "closure": "read"
-                if np.array_equal(est.closure_, est.session_.position)
-                else "rebuilt",
+                "closure": "rebuilt" if est.rebuilt_ else "read",
             }
         )
     if pinv is not None:

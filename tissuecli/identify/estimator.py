@@ -32,7 +32,8 @@ class Estimator:
     read and set them, as in scikit-learn); among them ``differentiator``, ``grasps``
     and ``closure`` (:func:`~tissuecli.identify.prepare.prepare`). After ``fit`` they
     set ``session_``, ``kinematics_``, ``closure_`` (the closure the kinematics are
-    formed from, m), ``contact_`` and ``warnings_``, and what :meth:`_coefficients`,
+    formed from, m; ``rebuilt_`` says whether it is a rebuilt staircase), ``contact_``
+    and ``warnings_``, and what :meth:`_coefficients`,
     :meth:`_uncertainty` and :meth:`_position_noise_sd` read.
 
     Every fitted estimator then answers in one vocabulary: ``law_`` (the law chosen or
@@ -109,6 +110,12 @@ class Estimator:
     def coef_ci95_(self) -> Array:
         """Each coefficient's central 95 % interval, SI, shape (p, 2)."""
         return self._uncertainty()[1]
+
+    @property
+    def rebuilt_(self) -> bool:
+        """Whether the fit formed its columns from a staircase closure rebuilt through
+        its level crossings (``closure="rebuilt"`` on a coarse ADC's closure)."""
+        return not np.array_equal(self.closure_, self.session_.position)
 
     @property
     def tissue_(self) -> Tissue:

@@ -170,7 +170,7 @@ class StreamedFit:
         pilot = BayesianFit(**self.bayes).fit(read(a, b))
         self.pilot_, self.pilot_rows_ = pilot, (a, b)
         # where the pilot's closure is a staircase it fitted rebuilt, each block's is too
-        rebuild = not np.array_equal(pilot.closure_, pilot.session_.position)
+        rebuild = pilot.rebuilt_
         kin0 = pilot.kinematics_
         dt = kin0.dt
         frozen = Frozen(kin0)
