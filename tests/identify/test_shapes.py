@@ -92,3 +92,37 @@ def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
     assert peak is not None
     # Newton's steps stop within a hundredth of an SD
     np.testing.assert_allclose(peak.u, centre, atol=0.02 * float(np.min(sd)))
+
+
+def test_the_curvature_along_a_ridge_is_measured_at_its_own_scale() -> None:
+    """Two shape parameters that trade off along a narrow ridge (a contact's exponent
+    and contact point), the ln evidence falling faster than a parabola away from it:
+    the Laplace SD along the ridge is the posterior's (an exact parabola there) to
+    1e-6. Measured by central differences along the coordinates, the ridge's curvature
+    is the small difference of the large curvatures across it, and the quartic's share
+    of those put the SD along the ridge 1.44 times too wide."""
+    from tissuecli.core.terms import EXPONENT
+
+    taus = np.linspace(math.log(0.01), math.log(10.0), 16)
+    ns = np.linspace(1.0, 2.5, 5)
+    nodes = [{"tau1": float(math.exp(a)), "n": float(b)} for a in taus for b in ns]
+    h = np.array([taus[1] - taus[0], ns[1] - ns[0]])
+    grid = ShapeGrid(
+        nodes, np.full(len(nodes), -math.log(len(nodes))),
+        {"tau1": (0.01, 10.0), "n": (1.0, 2.5)}, h, 0.0,
+        {"tau1": TIME_CONSTANT, "n": EXPONENT},
+    )  # fmt: skip
+    centre = np.array([math.log(0.3), 1.8])
+    along = h / np.linalg.norm(h)  # the ridge, diagonal across the grid
+    across = np.array([-along[1], along[0]])
+    sd_along = 0.1 * float(np.min(h))
+    sd_across = 0.01 * sd_along
+
+    def log_z(u: np.ndarray) -> float:
+        a, b = (u - centre) @ across / sd_across, (u - centre) @ along / sd_along
+        return float(-0.5 * b * b - 0.5 * a * a - 1e-4 * a**4)
+
+    peak = laplace(log_z, grid, [centre + 0.3 * sd_along * along])
+    assert peak is not None
+    measured = math.sqrt(float(along @ peak.cov @ along))
+    assert measured == pytest.approx(sd_along, rel=1e-6)
