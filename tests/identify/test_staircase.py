@@ -140,6 +140,29 @@ def test_a_turn_is_rebuilt_as_the_parabola_through_it() -> None:
     assert np.max(np.abs(PchipInterpolator(t, v)(fine) - (1.0 - fine**2))) > 0.05
 
 
+def test_a_sinusoids_turns_are_rebuilt_at_their_height() -> None:
+    """Noise-free sinusoids of 3-13 steps amplitude read at 1 kHz, 2000 samples a
+    half period: the rebuilt closure's extremes lie on the true ones within 0.005 of a
+    step on average. A sinusoid falls from its apex more slowly than a parabola as it
+    goes deeper; the parabola through two thresholds' widths put the apexes 0.023 of a
+    step low on average, and the acceleration through a fit's filter short with them."""
+    rate, f = 1000.0, 0.5
+    t = np.arange(int(20 * rate)) / rate
+    per = int(rate / f)
+    errors = []
+    for amp in np.linspace(3.05, 12.95, 23):
+        x = amp * np.sin(2 * np.pi * f * t) + 0.37
+        rebuilt = staircase(np.round(x) * 1e-4, 1 / rate)
+        assert rebuilt is not None
+        y = rebuilt[0] / 1e-4
+        for m in range(1, 19):  # the extremes at (2m + 1) quarter periods
+            at = (2 * m + 1) * per // 4
+            near = y[at - per // 8 : at + per // 8]
+            top = near.max() if m % 2 == 0 else -near.min()
+            errors.append(top - (amp + (0.37 if m % 2 == 0 else -0.37)))
+    assert abs(float(np.mean(errors))) < 0.005
+
+
 @settings(max_examples=100, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),

@@ -219,7 +219,9 @@ def _apex(t: Array, v: Array, codes: Array, dt: float) -> tuple[Array, Array]:
     most one: it would have crossed the next). Where only one neighbour crosses that
     threshold it gives W by symmetry, and the apex is put no further than the level's
     middle (a turn is seldom symmetric: the one side's width put an apex 0.29 step
-    too far on an 8-bit slow squeeze); with neither, on the threshold."""
+    too far on an 8-bit slow squeeze); with neither, on the threshold. Where both sides
+    cross two thresholds back, the three widths give the symmetric quartic instead
+    (:func:`_quartic_apex`)."""
     m = t.size
     if m < 2:
         return t, v
@@ -246,7 +248,41 @@ def _apex(t: Array, v: Array, codes: Array, dt: float) -> tuple[Array, Array]:
     top = np.where(before & after, 1.0, 0.5)
     height = np.where(np.isfinite(height) & (width > inner), np.minimum(height, top), 0.0)
     height = np.clip(height, 0.0, None)
+    # with the crossings of two thresholds back known on both sides: the quartic
+    two = before & after & (pair >= 2) & (pair + 3 < m)
+    two &= (v[np.clip(pair - 2, 0, m - 1)] == back - side)
+    two &= (v[np.clip(pair + 3, 0, m - 1)] == back - side)
+    if np.any(two):
+        k = pair[two]
+        deeper = _quartic_apex(inner[two], width[two], t[k + 3] - t[k - 2])
+        height[two] = np.where(np.isfinite(deeper), deeper, height[two])
     t = np.concatenate([t, mid])
     v = np.concatenate([v, v[pair] + side * height])
     order = np.argsort(t, kind="stable")
     return t[order], v[order]
+
+
+def _quartic_apex(inner: Array, width: Array, wider: Array) -> Array:
+    """The apex (steps past the threshold) of the symmetric quartic ``depth = c tau^2 -
+    e tau^4`` below it whose full widths are ``inner``, ``width`` and ``wider`` (s,
+    shape (k,)) at the threshold and the next two back; NaN where it has no apex within
+    a step of the threshold (c not positive).
+
+    Three widths fix the apex h, c and e: ``c tau_j^2 - e tau_j^4 - h = j`` for the
+    half widths tau_0, tau_1, tau_2, linear in them. The parabola (e = 0) of two widths
+    took a closure's turns for sharper than they are: a smooth closure falls from its
+    apex more slowly than a parabola as it goes deeper (a sinusoid's ``cos`` by
+    ``tau^4 / 24``), its second width is wider than the parabola's, and the apex came
+    out low, by 0.04 of a step on average over 423 turns of 8-bit sessions at 1 kHz and
+    by 0.1-0.17 at apexes past 0.75 of a step. Through the fit's filter the rebuilt
+    acceleration was 0.6-0.9 % short and M 1-2.5 SDs low.
+    """
+    tau = 0.5 * np.stack([inner, width, wider], axis=1)  # (k, 3)
+    A = np.stack([np.full_like(tau, -1.0), tau**2, -(tau**4)], axis=2)  # (k, 3, 3)
+    rhs = np.broadcast_to(np.array([0.0, 1.0, 2.0]), tau.shape)
+    ok = np.abs(np.linalg.det(A)) > 0
+    out = np.full(tau.shape[0], np.nan)
+    if np.any(ok):
+        h, c, _ = np.linalg.solve(A[ok], rhs[ok][..., None])[..., 0].T
+        out[ok] = np.where((c > 0) & (h >= 0.0) & (h <= 1.0), h, np.nan)
+    return out
