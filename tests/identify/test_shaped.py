@@ -58,25 +58,28 @@ def test_batched_first_passes_equal_one_node_at_a_time(
                 assert getattr(a, name) == getattr(b, name), (law.name, name)
 
 
-def test_light_shape_nodes_take_the_looser_lattice_at_no_cost_to_the_evidence(monkeypatch):
-    """Nodes of a shape grid whose evidence weighs under e^-5 of a node already known
-    take their orthant mass to the looser target: each law's ln Z stays within 1e-3
-    nats of the full target's (the bound: a share under 0.7 % times ln P to 0.02)."""
+def test_shape_nodes_take_the_looser_lattice_at_no_cost_to_the_evidence(monkeypatch):
+    """Every node of a shape grid takes its orthant mass to the looser target, and those
+    carrying more than a tenth of the law's evidence the full one: each law's ln Z stays
+    within 3.2e-3 nats of the full target's everywhere (independent errors of 0.01 on
+    shares of at most 0.1: 0.01 sqrt(0.1), 3 standard errors)."""
     from tissuecli.identify import posterior
     from tissuecli.sim.scenes import random_scene
 
-    scene = random_scene(102, families=["one branch"], max_samples=3000)
+    # a contact law's exponent and contact point on grids of 35 nodes (six laws)
+    scene = random_scene(102, families=["Hunt-Crossley"], max_samples=3000)
     calls = []
-    loosen = posterior.ExactPosterior.loosen
-    monkeypatch.setattr(posterior.ExactPosterior, "loosen",
-                        lambda self: (calls.append(1), loosen(self))[1])  # fmt: skip
+    tighten = posterior.ExactPosterior.tighten
+    monkeypatch.setattr(posterior.ExactPosterior, "tighten",
+                        lambda self: (calls.append(1), tighten(self))[1])  # fmt: skip
     light = BayesianFit(seed=0).fit(scene.session)
-    assert len(calls) > 10  # the rule is at work on this grid
-    monkeypatch.setattr(shaped, "LIGHT_NODE_NATS", np.inf)
+    tightened = len(calls)
+    monkeypatch.setattr(shaped, "TIGHT_SHARE", -1.0)
     full = BayesianFit(seed=0).fit(scene.session)
+    assert len(calls) - tightened > 3 * tightened  # the rule is at work on this grid
     assert light.best_.name == full.best_.name
     z_light = {r.name: r.ln_evidence for r in light.results_}
     z_full = {r.name: r.ln_evidence for r in full.results_}
     assert z_light.keys() == z_full.keys()
     worst = max(abs(z_light[k] - z_full[k]) for k in z_full if np.isfinite(z_full[k]))
-    assert worst < 1e-3, worst
+    assert worst < 3.2e-3, worst

@@ -376,6 +376,13 @@ class ExactPosterior:
             self.bound_only = False
         return self._inside
 
+    def tighten(self) -> None:
+        """:meth:`ln_orthant_mass` again at the lattice's full target where it was taken
+        to the looser one (:meth:`loosen`, :meth:`rough`)."""
+        if self._rough and self._inside is not None and not self.bound_only:
+            self._rough = False
+            self._inside, self._inside_error, self._tail = self._orthant_mass()
+
     def upper_ln_evidence(self) -> float:
         """An upper bound on :meth:`ln_evidence` that needs no orthant mass (it is at
         most 1)."""
