@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from tissuecli.identify.derivatives.staircase import staircase
@@ -164,6 +164,9 @@ def test_a_sinusoids_turns_are_rebuilt_at_their_height() -> None:
 
 
 @settings(max_examples=100, deadline=None)
+# a reading that jumps two levels in one sample: its turn one sample from its
+# neighbour, whose parabola slope swung the cubic beyond it 3.2 steps off the readings
+@example(seed=38, bits=6, noise_steps=0.21875, tempo=0.2, holes=0.0)
 @given(
     seed=st.integers(0, 2**32 - 1),
     bits=st.integers(6, 11),

@@ -154,6 +154,18 @@ def _through(t: Array, v: Array) -> Any:
         for j in (i - 1, i + 1):  # the parabola's slope at each neighbour: twice the chord
             slope[j] = 2.0 * (v[j] - v[i]) / (t[j] - t[i])
         slope[i] = 0.0
+        # on the span beyond each neighbour, within three times that span's chord
+        # (Fritsch and Carlson's bound for a monotone cubic): a smooth turn's parabola
+        # gives at most twice it, but a reading that jumps two levels in one sample
+        # put a turn one sample from its neighbour, and the cubic beyond, 20 samples
+        # long, swung three steps off the readings
+        for j, k in ((i - 1, i - 2), (i + 1, i + 2)):
+            ok = (k >= 0) & (k < t.size)
+            j, k = j[ok], k[ok]
+            chord = (v[k] - v[j]) / (t[k] - t[j])
+            same = np.sign(slope[j]) == np.sign(chord)
+            bound = np.minimum(np.abs(slope[j]), 3 * np.abs(chord))
+            slope[j] = np.where(same, np.sign(chord) * bound, 0.0)
     return CubicHermiteSpline(t, v, slope, extrapolate=False)
 
 
