@@ -23,6 +23,21 @@ def _scene_and_fit():
     return scene, n, ready
 
 
+def _on_true_closure(scene, n: int, kin, edges_at_least: int):  # type: ignore[no-untyped-def]
+    """The inertia column from the true closure, the filtered gated true acceleration,
+    the contact flags, each output's distance to the nearest edge (samples) and the
+    centre of each output's window."""
+    assert kin.touching is not None and kin.half is not None
+    touching = kin.touching[:n].astype(float)
+    column = kin.acceleration_input(Inertia(), scene.x[:n])
+    truth = kin.smooth(touching * scene.a[:n])
+    edges = np.flatnonzero(np.diff(touching))
+    assert edges.size >= edges_at_least
+    centre = np.arange(n)[kin.keep]
+    gap = np.min(np.abs(centre[:, None] - edges[None, :]), axis=1)
+    return column, truth, touching, gap, centre
+
+
 def test_the_inertia_column_is_the_gated_acceleration_filtered_at_the_edges() -> None:
     """With the true (noise-free) closure, the column at the outputs within a quarter
     window of an edge equals the filtered gated true acceleration to 5 % of its RMS
@@ -31,14 +46,7 @@ def test_the_inertia_column_is_the_gated_acceleration_filtered_at_the_edges() ->
     window is in contact the column is the plain ``g'' * x`` to rounding."""
     scene, n, ready = _scene_and_fit()
     kin = ready.kinematics
-    assert kin.touching is not None and kin.half is not None
-    touching = kin.touching[:n].astype(float)
-    column = kin.acceleration_input(Inertia(), scene.x[:n])
-    truth = kin.smooth(touching * scene.a[:n])
-    edges = np.flatnonzero(np.diff(touching))
-    assert edges.size >= 3
-    centre = np.arange(n)[kin.keep]
-    gap = np.min(np.abs(centre[:, None] - edges[None, :]), axis=1)
+    column, truth, touching, gap, centre = _on_true_closure(scene, n, kin, 3)
     near = gap < kin.window // 4
     assert near.sum() > 100
     err = np.sqrt(np.mean((column[near] - truth[near]) ** 2))
@@ -78,16 +86,8 @@ def test_the_edge_terms_leave_no_mean_misfit_along_the_edges() -> None:
     acceleration, the same sign at every edge. The bias of a quintic is the sixth power
     of the span over the motion's time scale, below 0.1 % here."""
     scene, n, head = _grasps_at_6_6_khz()
-    ready = BayesianFit().prepare(head)
-    kin = ready.kinematics
-    assert kin.touching is not None and kin.half is not None
-    touching = kin.touching[:n].astype(float)
-    column = kin.acceleration_input(Inertia(), scene.x[:n])
-    truth = kin.smooth(touching * scene.a[:n])
-    edges = np.flatnonzero(np.diff(touching))
-    assert edges.size >= 4
-    centre = np.arange(n)[kin.keep]
-    gap = np.min(np.abs(centre[:, None] - edges[None, :]), axis=1)
+    kin = BayesianFit().prepare(head).kinematics
+    column, truth, _, gap, _ = _on_true_closure(scene, n, kin, 4)
     near = gap < kin.window // 4
     rms = np.sqrt(np.mean(truth[near] ** 2))
     assert abs(np.mean(column[near] - truth[near])) < 1e-3 * rms

@@ -62,10 +62,9 @@ def test_a_sharp_peak_near_the_edge_is_still_found(depth: float) -> None:
     assert float(peak.sd[0]) == pytest.approx(sd, rel=1e-3)
 
 
-def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
-    """A time constant's sharp peak a tenth of a grid step inside its upper edge, with
-    an exponent well inside its range: the climbs from the best grid nodes end at the
-    peak, not on the edge."""
+def _grid_tau_n() -> tuple[ShapeGrid, np.ndarray, np.ndarray]:
+    """A time constant log-uniform over 10 ms to 10 s on 16 nodes by an exponent over
+    1-2.5 on 5; with the time constant's nodes (ln s) and the grid's spacing."""
     from tissuecli.core.terms import EXPONENT
 
     taus = np.linspace(math.log(0.01), math.log(10.0), 16)
@@ -77,6 +76,14 @@ def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
         {"tau1": (0.01, 10.0), "n": (1.0, 2.5)}, h, 0.0,
         {"tau1": TIME_CONSTANT, "n": EXPONENT},
     )  # fmt: skip
+    return grid, taus, h
+
+
+def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
+    """A time constant's sharp peak a tenth of a grid step inside its upper edge, with
+    an exponent well inside its range: the climbs from the best grid nodes end at the
+    peak, not on the edge."""
+    grid, taus, h = _grid_tau_n()
     centre = np.array([taus[-1] - 0.1 * h[0], 1.355])
     sd = np.array([0.052 * h[0], 0.02 * h[1]])
     cov = np.array([[1.0, 0.37], [0.37, 1.0]]) * np.outer(sd, sd)
@@ -86,8 +93,8 @@ def test_a_sharp_peak_near_an_edge_in_two_parameters_is_found() -> None:
         z = u - centre
         return float(-0.5 * z @ precision @ z)
 
-    values = np.array([log_z(grid.to_u(node)) for node in nodes])
-    starts = [grid.to_u(nodes[i]) for i in np.argsort(-values)[:3]]
+    values = np.array([log_z(grid.to_u(node)) for node in grid.nodes])
+    starts = [grid.to_u(grid.nodes[i]) for i in np.argsort(-values)[:3]]
     peak = laplace(log_z, grid, starts)
     assert peak is not None
     # Newton's steps stop within a hundredth of an SD
@@ -101,17 +108,7 @@ def test_the_curvature_along_a_ridge_is_measured_at_its_own_scale() -> None:
     1e-6. Measured by central differences along the coordinates, the ridge's curvature
     is the small difference of the large curvatures across it, and the quartic's share
     of those put the SD along the ridge 1.44 times too wide."""
-    from tissuecli.core.terms import EXPONENT
-
-    taus = np.linspace(math.log(0.01), math.log(10.0), 16)
-    ns = np.linspace(1.0, 2.5, 5)
-    nodes = [{"tau1": float(math.exp(a)), "n": float(b)} for a in taus for b in ns]
-    h = np.array([taus[1] - taus[0], ns[1] - ns[0]])
-    grid = ShapeGrid(
-        nodes, np.full(len(nodes), -math.log(len(nodes))),
-        {"tau1": (0.01, 10.0), "n": (1.0, 2.5)}, h, 0.0,
-        {"tau1": TIME_CONSTANT, "n": EXPONENT},
-    )  # fmt: skip
+    grid, _, h = _grid_tau_n()
     centre = np.array([math.log(0.3), 1.8])
     along = h / np.linalg.norm(h)  # the ridge, diagonal across the grid
     across = np.array([-along[1], along[0]])
