@@ -163,9 +163,11 @@ def _through(t: Array, v: Array) -> Any:
             ok = (k >= 0) & (k < t.size)
             j, k = j[ok], k[ok]
             chord = (v[k] - v[j]) / (t[k] - t[j])
-            same = np.sign(slope[j]) == np.sign(chord)
+            # where the span beyond runs on the way the slope does (a span that turns
+            # back or holds a level is beside another turn, whose shape governs it)
+            same = (np.sign(slope[j]) == np.sign(chord)) & (chord != 0)
             bound = np.minimum(np.abs(slope[j]), 3 * np.abs(chord))
-            slope[j] = np.where(same, np.sign(chord) * bound, 0.0)
+            slope[j] = np.where(same, np.sign(chord) * bound, slope[j])
     return CubicHermiteSpline(t, v, slope, extrapolate=False)
 
 
