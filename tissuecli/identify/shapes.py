@@ -254,6 +254,18 @@ class Peak:
     def sd(self) -> Array:
         return np.sqrt(np.diag(self.cov))
 
+    @property
+    def axes(self) -> Array:
+        """The Gaussian's principal axes (:func:`principal_axes`)."""
+        return principal_axes(self.cov)
+
+
+def principal_axes(cov: Array) -> Array:
+    """The principal axes of a Gaussian of covariance ``cov`` (d, d), shape (d, d):
+    each column one SD long."""
+    lam, vec = np.linalg.eigh(cov)
+    return np.asarray(vec * np.sqrt(np.clip(lam, 0.0, None)))
+
 
 def laplace(
     log_z: Callable[[Array], float],
@@ -415,12 +427,11 @@ def _polish(
     parameters trade off (:func:`_on_axes`)."""
     h = grid.spacing / 50.0 if h is None else h
     for _ in range(12):
-        f0, g, H = _stencil(log_z, u, np.diag(h), grid)
-        if H is None or not np.all(np.linalg.eigvalsh(H) < 0):
+        newton = _newton(log_z, u, np.diag(h), grid)
+        if newton is None:
             return None
-        cov = np.linalg.inv(-H)
+        f0, _, cov, step = newton
         sd = np.sqrt(np.diag(cov))
-        step = cov @ g
         # at most three SDs at a time, and never out of the prior's support
         step *= min(1.0, 3.0 / max(float(np.max(np.abs(step) / sd)), 1e-300))
         converged = bool(np.all(np.abs(step) < 0.01 * sd)) and bool(np.all(h <= 1.01 * sd))
@@ -460,11 +471,11 @@ def _on_axes(log_z: Callable[[Array], float], grid: ShapeGrid, peak: Peak) -> Pe
     u, cov = peak.u, peak.cov
     for _ in range(3):
         frame = _frame(cov, grid)
-        f0, g, H = _stencil(log_z, u, frame, grid)
-        if H is None or not np.all(np.linalg.eigvalsh(H) < 0):
+        newton = _newton(log_z, u, frame, grid)
+        if newton is None:
             return peak
-        cov = np.linalg.inv(-H)
-        step = cov @ g
+        f0, H, cov, step = newton
+        # each axis of the frame in the posterior's SDs along it
         lengths = np.sqrt(np.maximum(np.einsum("ik,ij,jk->k", frame, -H, frame), 0.0))
         if np.all(np.abs(step) < 0.01 * np.sqrt(np.diag(cov))) and np.all(lengths <= FRAME_SD):
             return Peak(u, f0, cov)
@@ -474,11 +485,23 @@ def _on_axes(log_z: Callable[[Array], float], grid: ShapeGrid, peak: Peak) -> Pe
     return peak
 
 
+def _newton(
+    log_z: Callable[[Array], float], u: Array, frame: Array, grid: ShapeGrid
+) -> tuple[float, Array, Array, Array] | None:
+    """``log_z`` at ``u``, its Hessian H by central differences along ``frame``'s
+    columns (:func:`_stencil`), the covariance ``(-H)^-1`` and the Newton step to its
+    peak; None where the stencil leaves the prior or the curvature is not concave."""
+    f0, g, H = _stencil(log_z, u, frame, grid)
+    if H is None or not np.all(np.linalg.eigvalsh(H) < 0):
+        return None
+    cov = np.linalg.inv(-H)
+    return f0, H, cov, cov @ g
+
+
 def _frame(cov: Array, grid: ShapeGrid) -> Array:
-    """The principal axes of ``cov``, shape (d, d), each (a column) one SD long, but no
-    longer than half a grid step in any coordinate and no shorter than 1e-7 in all."""
-    lam, vec = np.linalg.eigh(cov)
-    frame = vec * np.sqrt(np.clip(lam, 0.0, None))
+    """The principal axes of ``cov`` (:func:`principal_axes`), but no longer than half
+    a grid step in any coordinate and no shorter than 1e-7 in all."""
+    frame = principal_axes(cov)
     reach = np.max(np.abs(frame) / (grid.spacing[:, None] / 2.0), axis=0)
     frame = frame / np.maximum(reach, 1.0)
     size = np.max(np.abs(frame), axis=0)
@@ -518,8 +541,7 @@ def hermite_nodes(peak: Peak) -> tuple[list[Array], Array]:
     """Three-point Gauss-Hermite nodes per dimension of the peak's Gaussian (along its
     principal axes) and their weights: enough to carry the shape's uncertainty into
     the coefficients' posterior."""
-    lam, vec = np.linalg.eigh(peak.cov)
-    scale = vec * np.sqrt(np.clip(lam, 0.0, None))
+    scale = peak.axes
     z1, w1 = np.array([-math.sqrt(3.0), 0.0, math.sqrt(3.0)]), np.array([1, 4, 1]) / 6.0
     nodes, weights = [], []
     for idx in itertools.product(range(3), repeat=peak.u.size):
@@ -593,8 +615,7 @@ def continuous_mixture(
         return post
     k = max(int(post.samples.shape[0]), MIX_DRAWS)
     z = rng.standard_normal((k, d))
-    lam, vec = np.linalg.eigh(peak.cov)  # the principal axes of :func:`hermite_nodes`
-    inside = grid.inside_many(peak.u + z @ (vec * np.sqrt(np.clip(lam, 0.0, None))).T)
+    inside = grid.inside_many(peak.u + z @ peak.axes.T)  # the axes of :func:`hermite_nodes`
     means = np.array([np.append(q.mean, q.sigma_mean) for q in components])
     centre = hermite_interpolant(means, z)
     # the nearest node along each principal direction: its index in the nodes' order
